@@ -1,0 +1,257 @@
+"""The ``unwind`` command line: a thin face over the core.
+
+Every subcommand parses its options, calls one core function (driving its progress generator with a bar) and
+prints a short report. A user's mistake prints one clear ``unwind: error: ...`` line and exits 1; a traceback
+means a bug.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from .errors import UnwindError
+
+__all__ = ["main", "build_parser"]
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# helpers
+# ------------------------------------------------------------------------------------------------------------------
+def _triple(text: str) -> tuple[float, float, float]:
+    """Parse ``"a,b,c"`` (or one number for all three axes) into three floats."""
+    parts = [p for p in text.replace(" ", "").split(",") if p]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected numbers like 1.5 or 2,1,1, got {text!r}") from None
+    if len(values) == 1:
+        values *= 3
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"expected 1 or 3 comma-separated numbers (axis0,axis1,axis2), got {text!r}")
+    return tuple(values)  # type: ignore[return-value]
+
+
+def _chunks(text: str) -> tuple[int, int, int]:
+    values = _triple(text)
+    if any(v < 1 or v != int(v) for v in values):
+        raise argparse.ArgumentTypeError(f"chunk sizes must be positive whole numbers, got {text!r}")
+    return tuple(int(v) for v in values)  # type: ignore[return-value]
+
+
+def _series(text: str) -> str | int:
+    return int(text) if text.isdigit() else text
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if abs(n) < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"  # pragma: no cover
+
+
+def disk_usage(path: Path) -> int:
+    """Bytes a file or folder tree takes on disk (apparent size)."""
+    if path.is_file():
+        return path.stat().st_size
+    total = 0
+    for root, _dirs, files in os.walk(path):
+        for f in files:
+            try:
+                total += (Path(root) / f).stat().st_size
+            except OSError:
+                pass
+    return total
+
+
+def _run_with_bar(gen: Any, quiet: bool) -> Any:
+    from .progress import progress_bar, run
+
+    callback, close = progress_bar(quiet)
+    try:
+        return run(gen, callback)
+    finally:
+        close()
+
+
+def _reader_options(args: argparse.Namespace) -> dict[str, Any]:
+    opts: dict[str, Any] = {}
+    if getattr(args, "series", None) is not None:
+        opts["series"] = args.series
+    if getattr(args, "input_format", None):
+        opts["format"] = args.input_format
+    return opts
+
+
+def _fmt_triple(values: Sequence[float]) -> str:
+    return " x ".join(f"{v:g}" for v in values)
+
+
+def describe(volume: Any, path: Path | None = None) -> str:
+    """The ``unwind info`` report of a volume, as text."""
+    unit = volume.unit_abbreviation
+    lines = [
+        f"path:      {volume.source or path}",
+        f"format:    {volume.format}",
+        f"shape:     {_fmt_triple(volume.shape)}  (axis0 x axis1 x axis2)",
+        f"dtype:     {volume.dtype}",
+        f"spacing:   {_fmt_triple(volume.spacing)} {unit}" + ("" if volume.unit else "  (unit not recorded)"),
+        f"origin:    {_fmt_triple(volume.origin)} {unit}",
+        f"extent:    {_fmt_triple([n * s for n, s in zip(volume.shape, volume.spacing, strict=True)])} {unit}",
+        f"in memory: {human_bytes(volume.nbytes)}",
+    ]
+    if path is not None:
+        lines.append(f"on disk:   {human_bytes(disk_usage(path))}")
+    lines.append(f"levels:    {len(volume.levels)}")
+    for i, (lvl, sp) in enumerate(zip(volume.levels, volume.level_spacings, strict=True)):
+        chunks = "x".join(str(c[0]) for c in lvl.chunks)
+        lines.append(f"  {i}: {_fmt_triple(lvl.shape):<22} spacing {_fmt_triple(sp):<16} chunks {chunks}")
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# subcommands
+# ------------------------------------------------------------------------------------------------------------------
+def cmd_info(args: argparse.Namespace) -> int:
+    from .io import open_volume
+
+    path = Path(args.path)
+    volume = open_volume(path, **_reader_options(args))
+    print(describe(volume, path))
+    return 0
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from .io import import_volume_iter, open_volume
+
+    src = open_volume(args.input, **_reader_options(args))
+    t0 = time.perf_counter()
+    result = _run_with_bar(
+        import_volume_iter(src, args.output, chunks=args.chunks, max_side=args.max_side, overwrite=args.overwrite,
+                           nan_value=args.nan_value, spacing=args.spacing, unit=args.unit, labels=args.labels),
+        args.quiet,
+    )
+    dt = time.perf_counter() - t0
+    if not args.quiet:
+        print(f"imported {args.input} -> {args.output} in {dt:.1f} s "
+              f"({human_bytes(src.nbytes / max(dt, 1e-9))}/s)")
+        print(describe(result, Path(args.output)))
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from .io import open_volume, write_volume_iter
+
+    src = open_volume(args.input, **_reader_options(args))
+    if args.level is not None:
+        if not 0 <= args.level < len(src.levels):
+            raise UnwindError(f"{args.input} has pyramid levels 0..{len(src.levels) - 1}, got --level {args.level}")
+        src = src.with_data(src.levels[args.level], spacing=src.level_spacings[args.level])
+    options: dict[str, Any] = {}
+    if args.chunks is not None:
+        options["chunks"] = args.chunks
+    t0 = time.perf_counter()
+    written = _run_with_bar(
+        write_volume_iter(src, args.output, spacing=args.spacing, unit=args.unit, format=args.format,
+                          overwrite=args.overwrite, nan_value=args.nan_value, **options),
+        args.quiet,
+    )
+    if not args.quiet:
+        print(f"wrote {written} ({human_bytes(disk_usage(Path(written)))}) in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    return run_demo(Path(args.output), quiet=args.quiet, overwrite=args.overwrite, n_fish=args.fish, seed=args.seed)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# parser
+# ------------------------------------------------------------------------------------------------------------------
+def _add_input_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--series", type=_series, default=None,
+                   help="DICOM: which series to read (SeriesInstanceUID, SeriesNumber or 0-based index)")
+    p.add_argument("--input-format", default=None, help="force the input format instead of detecting it")
+
+
+def _add_output_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--spacing", type=_triple, default=None,
+                   help="override the voxel spacing, axis0,axis1,axis2 (or one number); needed for BMP/PNG stacks")
+    p.add_argument("--unit", default=None, help="override the length unit (um, mm, ...)")
+    p.add_argument("--nan-value", type=float, default=None,
+                   help="replace NaN in float data by this value (default: NaN is an error)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="unwind",
+        description="Straighten bent and twisted specimens in 3D scans (napari-unwind).",
+    )
+    parser.add_argument("--version", action="version", version=f"napari-unwind {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    p = sub.add_parser("info", help="print shape, dtype, spacing, pyramid levels and size on disk")
+    p.add_argument("path", help="a scan in any supported format")
+    _add_input_options(p)
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("import", help="convert a scan to the working format: a chunked OME-Zarr pyramid")
+    p.add_argument("input", help="a scan in any supported format")
+    p.add_argument("output", help="the OME-Zarr folder to create (*.zarr)")
+    p.add_argument("--chunks", type=_chunks, default=None, help="chunk shape (default 128)")
+    p.add_argument("--max-side", type=int, default=256, help="halve until every side is <= this (default 256)")
+    p.add_argument("--labels", action="store_true", help="the input holds labels: downsample by nearest")
+    _add_input_options(p)
+    _add_output_options(p)
+    p.set_defaults(func=cmd_import)
+
+    p = sub.add_parser("convert", help="write a scan in another format (chosen by the output's suffix)")
+    p.add_argument("input", help="a scan in any supported format")
+    p.add_argument("output", help="output path: .zarr .tif .nrrd .nhdr .nii(.gz) .dat .dicom, or name_{:04d}.png")
+    p.add_argument("--format", default=None, help="force the output format instead of the suffix's")
+    p.add_argument("--level", type=int, default=None, help="write this pyramid level instead of full resolution")
+    p.add_argument("--chunks", type=_chunks, default=None, help="OME-Zarr chunk shape")
+    _add_input_options(p)
+    _add_output_options(p)
+    p.set_defaults(func=cmd_convert)
+
+    p = sub.add_parser("demo", help="run the pipeline on the bundled synthetic tank of fish")
+    p.add_argument("-o", "--output", default="unwind-demo", help="folder for the demo's files (default unwind-demo)")
+    p.add_argument("--fish", type=int, default=3, help="number of fish in the tank (default 3)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the phantom (default 0)")
+    p.add_argument("--overwrite", action="store_true", help="replace outputs of an earlier demo run")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``unwind`` command. Returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except (UnwindError, OSError) as exc:
+        print(f"unwind: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("unwind: interrupted; no partial output was left behind", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,45 @@
+"""Exceptions of napari-unwind.
+
+Every error a user can cause derives from :class:`UnwindError`. The CLI prints these as one clear message and
+exits non-zero; the gRPC interceptor maps them to status codes. Anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "UnwindError",
+    "InvalidInputError",
+    "UnknownFormatError",
+    "OutputError",
+    "SeriesSelectionError",
+]
+
+
+class UnwindError(Exception):
+    """Base class of every error caused by input, options or the environment, not by a bug."""
+
+
+class InvalidInputError(UnwindError, ValueError):
+    """The input data or an option is malformed: the message says what is wrong and what to do."""
+
+
+class UnknownFormatError(InvalidInputError):
+    """The path's format could not be recognised or is not supported for this operation."""
+
+
+class SeriesSelectionError(InvalidInputError):
+    """A source holds several series (DICOM) and none was chosen.
+
+    Attributes
+    ----------
+    series : dict[str, str]
+        Series instance UID -> human readable description, for every series found.
+    """
+
+    def __init__(self, message: str, series: dict[str, str]):
+        super().__init__(message)
+        self.series = dict(series)
+
+
+class OutputError(UnwindError, OSError):
+    """An output cannot be written (unwritable folder, existing file without ``overwrite``...)."""

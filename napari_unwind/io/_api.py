@@ -1,0 +1,250 @@
+"""The public I/O entry points: open, write, import."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import dask.array as da
+import numpy as np
+
+from ..errors import InvalidInputError
+from ..progress import Progress, run
+from ._atomic import atomic_output, check_writable
+from ._formats import detect_format, output_format, reader_for, writer_for
+from ._volume import Volume
+
+__all__ = ["open_volume", "write_volume", "write_volume_iter", "import_volume", "import_volume_iter", "as_volume"]
+
+
+def open_volume(path: str | os.PathLike, *, format: str | None = None, **options: Any) -> Volume:
+    """Open a scan lazily, whatever its format.
+
+    Parameters
+    ----------
+    path : str or path-like
+        A file (TIFF, NRRD/NHDR, NIfTI, ``.dat``/``.raw``), a folder (OME-Zarr, DICOM series, numbered 2D slices)
+        or one slice of a numbered stack.
+    format : str, optional
+        Force a reader (a key of ``napari_unwind.io.FORMATS``) instead of detecting it.
+    **options
+        Passed to the reader, e.g. ``series=`` for DICOM, ``level=`` for OME-Zarr.
+
+    Returns
+    -------
+    Volume
+        Dask-backed voxels in array index order (axis0, axis1, axis2) with spacing, unit and origin.
+
+    Raises
+    ------
+    FileNotFoundError
+        The path does not exist.
+    UnknownFormatError
+        Nothing recognisable is there.
+    InvalidInputError
+        The file is recognised but malformed (truncated, inconsistent slices, several DICOM series...).
+    """
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    fmt = format or detect_format(path)
+    return reader_for(fmt)(path, **options)
+
+
+def as_volume(data: Any, *, spacing: Any = None, unit: str | None = None, origin: Any = None) -> Volume:
+    """Wrap an array (numpy, dask, zarr) or a Volume as a Volume, overriding geometry where given."""
+    if isinstance(data, Volume):
+        changes: dict[str, Any] = {}
+        if spacing is not None:
+            changes["spacing"] = spacing
+        if unit is not None:
+            changes["unit"] = unit
+        if origin is not None:
+            changes["origin"] = origin
+        return data.with_data(data.data, **changes) if changes else data
+    if not isinstance(data, da.Array):
+        arr = data if hasattr(data, "shape") and hasattr(data, "dtype") else np.asarray(data)
+        data = da.from_array(arr, chunks=_default_chunks(arr.shape, np.dtype(arr.dtype)))
+    return Volume(data, spacing=(1.0, 1.0, 1.0) if spacing is None else spacing, unit=unit,
+                  origin=(0.0, 0.0, 0.0) if origin is None else origin)
+
+
+def _default_chunks(shape: tuple[int, ...], dtype: np.dtype) -> tuple[int, ...]:
+    return tuple(min(int(s), 128) for s in shape)
+
+
+def _reject_nan(block: np.ndarray, block_info: dict | None = None) -> np.ndarray:
+    if np.isnan(block).any():
+        where = ""
+        if block_info and None in block_info:
+            loc = block_info[None]["array-location"]
+            first = np.argwhere(np.isnan(block))[0]
+            where = " at voxel " + str(tuple(int(lo) + int(f) for (lo, _), f in zip(loc, first, strict=True)))
+        raise InvalidInputError(
+            f"the float data contains NaN{where}; replace it with a number first "
+            "(nan_value=... in Python, --nan-value on the command line)"
+        )
+    return block
+
+
+def _checked(volume: Volume, nan_value: float | None) -> Volume:
+    """Reject (or replace) NaN chunk by chunk while the data streams through; a no-op for integers."""
+    if not np.issubdtype(volume.dtype, np.floating):
+        return volume
+    if nan_value is not None:
+        data = da.where(da.isnan(volume.data), volume.dtype.type(nan_value), volume.data)
+    else:
+        data = volume.data.map_blocks(_reject_nan, dtype=volume.dtype)
+    return volume.with_data(data)
+
+
+def write_volume_iter(
+    data: Any,
+    path: str | os.PathLike,
+    *,
+    spacing: Any = None,
+    unit: str | None = None,
+    origin: Any = None,
+    format: str | None = None,
+    overwrite: bool = False,
+    nan_value: float | None = None,
+    **options: Any,
+) -> Iterator[Progress]:
+    """Generator form of :func:`write_volume`: yields progress, returns the written path."""
+    fmt = output_format(path, format)
+    writer = writer_for(fmt)
+    volume = _checked(as_volume(data, spacing=spacing, unit=unit, origin=origin), nan_value)
+    target = check_writable(path, overwrite=overwrite)
+    with atomic_output(target, overwrite=overwrite) as tmp:
+        yield from writer(volume, tmp, **options)
+    return target
+
+
+def write_volume(
+    data: Any,
+    path: str | os.PathLike,
+    *,
+    spacing: Any = None,
+    unit: str | None = None,
+    origin: Any = None,
+    format: str | None = None,
+    overwrite: bool = False,
+    nan_value: float | None = None,
+    progress: Callable[[Progress], Any] | None = None,
+    **options: Any,
+) -> Path:
+    """Write a volume atomically, in the format its path names.
+
+    Parameters
+    ----------
+    data : Volume or array-like, shape (N0, N1, N2)
+        What to write. A :class:`Volume` brings its spacing, unit and origin; the keywords override them.
+    path : str or path-like
+        Target. The suffix chooses the format: ``.zarr`` (OME-Zarr pyramid), ``.tif``/``.tiff`` (ImageJ hyperstack,
+        BigTIFF when large), ``.nrrd``/``.nhdr``, ``.nii``/``.nii.gz``, ``.dat``/``.raw`` (raw + the original
+        Unwind header), ``.dicom`` (a folder holding a DICOM series), or a name with ``{}`` and an image suffix
+        (a numbered slice stack, e.g. ``slices/fish_{:04d}.png``).
+    spacing : sequence of 3 float, optional
+        Voxel size in array axis order; default the Volume's, or 1.
+    unit : str, optional
+        Length unit (``"um"``, ``"mm"``...).
+    origin : sequence of 3 float, optional
+        Physical position of voxel (0, 0, 0).
+    format : str, optional
+        Force a format instead of the suffix's.
+    overwrite : bool
+        Replace an existing output (only once the new one is complete). Default False: refuse.
+    nan_value : float, optional
+        Replace NaN by this value; by default NaN is an error.
+    progress : callable, optional
+        Called with each :class:`~napari_unwind.progress.Progress` record.
+    **options
+        Format options (``chunks=``, ``pyramid=``, ``labels=`` for OME-Zarr; ``compression=`` for TIFF...).
+
+    Returns
+    -------
+    Path
+        The absolute path written.
+    """
+    return run(write_volume_iter(data, path, spacing=spacing, unit=unit, origin=origin, format=format,
+                                 overwrite=overwrite, nan_value=nan_value, **options), progress)
+
+
+def import_volume_iter(
+    src: Any,
+    dst: str | os.PathLike,
+    *,
+    chunks: Any = None,
+    max_side: int = 256,
+    overwrite: bool = False,
+    nan_value: float | None = None,
+    spacing: Any = None,
+    unit: str | None = None,
+    labels: bool = False,
+    **reader_options: Any,
+) -> Iterator[Progress]:
+    """Generator form of :func:`import_volume`: yields progress, returns the opened result."""
+    if not isinstance(src, Volume):
+        src = open_volume(src, **reader_options)
+    dst = Path(dst)
+    if not dst.name.lower().endswith(".zarr"):
+        raise InvalidInputError(f"import writes an OME-Zarr folder; name the output *.zarr, got {dst}")
+    written = yield from write_volume_iter(src, dst, spacing=spacing, unit=unit, format="ome-zarr",
+                                           overwrite=overwrite, nan_value=nan_value, chunks=chunks,
+                                           max_side=max_side, labels=labels, pyramid=True)
+    return open_volume(written, format="ome-zarr")
+
+
+def import_volume(
+    src: Any,
+    dst: str | os.PathLike,
+    *,
+    chunks: Any = None,
+    max_side: int = 256,
+    overwrite: bool = False,
+    nan_value: float | None = None,
+    spacing: Any = None,
+    unit: str | None = None,
+    labels: bool = False,
+    progress: Callable[[Progress], Any] | None = None,
+    **reader_options: Any,
+) -> Volume:
+    """Convert any scan into the working format: an OME-Zarr pyramid (NGFF 0.5, zarr v3).
+
+    Streams chunk by chunk: peak memory is bounded by one slab of ``chunks[0]`` planes, so scans larger than
+    RAM import. Level 0 keeps full resolution; each next level halves every axis until all sides are
+    ``<= max_side``.
+
+    Parameters
+    ----------
+    src : path-like or Volume
+        Anything :func:`open_volume` reads.
+    dst : path-like
+        The ``*.zarr`` folder to create (atomically).
+    chunks : int or tuple of 3 int, optional
+        Chunk shape (default 128^3).
+    max_side : int
+        Pyramid stop size (default 256).
+    overwrite : bool
+        Replace an existing ``dst``.
+    nan_value : float, optional
+        Replace NaN by this value (default: NaN is an error).
+    spacing, unit : optional
+        Override the geometry the source file declares (for formats that do not store it, e.g. BMP stacks).
+    labels : bool
+        The source holds labels: downsample by nearest.
+    progress : callable, optional
+        Called with each progress record.
+    **reader_options
+        Passed to :func:`open_volume` (``series=`` for DICOM...).
+
+    Returns
+    -------
+    Volume
+        The imported volume, opened lazily from ``dst``, with all pyramid levels.
+    """
+    return run(import_volume_iter(src, dst, chunks=chunks, max_side=max_side, overwrite=overwrite,
+                                  nan_value=nan_value, spacing=spacing, unit=unit, labels=labels,
+                                  **reader_options), progress)

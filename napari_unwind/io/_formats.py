@@ -1,0 +1,144 @@
+"""Format detection and the reader/writer registry.
+
+Each format lives in its own module with two functions:
+
+``read_<fmt>(path: Path, **options) -> Volume``
+    Lazy where the format allows it (memory maps, per-slice delayed reads, zarr). Validates up front and raises
+    :class:`~napari_unwind.errors.InvalidInputError` with a message that says what is wrong and what to do.
+``write_<fmt>(volume: Volume, path: Path, **options) -> Iterator[Progress]``
+    Writes ``volume`` to exactly ``path`` (a temporary sibling chosen by :func:`write_volume`, renamed over the
+    real target once the generator finishes), chunk by chunk where the format allows it, yielding progress.
+
+The registry names modules as strings so that importing :mod:`napari_unwind.io` stays cheap.
+"""
+
+from __future__ import annotations
+
+import importlib
+import re
+from collections.abc import Callable
+from pathlib import Path
+
+from ..errors import UnknownFormatError
+
+__all__ = ["FORMATS", "detect_format", "reader_for", "writer_for", "output_format", "IMAGE_SLICE_SUFFIXES"]
+
+#: format name -> (module, reader function, writer function or None, description)
+FORMATS: dict[str, tuple[str, str, str | None, str]] = {
+    "ome-zarr": ("ome_zarr", "read_ome_zarr", "write_ome_zarr", "OME-Zarr (NGFF 0.5, zarr v3) with a pyramid"),
+    "tiff": ("tiff", "read_tiff", "write_tiff", "multi-page TIFF / BigTIFF, ImageJ hyperstack"),
+    "stack": ("stack", "read_stack", "write_stack", "folder of numbered 2D slices (bmp, png, tif)"),
+    "dicom": ("dicom", "read_dicom", "write_dicom", "DICOM series (folder of .dcm files)"),
+    "nrrd": ("nrrd_io", "read_nrrd", "write_nrrd", "NRRD / NHDR"),
+    "nifti": ("nifti", "read_nifti", "write_nifti", "NIfTI-1/2 (.nii, .nii.gz)"),
+    "raw": ("raw", "read_raw", "write_raw", "raw voxels with the original Unwind .dat header"),
+}
+
+IMAGE_SLICE_SUFFIXES = (".bmp", ".png", ".tif", ".tiff", ".jpg", ".jpeg")
+
+_SUFFIX_FORMAT = {
+    ".zarr": "ome-zarr",
+    ".tif": "tiff",
+    ".tiff": "tiff",
+    ".btf": "tiff",
+    ".tf8": "tiff",
+    ".nrrd": "nrrd",
+    ".nhdr": "nrrd",
+    ".nii": "nifti",
+    ".nii.gz": "nifti",
+    ".dat": "raw",
+    ".raw": "raw",
+    ".dcm": "dicom",
+    ".dicom": "dicom",
+}
+
+_HELP = (
+    "supported: OME-Zarr (.zarr), TIFF (.tif/.tiff), NRRD (.nrrd/.nhdr), NIfTI (.nii/.nii.gz), "
+    "raw + .dat header (.dat/.raw), a DICOM series folder (.dicom or any folder of .dcm files), "
+    "a folder of numbered 2D slices (bmp/png/tif)"
+)
+
+
+def _suffix(path: Path) -> str:
+    name = path.name.lower()
+    if name.endswith(".nii.gz"):
+        return ".nii.gz"
+    return path.suffix.lower()
+
+
+def _is_dicom_file(path: Path) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(128)
+            return fh.read(4) == b"DICM"
+    except OSError:
+        return False
+
+
+def detect_format(path: str | Path) -> str:
+    """Name the format of an existing path (a key of :data:`FORMATS`).
+
+    Raises
+    ------
+    FileNotFoundError
+        When the path does not exist.
+    UnknownFormatError
+        When nothing recognisable is there.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    suffix = _suffix(path)
+    if path.is_dir():
+        if (path / "zarr.json").exists() or (path / ".zgroup").exists() or (path / ".zarray").exists():
+            return "ome-zarr"
+        files = sorted(p for p in path.iterdir() if p.is_file() and not p.name.startswith("."))
+        if not files:
+            raise UnknownFormatError(f"{path} is an empty folder; point at a scan file or a folder of slices")
+        if any(p.suffix.lower() == ".dcm" for p in files) or _is_dicom_file(files[0]):
+            return "dicom"
+        if any(p.suffix.lower() in IMAGE_SLICE_SUFFIXES for p in files):
+            return "stack"
+        raise UnknownFormatError(f"cannot tell what the folder {path} holds; {_HELP}")
+    if suffix in _SUFFIX_FORMAT:
+        return _SUFFIX_FORMAT[suffix]
+    if suffix in (".bmp", ".png", ".jpg", ".jpeg"):
+        return "stack"  # one slice of a numbered stack: the stack reader takes its siblings
+    if _is_dicom_file(path):
+        return "dicom"
+    raise UnknownFormatError(f"unknown format of {path} (suffix {suffix!r}); {_HELP}")
+
+
+def output_format(path: str | Path, format: str | None = None) -> str:
+    """The format to write ``path`` in: ``format`` if given, else from the suffix."""
+    if format is not None:
+        if format not in FORMATS:
+            raise UnknownFormatError(f"unknown output format {format!r}; choose one of {', '.join(FORMATS)}")
+        return format
+    suffix = _suffix(Path(path))
+    if suffix in _SUFFIX_FORMAT:
+        return _SUFFIX_FORMAT[suffix]
+    if re.search(r"\{[^}]*\}", Path(path).name) and suffix in IMAGE_SLICE_SUFFIXES:
+        return "stack"
+    raise UnknownFormatError(f"cannot choose an output format for {path} from its suffix {suffix!r}; {_HELP}")
+
+
+def _load(fmt: str, which: int) -> Callable:
+    if fmt not in FORMATS:
+        raise UnknownFormatError(f"unknown format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    entry = FORMATS[fmt]
+    name = entry[which]
+    if name is None:
+        raise UnknownFormatError(f"writing {fmt} is not supported")
+    module = importlib.import_module(f"napari_unwind.io.{entry[0]}")
+    return getattr(module, name)
+
+
+def reader_for(fmt: str) -> Callable:
+    """The ``read_<fmt>`` function of a format."""
+    return _load(fmt, 1)
+
+
+def writer_for(fmt: str) -> Callable:
+    """The ``write_<fmt>`` generator function of a format."""
+    return _load(fmt, 2)

@@ -1,0 +1,155 @@
+"""The in-memory description of a scan: a lazy array plus its geometry."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import dask.array as da
+import numpy as np
+
+from ..errors import InvalidInputError
+
+__all__ = ["Volume", "SUPPORTED_DTYPES", "check_spacing", "normalise_unit"]
+
+#: Voxel types the pipeline accepts: 8- and 16-bit integers (signed or not) and floats.
+SUPPORTED_DTYPES = tuple(
+    np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
+)
+
+# NGFF unit names (UDUNITS-2) for the spellings file formats use.
+_UNITS = {
+    "m": "meter", "meter": "meter", "metre": "meter",
+    "cm": "centimeter", "centimeter": "centimeter",
+    "mm": "millimeter", "millimeter": "millimeter", "millimetre": "millimeter",
+    "um": "micrometer", "µm": "micrometer", "μm": "micrometer", "micron": "micrometer", "microns": "micrometer",
+    "micrometer": "micrometer", "micrometre": "micrometer", "\\u00b5m": "micrometer",
+    "nm": "nanometer", "nanometer": "nanometer",
+    "pixel": None, "": None, "unknown": None, "none": None,
+}
+
+#: Short spellings for display and for formats that want them.
+UNIT_ABBREVIATIONS = {"meter": "m", "centimeter": "cm", "millimeter": "mm", "micrometer": "um", "nanometer": "nm"}
+
+
+def normalise_unit(unit: str | None) -> str | None:
+    """Return the NGFF name of a length unit (``"mm"`` -> ``"millimeter"``), or None when unknown."""
+    if unit is None:
+        return None
+    key = str(unit).strip().lower()
+    if key in _UNITS:
+        return _UNITS[key]
+    raise InvalidInputError(
+        f"unknown length unit {unit!r}; use one of meter, millimeter, micrometer, nanometer (or m, mm, um, nm)"
+    )
+
+
+def check_spacing(spacing: Any, ndim: int = 3) -> tuple[float, ...]:
+    """Validate a voxel spacing: ``ndim`` finite positive numbers, in array axis order."""
+    try:
+        values = tuple(float(s) for s in np.broadcast_to(np.asarray(spacing, dtype=float), (ndim,)))
+    except (TypeError, ValueError):
+        raise InvalidInputError(
+            f"spacing must be {ndim} positive numbers in array axis order (axis0, axis1, axis2), got {spacing!r}"
+        ) from None
+    if not all(np.isfinite(v) and v > 0 for v in values):
+        raise InvalidInputError(f"spacing must be finite and positive, got {values}")
+    return values
+
+
+@dataclass(frozen=True)
+class Volume:
+    """A scan: a lazy 3D array in array index order (axis0, axis1, axis2) with its geometry.
+
+    Attributes
+    ----------
+    data : dask.array.Array, shape (N0, N1, N2)
+        The voxels at full resolution. Nothing is read until it is computed.
+    spacing : tuple of 3 float
+        Voxel size along axis0, axis1, axis2, in ``unit``.
+    unit : str or None
+        NGFF length unit name (``"micrometer"``, ``"millimeter"``...), None when the file does not say.
+    origin : tuple of 3 float
+        Physical position of voxel (0, 0, 0), in ``unit``.
+    levels : tuple of dask.array.Array
+        The multiscale pyramid, finest first (``levels[0] is data``). A single level for non-pyramidal files.
+    level_spacings : tuple of tuple of 3 float
+        The spacing of each pyramid level.
+    source : str or None
+        Where the volume was read from.
+    format : str or None
+        The reader that produced it (``"ome-zarr"``, ``"tiff"``, ``"nrrd"``...).
+    metadata : dict
+        Anything else the reader found worth keeping (DICOM series UID, TIFF description...).
+    """
+
+    data: da.Array
+    spacing: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    unit: str | None = None
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    levels: tuple[da.Array, ...] = ()
+    level_spacings: tuple[tuple[float, float, float], ...] = ()
+    source: str | None = None
+    format: str | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        data = self.data
+        if not isinstance(data, da.Array):
+            data = da.asarray(np.asarray(data))
+            object.__setattr__(self, "data", data)
+        if data.ndim != 3:
+            raise InvalidInputError(f"a volume must be 3D (axis0, axis1, axis2), got shape {data.shape}")
+        if 0 in data.shape:
+            raise InvalidInputError(f"a volume must not have a dimension of size 0, got shape {data.shape}")
+        if np.dtype(data.dtype) not in SUPPORTED_DTYPES:
+            raise InvalidInputError(
+                f"unsupported voxel type {data.dtype}; supported are "
+                + ", ".join(str(d) for d in SUPPORTED_DTYPES)
+                + " (convert colour images to grey first)"
+            )
+        object.__setattr__(self, "spacing", check_spacing(self.spacing))
+        object.__setattr__(self, "origin", tuple(float(o) for o in np.broadcast_to(self.origin, (3,))))
+        object.__setattr__(self, "unit", normalise_unit(self.unit))
+        if not self.levels:
+            object.__setattr__(self, "levels", (data,))
+            object.__setattr__(self, "level_spacings", (self.spacing,))
+        elif len(self.level_spacings) != len(self.levels):
+            raise InvalidInputError("a Volume needs one spacing per pyramid level")
+
+    # -- conveniences -------------------------------------------------------------------------------------------
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(int(n) for n in self.data.shape)  # type: ignore[return-value]
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(self.data.dtype)
+
+    @property
+    def nbytes(self) -> int:
+        return int(np.prod(self.shape)) * self.dtype.itemsize
+
+    @property
+    def unit_abbreviation(self) -> str:
+        """Short unit for display (``"um"``), or ``"px"`` when unknown."""
+        return UNIT_ABBREVIATIONS.get(self.unit or "", "px")
+
+    def level_for(self, max_side: int = 256) -> int:
+        """Index of the finest pyramid level whose every side is ``<= max_side`` (the coarsest if none is)."""
+        for i, lvl in enumerate(self.levels):
+            if max(lvl.shape) <= max_side:
+                return i
+        return len(self.levels) - 1
+
+    def with_data(self, data: da.Array, **changes: Any) -> Volume:
+        """A copy holding other voxels of the same shape (levels reset to that one array unless given)."""
+        changes.setdefault("levels", ())
+        changes.setdefault("level_spacings", ())
+        return replace(self, data=data, **changes)
+
+    def __repr__(self) -> str:
+        return (
+            f"Volume(shape={self.shape}, dtype={self.dtype}, spacing={self.spacing}, unit={self.unit!r}, "
+            f"levels={len(self.levels)}, format={self.format!r}, source={self.source!r})"
+        )

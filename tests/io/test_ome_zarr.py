@@ -1,0 +1,129 @@
+"""OME-Zarr pyramid: geometry, values, and readability by the reference implementation (ome-zarr-py)."""
+
+import json
+
+import dask
+import dask.array as da
+import numpy as np
+import pytest
+import zarr
+
+from napari_unwind.errors import InvalidInputError, UnknownFormatError
+from napari_unwind.io import Volume, import_volume, open_volume, write_volume
+from napari_unwind.io.ome_zarr import pyramid_shapes
+
+
+def _box_mean2(a):
+    """Independent 2x2x2 block mean with edge padding (odd sides), in float64."""
+    pad = [(0, s % 2) for s in a.shape]
+    a = np.pad(a.astype(np.float64), pad, mode="edge")
+    return a.reshape(a.shape[0] // 2, 2, a.shape[1] // 2, 2, a.shape[2] // 2, 2).mean(axis=(1, 3, 5))
+
+
+@pytest.mark.parametrize("dtype", ["uint8", "uint16", "int16", "float32"])
+def test_round_trip_values_spacing_unit(tmp_path, dtype):
+    rng = np.random.default_rng(0)
+    a = (rng.random((37, 20, 29)) * 200).astype(dtype)
+    out = write_volume(a, tmp_path / "v.zarr", spacing=(2.5, 0.5, 0.5), unit="um", origin=(1, 2, 3), chunks=16,
+                       max_side=8)
+    v = open_volume(out)
+    assert v.dtype == np.dtype(dtype)
+    np.testing.assert_array_equal(v.data.compute(), a)
+    assert v.spacing == (2.5, 0.5, 0.5) and v.unit == "micrometer" and v.origin == (1.0, 2.0, 3.0)
+    assert [lvl.shape for lvl in v.levels] == pyramid_shapes(a.shape, 8)
+    # level 1 is the 2x2x2 box mean of level 0
+    expect = _box_mean2(a)
+    got = v.levels[1].compute().astype(np.float64)
+    tol = 0.5 if np.issubdtype(np.dtype(dtype), np.integer) else 1e-4
+    np.testing.assert_allclose(got, expect, atol=tol)
+    assert v.level_spacings[1] == (5.0, 1.0, 1.0)
+
+
+def test_pyramid_stops_at_max_side():
+    shapes = pyramid_shapes((1000, 300, 1))
+    assert shapes[0] == (1000, 300, 1)
+    assert max(shapes[-1]) <= 256 and max(shapes[-2]) > 256
+    assert all(s[2] == 1 for s in shapes)  # a side of 1 is never halved
+    for a, b in zip(shapes, shapes[1:]):
+        assert all(nb == (na + 1) // 2 or na == 1 for na, nb in zip(a, b))
+
+
+def test_labels_are_downsampled_by_nearest(tmp_path):
+    labels = np.zeros((16, 16, 16), np.uint8)
+    labels[:, :, :8] = 3
+    labels[::2, ::2, 1::2] = 7  # would be averaged into values that exist nowhere
+    v = open_volume(write_volume(labels, tmp_path / "l.zarr", labels=True, max_side=4))
+    for lvl in v.levels[1:]:
+        assert set(np.unique(lvl.compute())) <= {0, 3, 7}
+    np.testing.assert_array_equal(v.levels[1].compute(), labels[::2, ::2, ::2])
+
+
+def test_metadata_is_ngff_0_5_and_readable_by_ome_zarr_py(tmp_path):
+    ome_zarr_reader = pytest.importorskip("ome_zarr.reader")
+    from ome_zarr.io import parse_url
+
+    a = np.arange(40 * 30 * 20, dtype=np.uint16).reshape(40, 30, 20)
+    out = write_volume(a, tmp_path / "v.ome.zarr", spacing=(3.0, 1.0, 1.0), unit="mm", max_side=16, chunks=8)
+    meta = json.loads((out / "zarr.json").read_text())
+    assert meta["zarr_format"] == 3
+    ome = meta["attributes"]["ome"]
+    assert ome["version"] == "0.5"
+    axes = ome["multiscales"][0]["axes"]
+    assert [ax["name"] for ax in axes] == ["z", "y", "x"]
+    assert all(ax["type"] == "space" and ax["unit"] == "millimeter" for ax in axes)
+
+    reader = ome_zarr_reader.Reader(parse_url(str(out)))
+    node = next(iter(reader()))
+    data = node.data
+    assert len(data) == len(pyramid_shapes(a.shape, 16))
+    np.testing.assert_array_equal(np.asarray(data[0]), a)
+    ms = node.zarr.root_attrs["ome"]["multiscales"][0] if "ome" in node.zarr.root_attrs else \
+        node.zarr.root_attrs["multiscales"][0]
+    scales = [ds["coordinateTransformations"][0]["scale"] for ds in ms["datasets"]]
+    assert scales[0] == [3.0, 1.0, 1.0] and scales[1] == [6.0, 2.0, 2.0]
+
+
+def test_reads_ngff_0_4_written_by_ome_zarr_py(tmp_path):
+    """An independent writer's output (ome-zarr-py, NGFF 0.4 on zarr v2) opens with the right geometry."""
+    pytest.importorskip("ome_zarr")
+    from ome_zarr.format import FormatV04
+    from ome_zarr.writer import write_image
+
+    a = (np.random.default_rng(1).random((32, 24, 16)) * 1000).astype(np.uint16)
+    root = zarr.open_group(str(tmp_path / "other.zarr"), mode="w", zarr_format=2)
+    write_image(a, root, axes="zyx", fmt=FormatV04(), scale={"z": 4.0, "y": 0.5, "x": 0.5}, scale_factors=[])
+    v = open_volume(tmp_path / "other.zarr")
+    np.testing.assert_array_equal(v.data.compute(), a)
+    assert v.spacing == (4.0, 0.5, 0.5)
+
+
+def test_group_without_multiscales_is_explained(tmp_path):
+    g = zarr.open_group(str(tmp_path / "plain.zarr"), mode="w")
+    g.create_array("raw", shape=(4, 4, 4), dtype="uint8")
+    with pytest.raises(UnknownFormatError, match="raw"):
+        open_volume(tmp_path / "plain.zarr")
+    # the array itself opens
+    v = open_volume(tmp_path / "plain.zarr" / "raw", format="ome-zarr")
+    assert v.shape == (4, 4, 4)
+
+
+def test_level_option_and_bad_level(tmp_path):
+    out = write_volume(np.ones((64, 64, 64), np.uint8), tmp_path / "v.zarr", max_side=16)
+    v = open_volume(out, level=1)
+    assert v.shape == (32, 32, 32) and v.spacing == (2.0, 2.0, 2.0)
+    with pytest.raises(InvalidInputError, match="levels 0..2"):
+        open_volume(out, level=5)
+
+
+def test_streaming_reads_each_source_slab_once(tmp_path):
+    """Level 0 is built slab by slab from the lazy source, and each source block is read exactly once."""
+    reads = []
+
+    def block(i):
+        reads.append(i)
+        return np.full((4, 32, 32), i, np.uint16)
+
+    src = da.concatenate([da.from_delayed(dask.delayed(block)(i), (4, 32, 32), np.uint16) for i in range(16)])
+    v = import_volume(Volume(src, spacing=1.0), tmp_path / "s.zarr", chunks=(8, 32, 32), max_side=8)
+    assert sorted(reads) == list(range(16))
+    np.testing.assert_array_equal(v.data[::4, 0, 0].compute(), np.arange(16))
