@@ -9,15 +9,21 @@ pytetwild
 
 from __future__ import annotations
 
+import contextlib
 import importlib.machinery
 import importlib.util
+import os
 import sys
+import threading
 from functools import cache
 from types import ModuleType
 
 import numpy as np
 
 __all__ = ["tetrahedralize", "tetwild_extension"]
+
+_TETWILD_LITTER = "__tracked_surface.stl"
+_TETWILD_LOCK = threading.Lock()  # fTetWild keeps global state; one mesh at a time
 
 
 @cache
@@ -33,18 +39,12 @@ def tetwild_extension() -> ModuleType:
         for suffix in importlib.machinery.EXTENSION_SUFFIXES:
             path = f"{folder}/PyfTetWildWrapper{suffix}"
             ext_spec = importlib.util.spec_from_file_location(name, path)
-            if ext_spec is not None and ext_spec.loader is not None and _exists(path):
+            if ext_spec is not None and ext_spec.loader is not None and os.path.exists(path):
                 module = importlib.util.module_from_spec(ext_spec)
                 ext_spec.loader.exec_module(module)
                 sys.modules[name] = module
                 return module
     raise ImportError(f"pytetwild's compiled extension was not found in {list(spec.submodule_search_locations)}")
-
-
-def _exists(path: str) -> bool:
-    import os
-
-    return os.path.exists(path)
 
 
 def tetrahedralize(
@@ -88,9 +88,19 @@ def tetrahedralize(
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) < 4:
         raise ValueError(f"faces must have shape (M>=4, 3), got {faces.shape}")
     ext = tetwild_extension()
-    V, T = ext.tetrahedralize_mesh(
-        vertices, faces, optimize, False, float(edge_length_fac), 0.0, float(epsilon), float(stop_energy),
-        coarsen, int(num_threads), int(max_iterations), 6, True, True, False,
-        np.empty((0, 3), dtype=np.float64), np.empty((0, 4), dtype=np.int32), np.empty(0, dtype=np.float64),
-    )
+    # fTetWild writes a debug copy of the surface, __tracked_surface.stl, into the current folder: remove it
+    # again unless it was there before (the user's own file).
+    litter = os.path.abspath(_TETWILD_LITTER)
+    existed = os.path.exists(litter)
+    with _TETWILD_LOCK:
+        try:
+            V, T = ext.tetrahedralize_mesh(
+                vertices, faces, optimize, False, float(edge_length_fac), 0.0, float(epsilon), float(stop_energy),
+                coarsen, int(num_threads), int(max_iterations), 6, True, True, False,
+                np.empty((0, 3), dtype=np.float64), np.empty((0, 4), dtype=np.int32), np.empty(0, dtype=np.float64),
+            )
+        finally:
+            if not existed:
+                with contextlib.suppress(OSError):
+                    os.remove(litter)
     return np.asarray(V, dtype=np.float64), np.asarray(T, dtype=np.int32)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 
-def test_tetrahedralize_sphere_without_pyvista():
+def test_tetrahedralize_sphere_without_pyvista(tmp_path):
     code = textwrap.dedent("""
         import sys
         class Block:
@@ -28,8 +28,9 @@ def test_tetrahedralize_sphere_without_pyvista():
         # every tet positively oriented; total volume close to the analytic ball's
         print(vol.min() > 0, abs(vol.sum() / (4 / 3 * np.pi * r ** 3) - 1))
     """)
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
+    assert list(tmp_path.iterdir()) == []  # fTetWild's debug file is cleaned up
     positive, rel_err = r.stdout.split()[-2:]
     assert positive == "True"
     assert float(rel_err) < 0.05
