@@ -1,0 +1,36 @@
+"""Benchmark helpers: run a job in a fresh process and report its wall time and peak RSS."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+
+
+def run_isolated(code: str, *, timeout: float = 3600) -> dict:
+    """Run ``code`` in a new interpreter; it must leave its results in a dict named ``result``.
+
+    Returns that dict plus ``peak_rss_mb`` (the child's own maximum resident set size).
+    """
+    wrapper = textwrap.dedent("""
+        import json, resource, time
+        result = {}
+        _t0 = time.perf_counter()
+    """) + textwrap.dedent(code) + textwrap.dedent("""
+        result.setdefault("seconds", time.perf_counter() - _t0)
+        result["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        print("@@RESULT@@" + json.dumps(result))
+    """)
+    r = subprocess.run([sys.executable, "-c", wrapper], capture_output=True, text=True, timeout=timeout)
+    if r.returncode != 0:
+        raise RuntimeError(f"benchmark child failed:\n{r.stderr[-4000:]}")
+    line = next(line for line in r.stdout.splitlines() if line.startswith("@@RESULT@@"))
+    return json.loads(line[len("@@RESULT@@"):])
+
+
+def table(rows: list[list[str]]) -> str:
+    """A Markdown table from rows of cells, the first row being the header."""
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    fmt = lambda r: "| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |"  # noqa: E731
+    return "\n".join([fmt(rows[0]), "| " + " | ".join("-" * w for w in widths) + " |", *map(fmt, rows[1:])])
