@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -161,26 +162,83 @@ def _normalise_chunks(chunks: Any, shape: tuple[int, ...]) -> tuple[int, ...]:
 
 
 def _downsample2(block: np.ndarray, *, labels: bool) -> np.ndarray:
-    """Halve every axis longer than 1 (rounding up): box mean for intensities, nearest for labels."""
+    """Halve every axis longer than 1 (rounding up): box mean for intensities, nearest for labels.
+
+    The mean is a sum of the 8 (or 4, 2) strided sub-grids in a wide accumulator, so no float copy of the whole
+    block is made; integers are rounded half up.
+    """
     if labels:
         return block[tuple(slice(None, None, 2) if s > 1 else slice(None) for s in block.shape)]
     pad = [(0, s % 2) if s > 1 else (0, 0) for s in block.shape]
     if any(p[1] for p in pad):
         block = np.pad(block, pad, mode="edge")
-    work = block.astype(np.float64 if block.dtype == np.float64 else np.float32, copy=False)
-    new_shape: list[int] = []
-    mean_axes: list[int] = []
-    for s in work.shape:
-        if s > 1:
-            new_shape += [s // 2, 2]
-            mean_axes.append(len(new_shape) - 1)
-        else:
-            new_shape.append(1)
-    out = work.reshape(new_shape).mean(axis=tuple(mean_axes))
     if np.issubdtype(block.dtype, np.integer):
-        info = np.iinfo(block.dtype)
-        out = np.clip(np.rint(out), info.min, info.max)
-    return out.astype(block.dtype, copy=False)
+        acc_dtype = np.int64 if block.dtype.itemsize >= 4 else np.int32
+    else:
+        acc_dtype = np.float64 if block.dtype == np.float64 else np.float32
+    offsets = [(0, 1) if s > 1 else (0,) for s in block.shape]
+    out_shape = tuple(s // 2 if s > 1 else 1 for s in block.shape)
+    acc = np.zeros(out_shape, dtype=acc_dtype)
+    n = 0
+    for o0 in offsets[0]:
+        for o1 in offsets[1]:
+            for o2 in offsets[2]:
+                view = block[tuple(slice(o, None, 2) if len(offs) > 1 else slice(None)
+                                   for o, offs in zip((o0, o1, o2), offsets, strict=True))]
+                np.add(acc, view, out=acc, casting="unsafe")
+                n += 1
+    if np.issubdtype(block.dtype, np.integer):
+        acc += n // 2
+        acc //= n
+        return acc.astype(block.dtype)
+    acc /= n
+    return acc.astype(block.dtype, copy=False)
+
+
+class _Cascade:
+    """Build every pyramid level from consecutive slabs of level 0, each written once, chunk-aligned.
+
+    Level k keeps (a) planes waiting to fill its next chunk-deep write and (b) at most one plane waiting for its
+    partner before 2x2x2 averaging into level k+1. Memory is about 1/8 + 1/64 + ... of the incoming slab.
+    """
+
+    def __init__(self, arrays: list, *, labels: bool):
+        self.arrays = arrays
+        self.labels = labels
+        self.pending: list[list[np.ndarray]] = [[] for _ in arrays]  # planes waiting for a chunk-aligned write
+        self.carry: list[np.ndarray | None] = [None] * len(arrays)  # an odd plane waiting for its partner
+        self.written = [0] * len(arrays)
+
+    def push(self, level: int, block: np.ndarray, *, last: bool) -> None:
+        arr = self.arrays[level]
+        self.pending[level].append(block)
+        have = sum(b.shape[0] for b in self.pending[level])
+        depth = arr.chunks[0]
+        if have < depth and not last:
+            return
+        data = np.concatenate(self.pending[level]) if len(self.pending[level]) > 1 else self.pending[level][0]
+        n = have if last else (have // depth) * depth
+        z0 = self.written[level]
+        arr[z0:z0 + n] = data[:n]
+        self.written[level] += n
+        self.pending[level] = [data[n:]] if n < have else []
+        if level + 1 < len(self.arrays):
+            self._down(level, data[:n], last=last)
+
+    def _down(self, level: int, planes: np.ndarray, *, last: bool) -> None:
+        if self.carry[level] is not None:
+            planes = np.concatenate([self.carry[level], planes])
+            self.carry[level] = None
+        halve0 = self.arrays[level].shape[0] > 1
+        if halve0 and not last and planes.shape[0] % 2:
+            self.carry[level] = planes[-1:].copy()
+            planes = planes[:-1]
+        if planes.shape[0] == 0:
+            if last:  # nothing new, but the next level must still flush what it holds
+                nxt = self.arrays[level + 1]
+                self.push(level + 1, np.empty((0, *nxt.shape[1:]), dtype=nxt.dtype), last=True)
+            return
+        self.push(level + 1, _downsample2(planes, labels=self.labels), last=last)
 
 
 def _ngff_attrs(name: str, unit: str | None, spacings: list[tuple[float, ...]], origin: tuple[float, ...],
@@ -256,7 +314,7 @@ def write_ome_zarr(
         raise InvalidInputError(f"attributes must be JSON-serialisable: {exc}") from None
 
     root = zarr.open_group(store=str(path), mode="w", zarr_format=3)
-    codec = BloscCodec(cname="zstd", clevel=int(compression_level), shuffle="bitshuffle" if dtype.itemsize == 1 else "shuffle")
+    codec = BloscCodec(cname="zstd", clevel=int(compression_level), shuffle="bitshuffle")
     arrays = []
     for lvl, shp in enumerate(shapes):
         c = _normalise_chunks(chunk_shape, shp)
@@ -265,29 +323,24 @@ def write_ome_zarr(
             dimension_names=list(AXES),
         ))
 
-    # level 0: stream slabs of chunk depth from the (lazy) source
+    # One pass over the source: every level is built from the slabs as they stream by (no level is read back).
+    pyr = _Cascade(arrays, labels=labels)
     depth = chunk_shape[0]
-    n_slabs = -(-shape[0] // depth)
-    for i, z0 in enumerate(range(0, shape[0], depth)):
-        z1 = min(shape[0], z0 + depth)
-        slab = np.asarray(volume.data[z0:z1].compute())
-        arrays[0][z0:z1] = slab
-        yield Progress("level 0", i + 1, n_slabs, f"planes {z0}-{z1 - 1} of {shape[0]}")
-        del slab
+    starts = list(range(0, shape[0], depth))
 
-    # each further level from the one before it, reading slabs of twice the chunk depth
-    for lvl in range(1, len(shapes)):
-        src, dst = arrays[lvl - 1], arrays[lvl]
-        halve0 = shapes[lvl - 1][0] > 1
-        out_depth = dst.chunks[0]
-        in_depth = out_depth * (2 if halve0 else 1)
-        n = -(-dst.shape[0] // out_depth)
-        for i, z0 in enumerate(range(0, src.shape[0], in_depth)):
-            z1 = min(src.shape[0], z0 + in_depth)
-            block = _downsample2(np.asarray(src[z0:z1]), labels=labels)
-            o0 = z0 // 2 if halve0 else z0
-            dst[o0:o0 + block.shape[0]] = block
-            yield Progress(f"level {lvl}", i + 1, n, f"{dst.shape}")
+    def read_slab(z0: int) -> np.ndarray:
+        return np.asarray(volume.data[z0:min(shape[0], z0 + depth)].compute())
+
+    with ThreadPoolExecutor(max_workers=1) as reader:  # read the next slab while this one is written
+        pending = reader.submit(read_slab, starts[0])
+        for i, z0 in enumerate(starts):
+            slab = pending.result()
+            if i + 1 < len(starts):
+                pending = reader.submit(read_slab, starts[i + 1])
+            pyr.push(0, slab, last=i + 1 == len(starts))
+            del slab
+            yield Progress("import", i + 1, len(starts), f"planes {z0}-{z0 + depth - 1} of {shape[0]}"
+                           if z0 + depth <= shape[0] else f"planes {z0}-{shape[0] - 1} of {shape[0]}")
 
     root.attrs["ome"] = _ngff_attrs(name or Path(volume.source or path).name, volume.unit, spacings,
                                     volume.origin, labels)

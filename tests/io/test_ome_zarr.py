@@ -39,6 +39,32 @@ def test_round_trip_values_spacing_unit(tmp_path, dtype):
     assert v.level_spacings[1] == (5.0, 1.0, 1.0)
 
 
+@pytest.mark.parametrize("shape, chunks", [((37, 20, 29), 16), ((45, 9, 33), 5), ((64, 64, 64), 32),
+                                           ((3, 70, 70), 4), ((17, 17, 17), 17)])
+def test_every_level_is_the_box_mean_of_the_one_before(tmp_path, shape, chunks):
+    """The one-pass cascade equals an independent level-by-level computation, for odd sizes and chunks too."""
+    a = np.random.default_rng(2).integers(0, 5000, shape).astype(np.uint16)
+    v = open_volume(write_volume(a, tmp_path / "v.zarr", chunks=chunks, max_side=4))
+    expect = a
+    for lvl in v.levels[1:]:
+        expect_f = _box_mean2_any(expect)
+        got = lvl.compute()
+        assert got.shape == expect_f.shape
+        np.testing.assert_allclose(got, expect_f, atol=0.5 + 1e-9)
+        expect = got  # the next level averages the stored (rounded) one
+
+
+def _box_mean2_any(a):
+    """Box mean over 2 along every axis longer than 1, edge-padded, float64 (independent of the writer)."""
+    a = a.astype(np.float64)
+    for ax in range(3):
+        if a.shape[ax] > 1:
+            if a.shape[ax] % 2:
+                a = np.concatenate([a, np.take(a, [-1], axis=ax)], axis=ax)
+            a = (np.take(a, range(0, a.shape[ax], 2), axis=ax) + np.take(a, range(1, a.shape[ax], 2), axis=ax)) / 2
+    return a
+
+
 def test_pyramid_stops_at_max_side():
     shapes = pyramid_shapes((1000, 300, 1))
     assert shapes[0] == (1000, 300, 1)
