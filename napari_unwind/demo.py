@@ -19,7 +19,7 @@ __all__ = ["run_demo"]
 
 def run_demo(output: Path, *, quiet: bool = False, overwrite: bool = False, n_fish: int = 3, seed: int = 0) -> int:
     """Run the demo into the folder ``output``; returns 0 on success (the CLI's exit status)."""
-    from .cli import describe, disk_usage, human_bytes, _run_with_bar
+    from .cli import _run_with_bar, describe, disk_usage, human_bytes
     from .datasets import tank_phantom
     from .io import import_volume_iter, open_volume, write_volume
 

@@ -1,14 +1,12 @@
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import no_leftovers
 from napari_unwind.errors import OutputError
 from napari_unwind.io import open_volume, write_volume
 from napari_unwind.io._atomic import atomic_output
-
-from conftest import no_leftovers
 
 
 def test_success_renames_into_place(tmp_path):

@@ -115,6 +115,12 @@ def write_volume_iter(
     """Generator form of :func:`write_volume`: yields progress, returns the written path."""
     fmt = output_format(path, format)
     writer = writer_for(fmt)
+    if fmt == "stack" and "{" in Path(path).name:
+        # slices/fish_{:04d}.png: the folder is the unit written atomically, the name is the slice pattern
+        from .stack import split_stack_target
+
+        path, pattern = split_stack_target(path)
+        options.setdefault("pattern", pattern)
     volume = _checked(as_volume(data, spacing=spacing, unit=unit, origin=origin), nan_value)
     target = check_writable(path, overwrite=overwrite)
     with atomic_output(target, overwrite=overwrite) as tmp:

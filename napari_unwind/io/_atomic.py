@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import uuid
 from collections.abc import Iterator
@@ -15,9 +16,21 @@ from pathlib import Path
 
 from ..errors import OutputError
 
-__all__ = ["atomic_output", "check_writable", "remove_path"]
+__all__ = ["atomic_output", "check_writable", "final_name", "remove_path"]
 
 TMP_MARK = ".unwind-tmp"
+_TMP_RE = re.compile(r"^\.(?P<name>.+)\.[0-9a-f]{8}" + re.escape(TMP_MARK) + r"$")
+
+
+def final_name(path: str | os.PathLike) -> str:
+    """The name a temporary output of :func:`atomic_output` will be renamed to.
+
+    ``.fish.dat.1a2b3c4d.unwind-tmp`` -> ``fish.dat``; any other name is returned unchanged. Writers that put
+    companion files beside their output (raw + .dat, .nhdr + data) use it to name them.
+    """
+    name = Path(path).name
+    m = _TMP_RE.match(name)
+    return m.group("name") if m else name
 
 
 def remove_path(path: Path) -> None:

@@ -116,10 +116,10 @@ def output_format(path: str | Path, format: str | None = None) -> str:
             raise UnknownFormatError(f"unknown output format {format!r}; choose one of {', '.join(FORMATS)}")
         return format
     suffix = _suffix(Path(path))
+    if re.search(r"\{[^}]*\}", Path(path).name) and suffix in IMAGE_SLICE_SUFFIXES:
+        return "stack"  # a numbered slice pattern, e.g. slices/fish_{:04d}.tif
     if suffix in _SUFFIX_FORMAT:
         return _SUFFIX_FORMAT[suffix]
-    if re.search(r"\{[^}]*\}", Path(path).name) and suffix in IMAGE_SLICE_SUFFIXES:
-        return "stack"
     raise UnknownFormatError(f"cannot choose an output format for {path} from its suffix {suffix!r}; {_HELP}")
 
 

@@ -1,0 +1,251 @@
+"""NIfTI-1/2 volumes (``.nii``, ``.nii.gz``), through nibabel.
+
+Axis order
+----------
+NIfTI stores voxel (i, j, k) with i the fastest axis in the file; nibabel indexes it as ``data[i, j, k]``.
+napari-unwind's arrays put the slowest axis first (as NRRD read with ``index_order='C'`` does), so the volume is
+nibabel's array transposed: ``volume.data[k, j, i] == img.dataobj[i, j, k]``. Spacing (the header's ``pixdim``
+zooms) and origin (the affine's translation) are reversed the same way. The full affine is kept in
+``Volume.metadata["affine"]`` (nibabel's (i, j, k) convention, RAS+ world).
+
+Reading
+-------
+Lazy: chunks are read on demand through nibabel's array proxy (slabs of whole planes along axis0, i.e. along k, the
+file's slowest axis). ``.nii`` files are memory mapped; a ``.nii.gz`` stream must be decompressed from its start
+for every chunk read (unless ``indexed_gzip`` is installed), so its chunks are made large (512 MiB): typical
+gzipped volumes are a single chunk. ``scl_slope``/``scl_inter`` are applied; the integer type is kept when they
+are 1 and 0, or when both are integers and the scaled range fits an integer type.
+
+Writing
+-------
+Streams slab by slab along axis0 (the file order is exactly the C order of the transposed array), behind a
+NIfTI-1 header whose sform and qform are ``diag(s2, s1, s0)`` plus the translation ``(o2, o1, o0)``, and whose
+``xyzt_units`` record the unit. NIfTI-1 knows only metres, millimetres and micrometres: centimetres are written as
+millimetres and nanometres as micrometres, with the spacing converted (same physical size).
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import dask.array as da
+import nibabel as nib
+import numpy as np
+from dask.base import tokenize
+
+from ..errors import InvalidInputError
+from ..progress import Progress
+from ._atomic import final_name
+from ._volume import SUPPORTED_DTYPES, Volume, normalise_unit
+
+__all__ = ["read_nifti", "write_nifti"]
+
+_CHUNK_BYTES = 64 * 2**20
+_GZ_CHUNK_BYTES = 512 * 2**20
+# NGFF unit -> (NIfTI xyz unit, factor applied to lengths)
+_WRITE_UNITS = {
+    "meter": ("meter", 1.0),
+    "centimeter": ("mm", 10.0),
+    "millimeter": ("mm", 1.0),
+    "micrometer": ("micron", 1.0),
+    "nanometer": ("micron", 1e-3),
+    None: ("unknown", 1.0),
+}
+
+
+def _scaled_dtype(raw: np.dtype, slope: float, inter: float) -> np.dtype:
+    """Voxel type of ``raw * slope + inter``: ``raw`` when unscaled, an integer type when exact, else float."""
+    if slope == 1 and inter == 0:
+        return raw
+    if raw.kind in "iu" and float(slope).is_integer() and float(inter).is_integer():
+        info = np.iinfo(raw)
+        ends = (info.min * slope + inter, info.max * slope + inter)
+        lo, hi = min(ends), max(ends)
+        for cand in (raw, *(np.dtype(t) for t in ("u1", "i1", "u2", "i2", "u4", "i4"))):
+            ci = np.iinfo(cand)
+            if ci.min <= lo and hi <= ci.max:
+                return cand
+    return np.dtype("f8") if raw.itemsize >= 4 and raw.kind != "f" or raw == np.dtype("f8") else np.dtype("f4")
+
+
+class _ScaledProxy:
+    """nibabel's ArrayProxy, sliced in file order (i, j, k), returning scaled voxels of one fixed type."""
+
+    def __init__(self, proxy: Any, shape: tuple[int, int, int], extra: int, dtype: np.dtype):
+        self.proxy = proxy
+        self.shape = shape
+        self.ndim = 3
+        self.dtype = np.dtype(dtype)
+        self.extra = extra  # trailing length-1 axes of the file (t, u...) to index with 0
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        if not isinstance(key, tuple):
+            key = (key,)
+        block = np.asarray(self.proxy[key + (0,) * self.extra])
+        if self.dtype.kind in "iu" and block.dtype.kind == "f":
+            block = np.rint(block)
+        return block.astype(self.dtype, copy=False)
+
+
+def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
+    """Open a NIfTI-1 or NIfTI-2 volume (``.nii`` or ``.nii.gz``) lazily.
+
+    Parameters
+    ----------
+    path : Path
+        The file.
+    chunks : int or tuple of 3 int, optional
+        Dask chunk shape in array order; default slabs of whole planes (64 MiB for ``.nii``, 512 MiB for
+        ``.nii.gz``).
+
+    Returns
+    -------
+    Volume
+        Shape (K, J, I): nibabel's (I, J, K) array transposed, spacing ``zooms[2], zooms[1], zooms[0]``, origin
+        the affine's translation reversed, unit from ``xyzt_units``.
+
+    Raises
+    ------
+    InvalidInputError
+        Not a NIfTI file, not 3D, or an unsupported voxel type (RGB, complex, 64-bit integers).
+    """
+    path = Path(path)
+    try:
+        img = nib.load(str(path))
+    except Exception as exc:  # nibabel raises ImageFileError, OSError, EOFError... for broken files
+        raise InvalidInputError(f"{path} is not a readable NIfTI file ({exc}); is the copy complete?") from None
+    if not isinstance(img, nib.Nifti1Image | nib.Nifti2Image):
+        raise InvalidInputError(f"{path} holds a {type(img).__name__}, not a NIfTI image")
+    hdr = img.header
+    full_shape = tuple(int(s) for s in img.shape)
+    if len(full_shape) < 3 or any(s != 1 for s in full_shape[3:]):
+        raise InvalidInputError(
+            f"{path} has shape {full_shape}; napari-unwind needs a 3D volume "
+            "(extract one time point or channel first, e.g. with `fslroi` or nibabel)"
+        )
+    shape = full_shape[:3]
+    raw = np.dtype(img.get_data_dtype())
+    if raw.fields is not None or raw.kind not in "iuf":
+        raise InvalidInputError(f"{path}: voxel type {raw} is not supported; convert it to grey values first")
+    raw = raw.newbyteorder("=")
+    proxy = img.dataobj
+    slope = float(getattr(proxy, "slope", 1.0))
+    inter = float(getattr(proxy, "inter", 0.0))
+    dtype = _scaled_dtype(raw, slope, inter)
+    if dtype not in SUPPORTED_DTYPES:
+        raise InvalidInputError(
+            f"{path}: voxel type {dtype} is not supported; convert it to int32 or float (e.g. with nibabel)"
+        )
+
+    gz = path.name.lower().endswith(".gz")
+    if chunks is None:
+        plane = shape[0] * shape[1] * dtype.itemsize
+        depth = max(1, min(shape[2], (_GZ_CHUNK_BYTES if gz else _CHUNK_BYTES) // max(plane, 1)))
+        file_chunks: Any = (shape[0], shape[1], depth)
+    else:
+        c = tuple(int(v) for v in np.broadcast_to(np.asarray(chunks), (3,)))
+        file_chunks = c[::-1]
+    st = os.stat(path)
+    name = "nifti-" + tokenize(str(path), st.st_mtime_ns, st.st_size, str(dtype))
+    wrapped = _ScaledProxy(proxy, shape, len(full_shape) - 3, dtype)
+    data = da.from_array(wrapped, chunks=file_chunks, name=name, meta=np.empty((0, 0, 0), dtype=dtype),
+                         asarray=False).transpose(2, 1, 0)
+
+    zooms = [float(z) for z in hdr.get_zooms()[:3]]
+    zooms = [z if np.isfinite(z) and z > 0 else 1.0 for z in zooms]
+    xyz_unit, _ = hdr.get_xyzt_units()
+    try:
+        unit = normalise_unit(xyz_unit)
+    except InvalidInputError:
+        unit = None
+    affine = np.asarray(img.affine, dtype=float)
+    origin = affine[:3, 3]
+    if not np.all(np.isfinite(origin)):
+        origin = np.zeros(3)
+    return Volume(
+        data,
+        spacing=tuple(zooms[::-1]),
+        unit=unit,
+        origin=tuple(float(v) for v in origin[::-1]),
+        source=str(path),
+        format="nifti",
+        metadata={
+            "affine": affine.tolist(),
+            "qform_code": int(hdr["qform_code"]),
+            "sform_code": int(hdr["sform_code"]),
+            "scl_slope": slope,
+            "scl_inter": inter,
+            "file_dtype": str(raw),
+            "nifti_version": 2 if isinstance(img, nib.Nifti2Image) else 1,
+        },
+    )
+
+
+def _write_slab_depth(volume: Volume, target: int = 256 * 2**20) -> int:
+    plane = volume.shape[1] * volume.shape[2] * volume.dtype.itemsize
+    c = int(volume.data.chunksize[0])
+    if c * plane <= target:
+        return max(c, c * (target // (c * plane)))
+    return max(1, target // plane)
+
+
+def write_nifti(volume: Volume, path: Path, *, compression_level: int = 4) -> Iterator[Progress]:
+    """Write ``volume`` as NIfTI-1, gzipped when the target's name ends in ``.gz``, streaming slab by slab.
+
+    Parameters
+    ----------
+    volume : Volume
+        Shape (N0, N1, N2); stored as NIfTI (i, j, k) = (N2, N1, N0) with affine
+        ``[[s2, 0, 0, o2], [0, s1, 0, o1], [0, 0, s0, o0]]``.
+    path : Path
+        The file to write (usually the temporary name chosen by :func:`~napari_unwind.io.write_volume`; the final
+        name decides whether to gzip).
+    compression_level : int
+        gzip level 1 (fast) to 9 (small).
+
+    Yields
+    ------
+    Progress
+        One record per slab of planes written.
+    """
+    path = Path(path)
+    if not 1 <= int(compression_level) <= 9:
+        raise InvalidInputError(f"compression_level must be 1..9, got {compression_level}")
+    n0, n1, n2 = volume.shape
+    xyz_unit, factor = _WRITE_UNITS.get(volume.unit, ("unknown", 1.0))
+    s0, s1, s2 = (s * factor for s in volume.spacing)
+    o0, o1, o2 = (o * factor for o in volume.origin)
+    affine = np.array([[s2, 0, 0, o2], [0, s1, 0, o1], [0, 0, s0, o0], [0, 0, 0, 1]], dtype=float)
+
+    dtype = volume.dtype.newbyteorder("<")
+    hdr = nib.Nifti1Header(endianness="<")
+    hdr.set_data_shape((n2, n1, n0))
+    hdr.set_data_dtype(dtype)
+    hdr.set_zooms((s2, s1, s0))
+    hdr.set_qform(affine, code=1)
+    hdr.set_sform(affine, code=1)
+    hdr.set_xyzt_units(xyz=xyz_unit, t="unknown")
+    hdr["vox_offset"] = 352
+    hdr["descrip"] = b"napari-unwind"
+    head = hdr.binaryblock + b"\x00" * (352 - len(hdr.binaryblock))  # 4 zero bytes: no extensions
+
+    gz = final_name(path).lower().endswith(".gz")
+    depth = _write_slab_depth(volume)
+    total = -(-n0 // depth)
+    with open(path, "wb") as raw_fh:
+        fh: Any = gzip.GzipFile(fileobj=raw_fh, mode="wb", compresslevel=int(compression_level), mtime=0) \
+            if gz else raw_fh
+        try:
+            fh.write(head)
+            for i, z0 in enumerate(range(0, n0, depth)):
+                z1 = min(n0, z0 + depth)
+                slab = np.ascontiguousarray(np.asarray(volume.data[z0:z1].compute()), dtype=dtype)
+                fh.write(memoryview(slab).cast("B"))
+                yield Progress("write nifti", i + 1, total, f"planes {z0}-{z1 - 1} of {n0}")
+        finally:
+            if gz:
+                fh.close()
