@@ -202,8 +202,9 @@ class _Cascade:
     partner before 2x2x2 averaging into level k+1. Memory is about 1/8 + 1/64 + ... of the incoming slab.
     """
 
-    def __init__(self, arrays: list, *, labels: bool):
+    def __init__(self, arrays: list, *, labels: bool, writer: ThreadPoolExecutor):
         self.arrays = arrays
+        self.writer = writer  # level writes run here while the next level is averaged
         self.labels = labels
         self.pending: list[list[np.ndarray]] = [[] for _ in arrays]  # planes waiting for a chunk-aligned write
         self.carry: list[np.ndarray | None] = [None] * len(arrays)  # an odd plane waiting for its partner
@@ -219,11 +220,14 @@ class _Cascade:
         data = np.concatenate(self.pending[level]) if len(self.pending[level]) > 1 else self.pending[level][0]
         n = have if last else (have // depth) * depth
         z0 = self.written[level]
-        arr[z0:z0 + n] = data[:n]
-        self.written[level] += n
-        self.pending[level] = [data[n:]] if n < have else []
-        if level + 1 < len(self.arrays):
-            self._down(level, data[:n], last=last)
+        write = self.writer.submit(arr.__setitem__, slice(z0, z0 + n), data[:n])
+        try:
+            self.written[level] += n
+            self.pending[level] = [data[n:]] if n < have else []
+            if level + 1 < len(self.arrays):
+                self._down(level, data[:n], last=last)
+        finally:
+            write.result()
 
     def _down(self, level: int, planes: np.ndarray, *, last: bool) -> None:
         if self.carry[level] is not None:
@@ -314,7 +318,8 @@ def write_ome_zarr(
         raise InvalidInputError(f"attributes must be JSON-serialisable: {exc}") from None
 
     root = zarr.open_group(store=str(path), mode="w", zarr_format=3)
-    codec = BloscCodec(cname="zstd", clevel=int(compression_level), shuffle="bitshuffle")
+    shuffle = "bitshuffle" if dtype.itemsize == 1 else "shuffle"  # byte shuffle is faster for 16-bit CT here
+    codec = BloscCodec(cname="zstd", clevel=int(compression_level), shuffle=shuffle)
     arrays = []
     for lvl, shp in enumerate(shapes):
         c = _normalise_chunks(chunk_shape, shp)
@@ -324,14 +329,15 @@ def write_ome_zarr(
         ))
 
     # One pass over the source: every level is built from the slabs as they stream by (no level is read back).
-    pyr = _Cascade(arrays, labels=labels)
     depth = chunk_shape[0]
     starts = list(range(0, shape[0], depth))
 
     def read_slab(z0: int) -> np.ndarray:
         return np.asarray(volume.data[z0:min(shape[0], z0 + depth)].compute())
 
-    with ThreadPoolExecutor(max_workers=1) as reader:  # read the next slab while this one is written
+    # read the next slab while this one is written
+    with ThreadPoolExecutor(max_workers=1) as reader, ThreadPoolExecutor(max_workers=len(arrays)) as writer:
+        pyr = _Cascade(arrays, labels=labels, writer=writer)
         pending = reader.submit(read_slab, starts[0])
         for i, z0 in enumerate(starts):
             slab = pending.result()
