@@ -25,6 +25,9 @@ fi
 [ -x .venv/bin/uv ] || .venv/bin/python -m pip install -q --disable-pip-version-check uv
 .venv/bin/uv pip install -q --python .venv/bin/python -e ".[test]"
 
+# Lint first: a style error fails fast, before the long suite.
+.venv/bin/ruff check napari_unwind services tests benchmarks
+
 # napari and Qt need a real X server with GL (QT_QPA_PLATFORM=offscreen gives napari no GL context).
 export QT_QPA_PLATFORM=xcb
 exec xvfb-run -a -s "-screen 0 1600x1200x24" .venv/bin/python -m pytest "$@"
