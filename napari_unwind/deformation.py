@@ -37,7 +37,6 @@ __all__ = ["Keyframe", "Deformation", "InverseResult", "parallel_transport_frame
 #: Identifies the dict layout of :meth:`Deformation.to_dict`.
 SCHEMA = "napari-unwind/deformation/1"
 
-_ORTHO_TOL = 1e-6
 
 
 def _orthonormalise(frame: np.ndarray) -> np.ndarray:
@@ -45,6 +44,8 @@ def _orthonormalise(frame: np.ndarray) -> np.ndarray:
     m = np.asarray(frame, dtype=float).reshape(3, 3)
     if not np.isfinite(m).all():
         raise InvalidInputError(f"a keyframe frame must be finite, got {m.tolist()}")
+    if np.abs(m @ m.T - np.eye(3)).max() < 1e-12 and np.linalg.det(m) > 0:
+        return m.copy()  # already a rotation: keep it bit for bit (exact serialisation round trips)
     u, s, vt = np.linalg.svd(m)
     if s.min() < 1e-6 * max(s.max(), 1e-300):
         raise InvalidInputError(f"a keyframe frame is degenerate (rows u, v, n are not independent): {m.tolist()}")
