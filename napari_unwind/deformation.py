@@ -246,7 +246,10 @@ class Deformation:
             raise InvalidInputError(f"padding must be >= 0 at both ends, got {self.pad!r}")
         object.__setattr__(self, "pad", pad)
         object.__setattr__(self, "spacing", check_spacing(self.spacing))
-        object.__setattr__(self, "origin", tuple(float(o) for o in np.broadcast_to(self.origin, (3,))))
+        origin = tuple(float(o) for o in np.broadcast_to(np.asarray(self.origin, dtype=float), (3,)))
+        if not all(np.isfinite(o) for o in origin):
+            raise InvalidInputError(f"the origin must be 3 finite numbers, got {self.origin!r}")
+        object.__setattr__(self, "origin", origin)
         object.__setattr__(self, "unit", normalise_unit(self.unit))
 
     # ------------------------------------------------------------------------------------------------------------
