@@ -3,11 +3,36 @@
 The numerical core (this package, minus ``_qt``) imports no Qt, napari or gRPC.
 """
 
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
+from typing import Any
 
 from .errors import InvalidInputError, OutputError, UnknownFormatError, UnwindError
 from .io import Volume, import_volume, open_volume, write_volume
 from .progress import Progress
+
+# Imported on first use, so that `import napari_unwind` (and the CLI's start) stays quick: numba is heavy.
+_LAZY = {
+    "Deformation": "deformation",
+    "Keyframe": "deformation",
+    "Session": "session",
+    "load_session": "session",
+    "save_session": "session",
+    "bend": "warp",
+    "export": "warp",
+    "map_labels": "warp",
+    "map_mesh": "warp",
+    "map_points": "warp",
+    "straighten": "warp",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(import_module(f".{_LAZY[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 try:
     __version__ = version("napari-unwind")
@@ -15,7 +40,18 @@ except PackageNotFoundError:  # pragma: no cover - running from a source tree wi
     __version__ = "0+unknown"
 
 __all__ = [
+    "Deformation",
     "InvalidInputError",
+    "Keyframe",
+    "Session",
+    "bend",
+    "export",
+    "load_session",
+    "map_labels",
+    "map_mesh",
+    "map_points",
+    "save_session",
+    "straighten",
     "OutputError",
     "Progress",
     "UnknownFormatError",

@@ -167,6 +167,135 @@ def cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _load_session_for(args: argparse.Namespace, input_path: str | None):
+    """Load ``--session`` and check the scan against its checksum (unless ``--no-verify``)."""
+    from .progress import progress_bar
+    from .session import load_session, verify_source
+
+    session = load_session(args.session)
+    if session.deformation is None:
+        raise UnwindError(f"{args.session} holds no deformation yet; run the skeleton solve first (unwind skeleton)")
+    if input_path is not None and not args.no_verify:
+        callback, close = progress_bar(args.quiet)
+        try:
+            verify_source(session, input_path, progress=callback)
+        finally:
+            close()
+    return session
+
+
+def _check_folds(deformation, allow: bool) -> None:
+    folds = deformation.folds()
+    if not folds:
+        return
+    where = ", ".join(f"s = {a:.4g}..{b:.4g}" for a, b in folds)
+    msg = (f"the deformation folds where the cage is larger than the radius of curvature ({where} "
+           f"{deformation.unit or 'units'}); shrink the cage or add keyframes there")
+    if not allow:
+        raise UnwindError(msg + ", or pass --allow-folds to export anyway")
+    print(f"unwind: warning: {msg}", file=sys.stderr)
+
+
+def cmd_straighten(args: argparse.Namespace) -> int:
+    import warnings
+
+    from .io import open_volume
+    from .warp import FoldWarning, export_iter
+
+    session = _load_session_for(args, args.input)
+    volume = open_volume(args.input, **_reader_options(args))
+    deformation = session.deformation
+    _check_folds(deformation, args.allow_folds)
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FoldWarning)  # reported above
+        written = _run_with_bar(
+            export_iter(volume, deformation, args.output, order=args.order, spacing=args.spacing, pad=args.pad,
+                        chunks=args.chunks, overwrite=args.overwrite, session=session.to_dict(),
+                        scheduler=args.scheduler),
+            args.quiet,
+        )
+    if not args.quiet:
+        out = open_volume(written)
+        print(f"straightened {args.input} -> {written} in {time.perf_counter() - t0:.1f} s")
+        print(f"shape {_fmt_triple(out.shape)} (s x y x x), spacing {_fmt_triple(out.spacing)} "
+              f"{out.unit_abbreviation}, length {deformation.length:.4g} {out.unit_abbreviation}, "
+              f"{len(deformation)} keyframes")
+    return 0
+
+
+def cmd_bend(args: argparse.Namespace) -> int:
+    from .io import open_volume, write_volume_iter
+    from .warp import bend
+
+    session = _load_session_for(args, None)
+    straight = open_volume(args.input, **_reader_options(args))
+    shape = tuple(session.source.shape)
+    src = session.source
+    data = bend(straight, session.deformation, shape=shape, order=args.order, chunks=args.chunks)
+    t0 = time.perf_counter()
+    written = _run_with_bar(
+        write_volume_iter(data, args.output, spacing=session.deformation.spacing,
+                          origin=session.deformation.origin, unit=src.unit, overwrite=args.overwrite),
+        args.quiet,
+    )
+    if not args.quiet:
+        print(f"bent {args.input} into the pose of {src.path} -> {written} "
+              f"({_fmt_triple(shape)}) in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _read_points(args: argparse.Namespace):
+    import numpy as np
+
+    if args.at:
+        return np.array(args.at, dtype=float)
+    if not args.points:
+        raise UnwindError("give points with --at A0,A1,A2 (repeatable) or a CSV file of 3 columns")
+    path = Path(args.points)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), start=1):
+        cells = [c.strip() for c in line.replace(";", ",").split(",") if c.strip()]
+        if not cells or cells[0].startswith("#"):
+            continue
+        try:
+            rows.append([float(c) for c in cells[:3]])
+        except ValueError:
+            if not rows and n == 1:
+                continue  # a header line
+            raise UnwindError(f"{path} line {n}: expected 3 numbers, got {line!r}") from None
+        if len(rows[-1]) != 3:
+            raise UnwindError(f"{path} line {n}: expected 3 numbers (axis0, axis1, axis2), got {line!r}")
+    if not rows:
+        raise UnwindError(f"{path} holds no points")
+    return np.array(rows)
+
+
+def cmd_map_points(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .io._atomic import atomic_output
+    from .warp import map_points
+
+    session = _load_session_for(args, None)
+    pts = _read_points(args)
+    mapped = map_points(pts, session.deformation, to=args.to, spacing=args.spacing)
+    header = "axis0,axis1,axis2" if args.to == "scan" else "s_index,y_index,x_index"
+    lines = [f"# {'scan' if args.to == 'straight' else 'straight'} -> {args.to} voxels; NaN: outside the cage",
+             header] + [",".join("nan" if not np.isfinite(v) else f"{v:.6g}" for v in row) for row in mapped]
+    text = "\n".join(lines) + "\n"
+    if args.output:
+        with atomic_output(args.output, overwrite=args.overwrite) as tmp:
+            tmp.write_text(text)
+        if not args.quiet:
+            print(f"wrote {len(mapped)} points to {args.output}")
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -227,6 +356,47 @@ def build_parser() -> argparse.ArgumentParser:
     _add_input_options(p)
     _add_output_options(p)
     p.set_defaults(func=cmd_convert)
+
+    p = sub.add_parser("straighten", help="export the straight volume of a session's deformation")
+    p.add_argument("input", help="the scan the session was made on (any supported format)")
+    p.add_argument("--session", required=True, help="the session file (*.unwind.json) holding the deformation")
+    p.add_argument("-o", "--output", required=True, help="output path; the suffix chooses the format")
+    p.add_argument("--order", type=int, choices=(0, 1, 3), default=1,
+                   help="interpolation: 0 nearest (labels), 1 linear (default), 3 cubic")
+    p.add_argument("--pad", type=int, default=0, help="extra slices at both ends (default 0)")
+    p.add_argument("--spacing", type=float, default=None, help="output voxel size (default: finest scan spacing)")
+    p.add_argument("--chunks", type=_chunks, default=None, help="output chunk shape (default 64 x cross-section)")
+    p.add_argument("--scheduler", default=None,
+                   help="dask.distributed scheduler address (tcp://host:8786) to run on a cluster")
+    p.add_argument("--allow-folds", action="store_true", help="export even where the deformation folds")
+    p.add_argument("--no-verify", action="store_true", help="skip checking the scan against the session's checksum")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+    _add_input_options(p)
+    p.set_defaults(func=cmd_straighten)
+
+    p = sub.add_parser("bend", help="put a straight volume back into the pose of the session's scan")
+    p.add_argument("input", help="a straight volume (e.g. from unwind straighten, or stained and edited)")
+    p.add_argument("--session", required=True, help="the session file (*.unwind.json) holding the deformation")
+    p.add_argument("-o", "--output", required=True, help="output path; the suffix chooses the format")
+    p.add_argument("--order", type=int, choices=(0, 1, 3), default=1, help="interpolation order (default 1)")
+    p.add_argument("--chunks", type=_chunks, default=None, help="output chunk shape")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+    p.set_defaults(func=cmd_bend, no_verify=True)
+    _add_input_options(p)
+
+    p = sub.add_parser("map-points", help="carry points between the scan and the straight volume")
+    p.add_argument("points", nargs="?", help="CSV of points, 3 columns in array index order (voxels)")
+    p.add_argument("--at", type=_triple, action="append", help="one point A0,A1,A2 (repeatable)")
+    p.add_argument("--session", required=True, help="the session file (*.unwind.json) holding the deformation")
+    p.add_argument("--to", choices=("straight", "scan"), default="straight",
+                   help="straight: scan voxels -> straight voxels (default); scan: the other way")
+    p.add_argument("--spacing", type=float, default=None, help="straight volume spacing (default: finest scan)")
+    p.add_argument("-o", "--output", default=None, help="CSV to write (default: print)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("-q", "--quiet", action="store_true", help="no report")
+    p.set_defaults(func=cmd_map_points, no_verify=True)
 
     p = sub.add_parser("demo", help="run the pipeline on the bundled synthetic tank of fish")
     p.add_argument("-o", "--output", default="unwind-demo", help="folder for the demo's files (default unwind-demo)")

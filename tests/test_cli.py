@@ -107,6 +107,6 @@ def test_nan_needs_a_decision(tmp_path):
 def test_progress_bar_shows_and_quiet_silences(scan, tmp_path):
     _, path = scan
     code, out, err = _run("import", path, tmp_path / "a.zarr", "--chunks", "8")
-    assert code == 0 and "import" in err and "100%" in err and "imported" in out
+    assert code == 0 and "write" in err and "100%" in err and "imported" in out
     code, out, err = _run("import", path, tmp_path / "b.zarr", "--chunks", "8", "--quiet")
     assert code == 0 and out == "" and err == ""

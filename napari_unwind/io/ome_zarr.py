@@ -345,7 +345,7 @@ def write_ome_zarr(
                 pending = reader.submit(read_slab, starts[i + 1])
             pyr.push(0, slab, last=i + 1 == len(starts))
             del slab
-            yield Progress("import", i + 1, len(starts), f"planes {z0}-{z0 + depth - 1} of {shape[0]}"
+            yield Progress("write", i + 1, len(starts), f"planes {z0}-{z0 + depth - 1} of {shape[0]}"
                            if z0 + depth <= shape[0] else f"planes {z0}-{shape[0] - 1} of {shape[0]}")
 
     root.attrs["ome"] = _ngff_attrs(name or Path(volume.source or path).name, volume.unit, spacings,

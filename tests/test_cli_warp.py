@@ -1,0 +1,120 @@
+"""``unwind straighten | bend | map-points`` as a user runs them, on a phantom with known truth."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import no_leftovers
+from napari_unwind.datasets import fish_phantom
+from napari_unwind.demo import true_deformation
+from napari_unwind.io import open_volume, write_volume
+from napari_unwind.session import Session, SourceInfo, save_session
+
+UNWIND = Path(sys.executable).with_name("unwind")
+
+
+def _run(*args):
+    r = subprocess.run([str(UNWIND), *map(str, args)], capture_output=True, text=True)
+    return r.returncode, r.stdout, r.stderr
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("warp_cli")
+    fish = fish_phantom(seed=2, noise=0.0, tube=False)
+    scan = write_volume(fish.volume, tmp / "fish.zarr", spacing=fish.spacing, unit=fish.unit)
+    d = true_deformation(fish)
+    session = save_session(Session(source=SourceInfo.from_path(scan), deformation=d), tmp / "fish.unwind.json")
+    return tmp, fish, scan, session, d
+
+
+def test_straighten_matches_the_ground_truth(case):
+    tmp, fish, scan, session, d = case
+    out = tmp / "straight.nrrd"
+    code, stdout, err = _run("straighten", scan, "--session", session, "-o", out, "-q")
+    assert code == 0, err
+    got = open_volume(out)
+    assert got.shape == d.output_shape()
+    np.testing.assert_allclose(got.spacing, [min(fish.spacing)] * 3)
+    # straighten the true mask through the same path and compare with the true straight mask
+    n = tuple(min(a, b) for a, b in zip(got.shape, fish.straight_mask.shape))
+    mask = got.data.compute()[: n[0], : n[1], : n[2]] > 550
+    truth = fish.straight_mask[: n[0], : n[1], : n[2]]
+    dice = 2 * (mask & truth).sum() / (mask.sum() + truth.sum())
+    assert dice > 0.9
+
+
+def test_straighten_refuses_a_changed_scan(case, tmp_path):
+    _, fish, _, session, _ = case
+    changed = fish.volume.copy()
+    changed[0, 0, 0] += 1
+    other = write_volume(changed, tmp_path / "other.zarr", spacing=fish.spacing, unit=fish.unit)
+    code, _, err = _run("straighten", other, "--session", session, "-o", tmp_path / "x.zarr", "-q")
+    assert code == 1 and "has changed since this session was made" in err and "Traceback" not in err
+    assert not (tmp_path / "x.zarr").exists() and no_leftovers(tmp_path) == []
+    code, _, err = _run("straighten", tmp_path / "missing.zarr", "--session", session, "-o", tmp_path / "x.zarr")
+    assert code == 1 and "missing" in err
+
+
+def test_straighten_refuses_a_folding_deformation(case, tmp_path):
+    tmp, _, scan, session_path, d = case
+    from napari_unwind.session import load_session
+
+    session = load_session(session_path)
+    session.deformation = d.resize_keyframe(None, (80.0, 80.0))  # far larger than the bend radius
+    folding = save_session(session, tmp_path / "fold.unwind.json")
+    code, _, err = _run("straighten", scan, "--session", folding, "-o", tmp_path / "x.zarr", "-q")
+    assert code == 1 and "folds" in err and "--allow-folds" in err
+    assert not (tmp_path / "x.zarr").exists()
+
+
+def test_bend_puts_the_straight_fish_back(case):
+    tmp, fish, scan, session, d = case
+    straight = tmp / "straight_for_bend.zarr"
+    assert _run("straighten", scan, "--session", session, "-o", straight, "-q")[0] == 0
+    bent = tmp / "bent.zarr"
+    code, _, err = _run("bend", straight, "--session", session, "-o", bent, "-q")
+    assert code == 0, err
+    back = open_volume(bent).data.compute()
+    assert back.shape == fish.volume.shape
+    inside = fish.mask  # deep inside the specimen the round trip is close to the original
+    from scipy.ndimage import binary_erosion
+
+    core = binary_erosion(inside, iterations=2)
+    err_rel = np.abs(back[core].astype(float) - fish.volume[core]) / fish.volume[core].max()
+    assert np.median(err_rel) < 0.05
+
+
+def test_map_points_round_trip(case, tmp_path):
+    tmp, fish, scan, session, d = case
+    pts = fish.centerline[::25]
+    csv = tmp_path / "pts.csv"
+    csv.write_text("axis0,axis1,axis2\n" + "\n".join(",".join(f"{v:.6f}" for v in p) for p in pts) + "\n")
+    code, out, err = _run("map-points", csv, "--session", session, "--to", "straight")
+    assert code == 0, err
+    rows = [r for r in out.splitlines() if r and not r.startswith("#")][1:]
+    straight = np.array([[float(c) for c in r.split(",")] for r in rows])
+    # the centreline maps to the middle of the cross-section: i = (Ny-1)/2, j = (Nx-1)/2
+    _, ny, nx = d.output_shape()
+    np.testing.assert_allclose(straight[:, 1], (ny - 1) / 2, atol=0.6)
+    np.testing.assert_allclose(straight[:, 2], (nx - 1) / 2, atol=0.6)
+    back_csv = tmp_path / "back.csv"
+    args = ["map-points", "--session", session, "--to", "scan", "-o", back_csv, "-q"]
+    for p in straight:
+        args += ["--at", ",".join(f"{v:.9f}" for v in p)]
+    code, _, err = _run(*args)
+    assert code == 0, err
+    rows = [r for r in back_csv.read_text().splitlines() if r and not r.startswith("#")][1:]
+    back = np.array([[float(c) for c in r.split(",")] for r in rows])
+    np.testing.assert_allclose(back, pts, atol=1e-3)
+
+
+def test_map_points_bad_csv(case, tmp_path):
+    _, _, _, session, _ = case
+    bad = tmp_path / "bad.csv"
+    bad.write_text("1,2,3\n4,five,6\n")
+    code, _, err = _run("map-points", bad, "--session", session)
+    assert code == 1 and "line 2" in err
