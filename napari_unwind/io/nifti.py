@@ -40,6 +40,7 @@ from dask.base import tokenize
 from ..errors import InvalidInputError
 from ..progress import Progress
 from ._atomic import final_name
+from ._lazy import write_slab_depth
 from ._volume import SUPPORTED_DTYPES, Volume, normalise_unit
 
 __all__ = ["read_nifti", "write_nifti"]
@@ -185,14 +186,6 @@ def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
     )
 
 
-def _write_slab_depth(volume: Volume, target: int = 256 * 2**20) -> int:
-    plane = volume.shape[1] * volume.shape[2] * volume.dtype.itemsize
-    c = int(volume.data.chunksize[0])
-    if c * plane <= target:
-        return max(c, c * (target // (c * plane)))
-    return max(1, target // plane)
-
-
 def write_nifti(volume: Volume, path: Path, *, compression_level: int = 4) -> Iterator[Progress]:
     """Write ``volume`` as NIfTI-1, gzipped when the target's name ends in ``.gz``, streaming slab by slab.
 
@@ -234,7 +227,7 @@ def write_nifti(volume: Volume, path: Path, *, compression_level: int = 4) -> It
     head = hdr.binaryblock + b"\x00" * (352 - len(hdr.binaryblock))  # 4 zero bytes: no extensions
 
     gz = final_name(path).lower().endswith(".gz")
-    depth = _write_slab_depth(volume)
+    depth = write_slab_depth(volume)
     total = -(-n0 // depth)
     with open(path, "wb") as raw_fh:
         fh: Any = gzip.GzipFile(fileobj=raw_fh, mode="wb", compresslevel=int(compression_level), mtime=0) \

@@ -46,6 +46,7 @@ from dask.base import tokenize
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import TMP_MARK, final_name, remove_path
+from ._lazy import RawFileArray, iter_slabs, write_slab_depth
 from ._volume import UNIT_ABBREVIATIONS, Volume, normalise_unit
 
 __all__ = ["read_nrrd", "write_nrrd", "ENCODINGS"]
@@ -87,44 +88,6 @@ _READ_PIECE = 64 * 2**20  # decompress in pieces of this many bytes
 def _slab_depth(shape: tuple[int, ...], itemsize: int, target: int = _SLAB_BYTES) -> int:
     plane = int(np.prod(shape[1:])) * itemsize
     return int(max(1, min(shape[0], target // max(plane, 1))))
-
-
-def _write_slab_depth(volume: Volume, target: int = 256 * 2**20) -> int:
-    """Planes per slab when streaming ``volume`` out: whole input chunks along axis0 when they fit ``target``."""
-    plane = volume.shape[1] * volume.shape[2] * volume.dtype.itemsize
-    c = int(volume.data.chunksize[0])
-    if c * plane <= target:
-        return max(c, c * (target // (c * plane)))
-    return max(1, target // plane)
-
-
-def _iter_slabs(volume: Volume, depth: int) -> Iterator[tuple[int, int, np.ndarray]]:
-    n0 = volume.shape[0]
-    for z0 in range(0, n0, depth):
-        z1 = min(n0, z0 + depth)
-        yield z0, z1, np.ascontiguousarray(np.asarray(volume.data[z0:z1].compute()))
-
-
-class _RawFile:
-    """A C-ordered array stored raw in a file at a byte offset, memory mapped on demand.
-
-    Holds only the path and the layout, so it pickles cheaply (dask.distributed) and keeps no file open.
-    """
-
-    def __init__(self, path: Path, file_dtype: np.dtype, shape: tuple[int, ...], offset: int):
-        self.path = str(path)
-        self.file_dtype = np.dtype(file_dtype)
-        self.dtype = self.file_dtype.newbyteorder("=")
-        self.shape = tuple(int(s) for s in shape)
-        self.ndim = len(self.shape)
-        self.offset = int(offset)
-
-    def __getitem__(self, key: Any) -> np.ndarray:
-        mm = np.memmap(self.path, dtype=self.file_dtype, mode="r", offset=self.offset, shape=self.shape)
-        try:
-            return np.array(mm[key], dtype=self.dtype)
-        finally:
-            del mm
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -390,7 +353,7 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
                     f"({' x '.join(map(str, sizes))} x {file_dtype.itemsize}), found {max(found, 0)}; "
                     "the file is incomplete (copy it again) or the header's sizes/type are wrong"
                 )
-            array: Any = _RawFile(source, file_dtype, out_shape, offset)
+            array: Any = RawFileArray(source, file_dtype, out_shape, offset)
             lazy = True
         elif encoding in _ASCII:
             fh.seek(max(byte_skip, 0), os.SEEK_CUR)
@@ -489,11 +452,11 @@ class _Compressor:
 
 def _stream_voxels(volume: Volume, fh: Any, encoding: str, level: int) -> Iterator[Progress]:
     little = volume.dtype.newbyteorder("<")
-    depth = _write_slab_depth(volume)
+    depth = write_slab_depth(volume)
     total = -(-volume.shape[0] // depth)
     out = _Compressor(fh, encoding, level)
     try:
-        for i, (z0, z1, slab) in enumerate(_iter_slabs(volume, depth)):
+        for i, (z0, z1, slab) in enumerate(iter_slabs(volume, depth)):
             out.write(np.ascontiguousarray(slab, dtype=little))
             yield Progress("write nrrd", i + 1, total, f"planes {z0}-{z1 - 1} of {volume.shape[0]}")
     finally:

@@ -26,16 +26,15 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import dask.array as da
 import numpy as np
-from dask.base import tokenize
 
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import atomic_output, final_name
+from ._lazy import RawFileArray, slab_depth
 from ._volume import UNIT_ABBREVIATIONS, Volume, normalise_unit
 
-__all__ = ["RawFileArray", "read_dat_header", "read_raw", "slab_depth", "write_raw"]
+__all__ = ["read_dat_header", "read_raw", "write_raw"]
 
 #: Format spellings -> numpy dtype (byte order applied separately).
 FORMATS_DAT: dict[str, str] = {
@@ -55,67 +54,6 @@ _KEY_ALIASES = {"objectfilename": "rawfile", "rawfile": "rawfile", "slicethickne
                 "spacing": "slicethickness", "resolution": "resolution", "format": "format",
                 "byteorder": "byteorder", "unit": "unit", "origin": "origin", "objectmodel": "objectmodel"}
 #: Target bytes per dask chunk when reading and per slab when writing.
-SLAB_BYTES = 64 * 2**20
-
-
-
-def slab_depth(plane_shape: tuple[int, ...], dtype: Any, target_bytes: int = SLAB_BYTES) -> int:
-    """Number of planes of ``plane_shape`` and ``dtype`` that fit in about ``target_bytes`` (at least 1)."""
-    plane = int(np.prod(plane_shape)) * np.dtype(dtype).itemsize
-    return max(1, int(target_bytes) // max(1, plane))
-
-
-# ------------------------------------------------------------------------------------------------------------------
-# lazy access to voxels stored at an offset in a file
-# ------------------------------------------------------------------------------------------------------------------
-class RawFileArray:
-    """A read-only, picklable array-like over C-ordered voxels stored at ``offset`` in a file.
-
-    Indexing memory-maps the file, copies the requested region out and closes the map again, so a dask array
-    built on it (``da.from_array(RawFileArray(...), chunks=...)``) reads only the chunks it computes and holds
-    no open file between computations. Values come back in native byte order.
-
-    Parameters
-    ----------
-    path : path-like
-        The file holding the voxels.
-    dtype : numpy dtype
-        The stored type, including its byte order (``">u2"`` for big-endian 16-bit).
-    shape : tuple of int
-        The array shape, C order (last axis fastest).
-    offset : int
-        Byte position of the first voxel.
-    """
-
-    def __init__(self, path: str | os.PathLike, dtype: Any, shape: tuple[int, ...], offset: int = 0):
-        self.path = str(path)
-        self.stored_dtype = np.dtype(dtype)
-        self.dtype = self.stored_dtype.newbyteorder("=")
-        self.shape = tuple(int(s) for s in shape)
-        self.ndim = len(self.shape)
-        self.offset = int(offset)
-
-    def __getitem__(self, key: Any) -> np.ndarray:
-        mm = np.memmap(self.path, dtype=self.stored_dtype, mode="r", offset=self.offset, shape=self.shape)
-        try:
-            return np.array(mm[key], dtype=self.dtype)  # copy out (and swap bytes when needed)
-        finally:
-            del mm
-
-    def to_dask(self, *, depth: int | None = None, name: str = "raw") -> da.Array:
-        """A dask array over this file with one chunk per slab of ``depth`` planes along axis 0."""
-        if depth is None:
-            depth = slab_depth(self.shape[1:], self.dtype)
-        stat = os.stat(self.path)
-        token = tokenize(self.path, stat.st_mtime_ns, stat.st_size, self.offset, self.stored_dtype.str, self.shape)
-        chunks = (min(int(depth), self.shape[0]),) + self.shape[1:]
-        return da.from_array(self, chunks=chunks, name=f"{name}-{token}", asarray=False, fancy=False,
-                             meta=np.empty((0,) * self.ndim, dtype=self.dtype))
-
-    def __repr__(self) -> str:
-        return f"RawFileArray({self.path!r}, dtype={self.stored_dtype.str}, shape={self.shape}, offset={self.offset})"
-
-
 # ------------------------------------------------------------------------------------------------------------------
 # the .dat header
 # ------------------------------------------------------------------------------------------------------------------

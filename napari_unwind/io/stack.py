@@ -34,8 +34,8 @@ from ..errors import InvalidInputError, OutputError, SeriesSelectionError
 from ..progress import Progress
 from ._atomic import final_name
 from ._formats import IMAGE_SLICE_SUFFIXES
+from ._lazy import slab_depth
 from ._volume import Volume
-from .raw import slab_depth
 
 __all__ = [
     "DEFAULT_PATTERN",

@@ -41,8 +41,8 @@ from dask.base import tokenize
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import final_name
+from ._lazy import RawFileArray, slab_depth
 from ._volume import Volume, normalise_unit
-from .raw import RawFileArray, slab_depth
 
 __all__ = ["BIGTIFF_THRESHOLD", "IMAGEJ_DTYPES", "read_tiff", "tiff_geometry", "write_tiff"]
 

@@ -159,7 +159,7 @@ def test_every_dtype_round_trips(tmp_path, dtype):
 
 
 def test_streams_in_slabs_with_progress(tmp_path, vol, monkeypatch):
-    monkeypatch.setattr(nifti_mod, "_write_slab_depth", lambda volume: 3)  # 4 planes -> slabs of 3 and 1
+    monkeypatch.setattr(nifti_mod, "write_slab_depth", lambda volume: 3)  # 4 planes -> slabs of 3 and 1
     v = Volume(da.from_array(vol, chunks=(1, 5, 6)), spacing=SPACING)
     records: list[Progress] = []
     run(write_nifti(v, tmp_path / "p.nii.gz"), records.append)

@@ -11,8 +11,9 @@ from napari_unwind.errors import InvalidInputError, OutputError
 from napari_unwind.io import open_volume, write_volume
 from napari_unwind.io import raw as rawmod
 from napari_unwind.io._atomic import final_name
+from napari_unwind.io._lazy import RawFileArray
 from napari_unwind.io._volume import Volume
-from napari_unwind.io.raw import RawFileArray, read_dat_header, read_raw, write_raw
+from napari_unwind.io.raw import read_dat_header, read_raw, write_raw
 from napari_unwind.progress import run
 
 DTYPES = ["uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64"]

@@ -1,0 +1,91 @@
+"""Lazy, streamed access shared by the format modules: raw voxels in a file, slabs of planes."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from typing import Any
+
+import dask.array as da
+import numpy as np
+from dask.base import tokenize
+
+from ._volume import Volume
+
+__all__ = ["SLAB_BYTES", "RawFileArray", "iter_slabs", "slab_depth", "write_slab_depth"]
+
+SLAB_BYTES = 64 * 2**20
+
+
+
+def slab_depth(plane_shape: tuple[int, ...], dtype: Any, target_bytes: int = SLAB_BYTES) -> int:
+    """Number of planes of ``plane_shape`` and ``dtype`` that fit in about ``target_bytes`` (at least 1)."""
+    plane = int(np.prod(plane_shape)) * np.dtype(dtype).itemsize
+    return max(1, int(target_bytes) // max(1, plane))
+
+
+class RawFileArray:
+    """A read-only, picklable array-like over C-ordered voxels stored at ``offset`` in a file.
+
+    Indexing memory-maps the file, copies the requested region out and closes the map again, so a dask array
+    built on it (``da.from_array(RawFileArray(...), chunks=...)``) reads only the chunks it computes and holds
+    no open file between computations. Values come back in native byte order.
+
+    Parameters
+    ----------
+    path : path-like
+        The file holding the voxels.
+    dtype : numpy dtype
+        The stored type, including its byte order (``">u2"`` for big-endian 16-bit).
+    shape : tuple of int
+        The array shape, C order (last axis fastest).
+    offset : int
+        Byte position of the first voxel.
+    """
+
+    def __init__(self, path: str | os.PathLike, dtype: Any, shape: tuple[int, ...], offset: int = 0):
+        self.path = str(path)
+        self.stored_dtype = np.dtype(dtype)
+        self.dtype = self.stored_dtype.newbyteorder("=")
+        self.shape = tuple(int(s) for s in shape)
+        self.ndim = len(self.shape)
+        self.offset = int(offset)
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        mm = np.memmap(self.path, dtype=self.stored_dtype, mode="r", offset=self.offset, shape=self.shape)
+        try:
+            return np.array(mm[key], dtype=self.dtype)  # copy out (and swap bytes when needed)
+        finally:
+            del mm
+
+    def to_dask(self, *, depth: int | None = None, name: str = "raw") -> da.Array:
+        """A dask array over this file with one chunk per slab of ``depth`` planes along axis 0."""
+        if depth is None:
+            depth = slab_depth(self.shape[1:], self.dtype)
+        stat = os.stat(self.path)
+        token = tokenize(self.path, stat.st_mtime_ns, stat.st_size, self.offset, self.stored_dtype.str, self.shape)
+        chunks = (min(int(depth), self.shape[0]),) + self.shape[1:]
+        return da.from_array(self, chunks=chunks, name=f"{name}-{token}", asarray=False, fancy=False,
+                             meta=np.empty((0,) * self.ndim, dtype=self.dtype))
+
+    def __repr__(self) -> str:
+        return f"RawFileArray({self.path!r}, dtype={self.stored_dtype.str}, shape={self.shape}, offset={self.offset})"
+
+
+
+
+def write_slab_depth(volume: Volume, target: int = 256 * 2**20) -> int:
+    """Planes per slab when streaming ``volume`` out: whole input chunks along axis0 when they fit ``target``."""
+    plane = volume.shape[1] * volume.shape[2] * volume.dtype.itemsize
+    c = int(volume.data.chunksize[0])
+    if c * plane <= target:
+        return max(c, c * (target // (c * plane)))
+    return max(1, target // plane)
+
+
+def iter_slabs(volume: Volume, depth: int) -> Iterator[tuple[int, int, np.ndarray]]:
+    """``(z0, z1, planes)`` of ``volume`` in slabs of ``depth`` planes, each computed when reached."""
+    n0 = volume.shape[0]
+    for z0 in range(0, n0, depth):
+        z1 = min(n0, z0 + depth)
+        yield z0, z1, np.ascontiguousarray(np.asarray(volume.data[z0:z1].compute()))
