@@ -296,6 +296,59 @@ def cmd_map_points(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_segment(args: argparse.Namespace) -> int:
+    from .io import open_volume
+    from .segmentation import save_features_iter, segment_iter
+
+    volume = open_volume(args.input, **_reader_options(args))
+    t0 = time.perf_counter()
+    features = _run_with_bar(segment_iter(volume, features=args.features, level=args.level, smooth=args.smooth),
+                             args.quiet)
+    dt = time.perf_counter() - t0
+    written = _run_with_bar(save_features_iter(features, args.output, overwrite=args.overwrite), args.quiet)
+    if not args.quiet:
+        print(f"segmented {args.input} at level {features.level} ({_fmt_triple(features.shape)}) into "
+              f"{features.k} features in {dt:.1f} s -> {written}")
+        print(f"{'id':>3} {'voxels':>9} {'values':>17} {'bounding box (full-resolution voxels)':>40}")
+        for st in features.stats:
+            box = st.bbox_full
+            print(f"{st.id:>3} {st.voxel_count:>9} {st.value_min:>8.4g}-{st.value_max:<8.4g} "
+                  f"{box[0]:>6}:{box[3]:<6} {box[1]:>6}:{box[4]:<6} {box[2]:>6}:{box[5]:<6}")
+        print("pick features with: unwind select LABELS --at A0,A1,A2 -o MASK (points in full-resolution voxels)")
+    return 0
+
+
+def cmd_select(args: argparse.Namespace) -> int:
+    from .io import open_volume, write_volume_iter
+    from .segmentation import load_features, refine_mask_iter, select
+
+    if not args.at and not args.id:
+        raise UnwindError("choose features with --at A0,A1,A2 (a point inside one) or --id N (repeatable)")
+    features = load_features(args.labels)
+    mask = select(features, seeds=args.at, ids=args.id, fill_holes=args.fill_holes)
+    if args.full_resolution:
+        volume = open_volume(args.full_resolution, **_reader_options(args))
+        written = _run_with_bar(
+            refine_mask_iter(volume, mask, features=features, isovalue=args.isovalue, output=args.output,
+                             overwrite=args.overwrite),
+            args.quiet,
+        )
+        where = f"full resolution {_fmt_triple(volume.shape)}"
+    else:
+        if args.isovalue is not None:
+            raise UnwindError("--isovalue refines at full resolution: give the scan with --full-resolution INPUT")
+        written = _run_with_bar(
+            write_volume_iter(mask.astype("uint8"), args.output, spacing=features.spacing, unit=features.unit,
+                              origin=features.working_origin, overwrite=args.overwrite,
+                              **({"labels": True} if str(args.output).rstrip("/").endswith(".zarr") else {})),
+            args.quiet,
+        )
+        where = f"working resolution {_fmt_triple(mask.shape)}"
+    if not args.quiet:
+        print(f"selected {int(mask.sum())} working voxels -> {written} ({where})")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -356,6 +409,34 @@ def build_parser() -> argparse.ArgumentParser:
     _add_input_options(p)
     _add_output_options(p)
     p.set_defaults(func=cmd_convert)
+
+    p = sub.add_parser("segment", help="split a scan into its most important bright objects (join tree)")
+    p.add_argument("input", help="a scan in any supported format (an imported OME-Zarr pyramid is fastest)")
+    p.add_argument("-o", "--output", required=True, help="the label volume to write (*.zarr, working resolution)")
+    p.add_argument("--features", type=int, default=5, help="number of features to keep, 1-100 (default 5)")
+    p.add_argument("--level", type=int, default=None,
+                   help="pyramid level to work on (default: the finest with every side <= 256)")
+    p.add_argument("--smooth", type=float, default=1.0, help="Gaussian sigma in working voxels (default 1; 0 none)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+    _add_input_options(p)
+    p.set_defaults(func=cmd_segment)
+
+    p = sub.add_parser("select", help="turn features picked by points or ids into a specimen mask")
+    p.add_argument("labels", help="the label volume written by unwind segment")
+    p.add_argument("--at", type=_triple, action="append", help="a point inside a feature, A0,A1,A2 in full-resolution "
+                   "voxels (repeatable)")
+    p.add_argument("--id", type=int, action="append", help="a feature id (repeatable)")
+    p.add_argument("-o", "--output", required=True, help="the mask to write (any format; .zarr for large scans)")
+    p.add_argument("--full-resolution", metavar="INPUT", default=None,
+                   help="refine the mask at full resolution on this scan, chunk by chunk")
+    p.add_argument("--isovalue", type=float, default=None,
+                   help="full-resolution threshold (default: the selected features' own)")
+    p.add_argument("--fill-holes", action="store_true", help="fill cavities of the mask")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+    _add_input_options(p)
+    p.set_defaults(func=cmd_select)
 
     p = sub.add_parser("straighten", help="export the straight volume of a session's deformation")
     p.add_argument("input", help="the scan the session was made on (any supported format)")

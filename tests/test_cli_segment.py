@@ -1,0 +1,67 @@
+"""``unwind segment`` and ``unwind select`` on the phantom tank, as a user runs them."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import no_leftovers
+from napari_unwind.datasets import tank_phantom
+from napari_unwind.io import open_volume, write_volume
+
+UNWIND = Path(sys.executable).with_name("unwind")
+
+
+def _run(*args):
+    r = subprocess.run([str(UNWIND), *map(str, args)], capture_output=True, text=True)
+    return r.returncode, r.stdout, r.stderr
+
+
+@pytest.fixture(scope="module")
+def tank(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("seg_cli")
+    t = tank_phantom(n_fish=3, seed=0)
+    scan = write_volume(t.volume, tmp / "tank.zarr", spacing=t.spacing, unit=t.unit)
+    labels = tmp / "labels.zarr"
+    code, out, err = _run("segment", scan, "-o", labels, "--features", "5", "-q")
+    assert code == 0, err
+    return tmp, t, scan, labels
+
+
+def _dice(a, b):
+    return 2 * np.logical_and(a, b).sum() / (a.sum() + b.sum())
+
+
+def test_each_fish_is_selected_by_a_click(tank):
+    tmp, t, scan, labels = tank
+    for i, fish in enumerate(t.fish):
+        seed = fish.centerline[len(fish.centerline) // 2]
+        out = tmp / f"fish{i}.nrrd"
+        code, _, err = _run("select", labels, "--at", ",".join(f"{v:.1f}" for v in seed), "-o", out,
+                            "--full-resolution", scan, "-q")
+        assert code == 0, err
+        mask = open_volume(out).data.compute().astype(bool)
+        assert mask.shape == t.volume.shape
+        assert _dice(mask, fish.mask) >= 0.9
+
+
+def test_a_click_in_the_background_names_the_nearest_feature(tank, tmp_path):
+    _, t, _, labels = tank
+    code, _, err = _run("select", labels, "--at", "0,0,0", "-o", tmp_path / "m.zarr")
+    assert code == 1 and "background" in err and "nearest feature" in err and "Traceback" not in err
+    code, _, err = _run("select", labels, "--at", "9999,0,0", "-o", tmp_path / "m.zarr")
+    assert code == 1 and "outside the volume" in err
+    code, _, err = _run("select", labels, "-o", tmp_path / "m.zarr")
+    assert code == 1 and "--at" in err
+    assert no_leftovers(tmp_path) == [] and not (tmp_path / "m.zarr").exists()
+
+
+def test_segment_refuses_bad_input(tmp_path):
+    flat = write_volume(np.full((20, 20, 20), 7, np.uint16), tmp_path / "flat.zarr")
+    code, _, err = _run("segment", flat, "-o", tmp_path / "l.zarr")
+    assert code == 1 and "nothing to segment" in err
+    code, _, err = _run("segment", flat, "-o", tmp_path / "l.zarr", "--features", "101")
+    assert code == 1 and "100" in err
+    assert not (tmp_path / "l.zarr").exists()
