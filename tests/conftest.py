@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -21,3 +23,13 @@ def shared_data() -> Path:
 def no_leftovers(folder: Path) -> list[Path]:
     """Temporary outputs of atomic writes left in ``folder`` (there must be none after an error)."""
     return [p for p in folder.rglob("*") if "unwind-tmp" in p.name]
+
+
+#: The installed ``unwind`` command next to the interpreter running the tests.
+UNWIND = Path(sys.executable).with_name("unwind")
+
+
+def run_unwind(*args) -> tuple[int, str, str]:
+    """Run ``unwind ARGS...`` as a user would; returns (exit status, stdout, stderr)."""
+    r = subprocess.run([str(UNWIND), *map(str, args)], capture_output=True, text=True)
+    return r.returncode, r.stdout, r.stderr

@@ -1,17 +1,14 @@
 """The ``unwind`` command as a user runs it: exit codes, messages, files."""
 
 import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import no_leftovers
+from conftest import UNWIND, no_leftovers
+from conftest import run_unwind as _run
 from napari_unwind.cli import main
 from napari_unwind.io import open_volume, write_volume
-
-UNWIND = Path(sys.executable).with_name("unwind")
 
 
 @pytest.fixture
@@ -53,9 +50,6 @@ def test_import_then_convert_round_trip(scan, tmp_path, capsys):
     assert sv.spacing == (3.0, 3.0, 3.0) and sv.unit == "millimeter"
 
 
-def _run(*args):
-    r = subprocess.run([str(UNWIND), *map(str, args)], capture_output=True, text=True)
-    return r.returncode, r.stdout, r.stderr
 
 
 @pytest.mark.parametrize(

@@ -1,22 +1,13 @@
 """``unwind segment`` and ``unwind select`` on the phantom tank, as a user runs them."""
 
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from conftest import no_leftovers
+from conftest import run_unwind as _run
 from napari_unwind.datasets import tank_phantom
 from napari_unwind.io import open_volume, write_volume
-
-UNWIND = Path(sys.executable).with_name("unwind")
-
-
-def _run(*args):
-    r = subprocess.run([str(UNWIND), *map(str, args)], capture_output=True, text=True)
-    return r.returncode, r.stdout, r.stderr
 
 
 @pytest.fixture(scope="module")

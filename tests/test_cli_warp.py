@@ -1,24 +1,15 @@
 """``unwind straighten | bend | map-points`` as a user runs them, on a phantom with known truth."""
 
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from conftest import no_leftovers
+from conftest import run_unwind as _run
 from napari_unwind.datasets import fish_phantom
 from napari_unwind.demo import true_deformation
 from napari_unwind.io import open_volume, write_volume
 from napari_unwind.session import Session, SourceInfo, save_session
-
-UNWIND = Path(sys.executable).with_name("unwind")
-
-
-def _run(*args):
-    r = subprocess.run([str(UNWIND), *map(str, args)], capture_output=True, text=True)
-    return r.returncode, r.stdout, r.stderr
 
 
 @pytest.fixture(scope="module")
