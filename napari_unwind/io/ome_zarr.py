@@ -5,8 +5,10 @@ A scan is stored as a multiscale pyramid: level 0 at full resolution, each next 
 is chunked (128^3 by default) and zstd-compressed, and the ``ome`` attributes record axes, units and the scale
 of each level, so napari, Fiji (MoBIE/n5-viewer) and ome-zarr-py read it with the right geometry.
 
-Writing streams slab by slab along axis0: peak memory is one slab (``chunks[0]`` planes) of the input plus the
-matching slab of the level being built, never the whole volume.
+Writing streams slab by slab along axis0 in one pass: every level is built from the slabs as they go by and
+written chunk-aligned, none is read back. Peak memory is about two slabs of ``chunks[0]`` planes (the one being
+written and the one read ahead) plus the pyramid's pending planes (1/8 + 1/64 + ... of a slab), never the whole
+volume.
 """
 
 from __future__ import annotations
