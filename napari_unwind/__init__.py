@@ -24,6 +24,8 @@ _LAZY = {
     "map_mesh": "warp",
     "map_points": "warp",
     "straighten": "warp",
+    "estimate_deformation": "skeleton",
+    "suggest_endpoints": "skeleton",
 }
 
 
@@ -45,6 +47,7 @@ __all__ = [
     "Keyframe",
     "Session",
     "bend",
+    "estimate_deformation",
     "export",
     "load_session",
     "map_labels",
@@ -52,6 +55,7 @@ __all__ = [
     "map_points",
     "save_session",
     "straighten",
+    "suggest_endpoints",
     "OutputError",
     "Progress",
     "UnknownFormatError",

@@ -1,0 +1,549 @@
+"""From a mask and two clicks to a :class:`~napari_unwind.deformation.Deformation` (DESIGN.md section 4)."""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from ..deformation import Deformation, parallel_transport_frames
+from ..errors import InvalidInputError
+from ..io._volume import Volume, check_spacing, normalise_unit
+from ..progress import Progress, ProgressGenerator, run
+from ..session import Endpoints
+from ._curve import arclength, resample_curve, select_keyframes, smooth_curve
+from ._harmonic import decimate_surface, harmonic_field, level_set_centroids, surface_mesh, tet_mesh
+
+__all__ = ["estimate_deformation", "estimate_deformation_iter", "SkeletonResult", "WorkingMask", "working_mask"]
+
+_STRUCT26 = np.ones((3, 3, 3), dtype=bool)
+
+
+@dataclass(frozen=True)
+class SkeletonResult:
+    """Everything :func:`estimate_deformation_iter` found, besides the deformation itself.
+
+    Attributes
+    ----------
+    deformation : Deformation
+        The keyframed deformation (physical units, the scan's spacing and origin).
+    endpoints : Endpoints
+        The endpoints used, in full-resolution voxels (snapped into the mask, or suggested).
+    suggested : bool
+        The head and tail were suggested (none were given).
+    curve : ndarray, shape (K, 3)
+        The dense centreline (smoothed, resampled), full-resolution voxel coordinates.
+    frames : ndarray, shape (K, 3, 3)
+        Its frames (rows u, v, n; twist applied when estimated).
+    twist : ndarray, shape (K,)
+        Twist (radians) of ``frames`` relative to parallel transport (zeros without twist estimation).
+    keyframe_indices : ndarray of int
+        Indices into ``curve`` of the keyframes.
+    factor : int
+        Box-averaging factor from the mask to the working resolution.
+    mesh : dict
+        Sizes of the meshes per part: triangles, vertices, tets.
+    timings : dict of str to float
+        Seconds spent per stage.
+    warnings : tuple of str
+        Handled-but-suspicious conditions (also issued as UserWarning).
+    """
+
+    deformation: Deformation
+    endpoints: Endpoints
+    suggested: bool
+    curve: np.ndarray
+    frames: np.ndarray
+    twist: np.ndarray
+    keyframe_indices: np.ndarray
+    factor: int
+    mesh: dict[str, Any] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class WorkingMask:
+    """The mask cropped to its bounding box and box-averaged to the working resolution.
+
+    Attributes
+    ----------
+    occupancy : ndarray of float32
+        Fraction of mask voxels in each working voxel.
+    binary : ndarray of bool
+        ``occupancy >= 0.5``.
+    volume : ndarray of float32 or None
+        The intensities box-averaged the same way (when a volume was given).
+    factor : int
+        Box size.
+    start, stop : tuple of 3 int
+        Full-resolution bounding box of the mask (``stop`` exclusive).
+    spacing : tuple of 3 float
+        Full-resolution spacing; the working spacing is ``factor * spacing``.
+    shape : tuple of 3 int
+        Full-resolution shape of the mask.
+    """
+
+    occupancy: np.ndarray
+    binary: np.ndarray
+    volume: np.ndarray | None
+    factor: int
+    start: tuple[int, int, int]
+    stop: tuple[int, int, int]
+    spacing: tuple[float, float, float]
+    shape: tuple[int, int, int]
+
+    @property
+    def working_spacing(self) -> tuple[float, float, float]:
+        return tuple(self.factor * s for s in self.spacing)  # type: ignore[return-value]
+
+    @property
+    def offset(self) -> np.ndarray:
+        """Physical position (origin 0) of working voxel (0, 0, 0)."""
+        return (np.asarray(self.start, float) + (self.factor - 1) / 2.0) * np.asarray(self.spacing)
+
+    def to_working(self, voxels: np.ndarray) -> np.ndarray:
+        """Full-resolution voxel coordinates -> working voxel coordinates."""
+        return (np.asarray(voxels, float) - np.asarray(self.start) - (self.factor - 1) / 2.0) / self.factor
+
+    def from_working(self, working: np.ndarray) -> np.ndarray:
+        """Working voxel coordinates -> full-resolution voxel coordinates."""
+        return np.asarray(working, float) * self.factor + np.asarray(self.start) + (self.factor - 1) / 2.0
+
+
+def _as_array(data: Any, what: str) -> Any:
+    """numpy or dask array of 3 dimensions (not copied)."""
+    import dask.array as da
+
+    if isinstance(data, Volume):
+        data = data.data
+    if not isinstance(data, (np.ndarray, da.Array)):
+        try:
+            data = np.asarray(data) if not hasattr(data, "chunks") else da.from_array(data)
+        except Exception as exc:  # noqa: BLE001 - report what we got
+            raise InvalidInputError(f"the {what} must be an array, got {type(data).__name__}") from exc
+    if data.ndim != 3:
+        raise InvalidInputError(f"the {what} must be 3-dimensional (axis0, axis1, axis2), got shape {data.shape}")
+    if 0 in data.shape:
+        raise InvalidInputError(f"the {what} has an empty dimension: shape {data.shape}")
+    return data
+
+
+def _box_average(block: Any, factor: int) -> np.ndarray:
+    """Mean over factor^3 boxes (zero padded at the far sides), as float32 numpy."""
+    import dask.array as da
+
+    if factor == 1:
+        out = block.astype(np.float32)
+        return np.asarray(out.compute() if isinstance(out, da.Array) else out)
+    pad = [(0, (-n) % factor) for n in block.shape]
+    if isinstance(block, da.Array):
+        b = da.pad(block.astype(np.float32), pad)
+        b = b.rechunk(tuple(max(factor, (c // factor) * factor) for c in (64, 64, 64)))
+        return np.asarray(da.coarsen(np.mean, b, {0: factor, 1: factor, 2: factor}).compute(), dtype=np.float32)
+    b = np.pad(np.asarray(block, dtype=np.float32), pad)
+    s = b.shape
+    return b.reshape(s[0] // factor, factor, s[1] // factor, factor, s[2] // factor, factor).mean(axis=(1, 3, 5))
+
+
+def working_mask(
+    mask: Any, *, spacing: Sequence[float] | float, volume: Any = None, max_side: int = 128, factor: int | None = None,
+) -> WorkingMask:
+    """Crop a mask to its bounding box and box-average it so its longest side is at most ``max_side``
+    (or by exactly ``factor``, when given).
+
+    The mask may be numpy or dask (a full-resolution scan never needs to fit in memory: only the crop is
+    averaged, chunk by chunk). ``volume``, when given, is averaged over the same boxes.
+    """
+    import dask.array as da
+
+    m = _as_array(mask, "mask")
+    sp = check_spacing(spacing)
+    if max_side < 8:
+        raise InvalidInputError(f"max_side must be at least 8 voxels, got {max_side}")
+    nz = m != 0
+    if isinstance(nz, da.Array):
+        axes = da.compute(*(nz.any(axis=tuple(j for j in range(3) if j != i)) for i in range(3)))
+    else:
+        axes = [nz.any(axis=tuple(j for j in range(3) if j != i)) for i in range(3)]
+    if not all(a.any() for a in axes):
+        raise InvalidInputError("the mask is empty (no nonzero voxel); select the specimen first "
+                                "(unwind select, or the plugin's pick) and pass its mask")
+    lo = tuple(int(np.argmax(a)) for a in axes)
+    hi = tuple(int(len(a) - np.argmax(a[::-1])) for a in axes)
+    if factor is None:
+        factor = max(1, math.ceil(max(h - low for low, h in zip(lo, hi, strict=True)) / max_side))
+    elif not (isinstance(factor, (int, np.integer)) and factor >= 1):
+        raise InvalidInputError(f"factor must be an integer >= 1, got {factor!r}")
+    crop = tuple(slice(low, h) for low, h in zip(lo, hi, strict=True))
+    occ = _box_average(nz[crop], factor)
+    vol = None
+    if volume is not None:
+        v = _as_array(volume, "volume")
+        if tuple(v.shape) != tuple(m.shape):
+            raise InvalidInputError(f"the volume's shape {tuple(v.shape)} differs from the mask's {tuple(m.shape)}; "
+                                    "pass the scan the mask was made from (same resolution level)")
+        vol = _box_average(v[crop], factor)
+    return WorkingMask(occ, occ >= 0.5, vol, factor, lo, hi, sp, tuple(int(n) for n in m.shape))
+
+
+def _border_sides(wm: WorkingMask) -> list[str]:
+    sides = []
+    for ax in range(3):
+        if wm.start[ax] == 0:
+            sides.append(f"axis{ax} start")
+        if wm.stop[ax] >= wm.shape[ax]:
+            sides.append(f"axis{ax} end")
+    return sides
+
+
+def _describe_part(labels: np.ndarray, lab: int, wm: WorkingMask) -> str:
+    idx = np.argwhere(labels == lab)
+    lo = wm.from_working(idx.min(axis=0)).round().astype(int).tolist()
+    hi = wm.from_working(idx.max(axis=0)).round().astype(int).tolist()
+    return f"part {lab} ({len(idx) * wm.factor ** 3} voxels, from {lo} to {hi})"
+
+
+def _snap(point_vox: np.ndarray, wm: WorkingMask, tolerance: float, what: str) -> np.ndarray:
+    """A full-resolution voxel point moved into the working mask (if within ``tolerance`` physical)."""
+    p = np.asarray(point_vox, dtype=float)
+    shape = np.asarray(wm.shape)
+    if (p < -0.5).any() or (p > shape - 0.5).any():
+        raise InvalidInputError(f"the {what} {p.tolist()} lies outside the volume of shape {tuple(wm.shape)}; "
+                                "give it in array index order (axis0, axis1, axis2), full-resolution voxels")
+    w = wm.to_working(p)
+    wi = np.clip(np.round(w).astype(int), 0, np.asarray(wm.binary.shape) - 1)
+    if wm.binary[tuple(wi)] and np.all(np.abs(w - wi) <= 0.5):
+        return p
+    cand = np.argwhere(wm.binary)
+    wsp = np.asarray(wm.working_spacing)
+    d = np.linalg.norm((cand - w) * wsp, axis=1)
+    k = int(np.argmin(d))
+    if d[k] > tolerance:
+        raise InvalidInputError(
+            f"the {what} {np.round(p, 2).tolist()} is {d[k]:.3g} (physical units) from the mask, more than the "
+            f"snapping tolerance {tolerance:.3g}; click inside the specimen, or raise snap_tolerance")
+    return wm.from_working(cand[k])
+
+
+def _stage(name: str, timings: dict[str, float], t0: float) -> float:
+    t = time.perf_counter()
+    timings[name] = timings.get(name, 0.0) + (t - t0)
+    return t
+
+
+def _normalise_endpoints(endpoints: Any) -> Endpoints | None:
+    if endpoints is None or isinstance(endpoints, Endpoints):
+        return endpoints
+    if isinstance(endpoints, dict):
+        return Endpoints.from_dict(endpoints)
+    try:
+        head, tail = endpoints
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"endpoints must be an Endpoints, a (head, tail) pair or None, got {endpoints!r}"
+                                ) from exc
+    return Endpoints(head=tuple(head), tail=tuple(tail))
+
+
+def _part_curve(
+    wm: WorkingMask, labels: np.ndarray, head_w: np.ndarray, tail_w: np.ndarray, *, what: str, chained: bool,
+    n_levels: int, level_spacing: str, timings: dict[str, float], mesh_info: list[dict[str, int]],
+    note: Any, max_triangles: int | None, mesher: dict[str, Any],
+) -> ProgressGenerator[np.ndarray]:
+    """Centroid curve (physical, origin 0) of the part of the working mask holding ``head_w`` and ``tail_w``."""
+    t = time.perf_counter()
+    wsp = np.asarray(wm.working_spacing)
+    hi_w, ti_w = (tuple(np.clip(np.round(x).astype(int), 0, np.asarray(labels.shape) - 1)) for x in (head_w, tail_w))
+    lh, lt = int(labels[hi_w]), int(labels[ti_w])
+    occupancy = None
+    if lh == lt and lh > 0:
+        part = labels == lh
+        occupancy = np.where(ndi.binary_dilation(part, _STRUCT26), wm.occupancy, 0.0)
+    else:
+        # the paper's connectivity step: dilate (up to 3 working voxels) until both ends are in one component
+        for r in (1, 2, 3):
+            ball = np.linalg.norm(np.mgrid[-r:r + 1, -r:r + 1, -r:r + 1], axis=0) <= r + 1e-9
+            dil = ndi.binary_dilation(wm.binary, ball)
+            lab2, _ = ndi.label(dil, _STRUCT26)
+            if lab2[hi_w] > 0 and lab2[hi_w] == lab2[ti_w]:
+                occupancy = (lab2 == lab2[hi_w]).astype(np.float32)
+                note(f"the {what}'s mask is in pieces; dilation by {r} working voxel(s) joined them (the paper's "
+                     "connectivity step)")
+                break
+        if occupancy is None:
+            parts = ", ".join(_describe_part(labels, lab, wm) for lab in sorted({lh, lt}) if lab > 0)
+            hint = ("give endpoints for every part, in order from head to tail (Endpoints.chain, or --chain "
+                    "START END per part on the command line)") if not chained else "check the chain's points"
+            raise InvalidInputError(
+                f"the {what} start and end lie in different parts of the mask that dilation by 3 working voxels "
+                f"does not join: start in part {lh}, end in part {lt} ({parts}); {hint}")
+    yield Progress("surface", 0, 1, what)
+    verts, faces = surface_mesh(occupancy, spacing=tuple(wsp), offset=tuple(wm.offset))
+    n_mc = len(faces)
+    if max_triangles:
+        verts, faces = decimate_surface(verts, faces, max_faces=max_triangles)
+    t = _stage("surface", timings, t)
+    yield Progress("tet mesh", 0, 1, f"{what}: {len(faces)} triangles")
+    mesh = tet_mesh(verts, faces, **mesher)
+    t = _stage("tet mesh", timings, t)
+    mesh_info.append({"marching_cubes_triangles": int(n_mc), "triangles": int(len(faces)),
+                      "vertices": int(len(mesh.vertices)), "tets": int(len(mesh.tets))})
+    yield Progress("harmonic", 0, 1, f"{what}: {len(mesh.vertices)} vertices, {len(mesh.tets)} tets")
+    head = wm.from_working(head_w) * np.asarray(wm.spacing)
+    tail = wm.from_working(tail_w) * np.asarray(wm.spacing)
+    u = harmonic_field(mesh, head, tail, anchor_radius=1.5 * float(wsp.min()))
+    t = _stage("harmonic", timings, t)
+    yield Progress("level sets", 0, 2, what)
+    levels = (np.arange(n_levels) + 0.5) / n_levels
+    cents, _ = level_set_centroids(mesh, u, levels)
+    ok = np.isfinite(cents[:, 0])
+    if level_spacing == "arclength" and ok.sum() >= 2:
+        # second pass: isovalues placed evenly along the first curve, so the level sets are evenly spaced
+        # along the body instead of crowding at the ends, where a point-like Dirichlet end makes u change fast
+        pts = np.vstack([head, cents[ok], tail])
+        uu = np.concatenate([[0.0], levels[ok], [1.0]])
+        cum = arclength(pts)
+        levels = np.interp((np.arange(n_levels) + 0.5) / n_levels * cum[-1], cum, uu)
+        yield Progress("level sets", 1, 2, what)
+        cents, _ = level_set_centroids(mesh, u, levels)
+        ok = np.isfinite(cents[:, 0])
+    _stage("level sets", timings, t)
+    yield Progress("level sets", 2, 2, what)
+    return np.vstack([head, cents[ok], tail])
+
+
+def estimate_deformation_iter(
+    mask: Any,
+    endpoints: Any = None,
+    *,
+    spacing: Sequence[float] | float | None = None,
+    n_levels: int = 100,
+    smoothing_iterations: int = 50,
+    cage_radius: float = 10.0,
+    estimate_twist: bool = True,
+    volume: Any = None,
+    smoothing: str = "taubin",
+    level_spacing: str = "arclength",
+    tolerance: float = 0.5,
+    half_extent: Sequence[float] | float | None = None,
+    pad: Sequence[float] | float | None = None,
+    max_side: int = 128,
+    snap_tolerance: float = 5.0,
+    up: Sequence[float] | None = None,
+    origin: Sequence[float] | float | None = None,
+    unit: str | None = None,
+    max_triangles: int | None = 3000,
+    mesher: dict[str, Any] | None = None,
+) -> ProgressGenerator[SkeletonResult]:
+    """Generator form of :func:`estimate_deformation`: yields :class:`Progress` per stage, returns a
+    :class:`SkeletonResult` (its ``deformation`` is what :func:`estimate_deformation` returns).
+
+    See :func:`estimate_deformation` for the parameters.
+    """
+    from ._cage import propose_cage
+    from ._endpoints import suggest_endpoints
+    from ._twist import apply_twist
+    from ._twist import estimate_twist as twist_angles
+
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    if spacing is None:
+        if isinstance(mask, Volume):
+            spacing, origin = mask.spacing, mask.origin if origin is None else origin
+            unit = mask.unit if unit is None else unit
+        else:
+            raise InvalidInputError("spacing is required (the voxel size along axis0, axis1, axis2) unless the "
+                                    "mask is a Volume")
+    sp = np.asarray(check_spacing(spacing))
+    org = np.broadcast_to(np.asarray(0.0 if origin is None else origin, dtype=float), (3,))
+    unit = normalise_unit(unit)
+    for name, value, lo in (("n_levels", n_levels, 2), ("smoothing_iterations", smoothing_iterations, 0)):
+        if not isinstance(value, (int, np.integer)) or value < lo:
+            raise InvalidInputError(f"{name} must be an integer >= {lo}, got {value!r}")
+    for name, value in (("cage_radius", cage_radius), ("tolerance", tolerance), ("snap_tolerance", snap_tolerance)):
+        if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value > 0):
+            raise InvalidInputError(f"{name} must be a positive number (voxels), got {value!r}")
+    if level_spacing not in ("arclength", "uniform"):
+        raise InvalidInputError(f"level_spacing must be 'arclength' or 'uniform', got {level_spacing!r}")
+    if smoothing not in ("taubin", "laplacian"):
+        raise InvalidInputError(f"smoothing must be 'taubin' or 'laplacian', got {smoothing!r}")
+    ends = _normalise_endpoints(endpoints)
+    vox = float(sp.min())
+    notes: list[str] = []
+
+    def note(msg: str) -> None:
+        notes.append(msg)
+        warnings.warn(msg, UserWarning, stacklevel=3)
+
+    yield Progress("working mask", 0, 1, "cropping and averaging")
+    wm = working_mask(mask, spacing=tuple(sp), volume=volume, max_side=max_side)
+    sides = _border_sides(wm)
+    if sides:
+        note(f"the mask touches the volume's border ({', '.join(sides)}): the specimen may be cut off by the scan's "
+             "field of view; the curve ends where the mask does")
+    labels, nlab = ndi.label(wm.binary, _STRUCT26)
+    t = _stage("working mask", timings, t)
+    yield Progress("working mask", 1, 1, f"factor {wm.factor}, {wm.binary.shape}, {nlab} part(s)")
+
+    suggested = False
+    if ends is None:
+        yield Progress("endpoints", 0, 1, "suggesting head and tail")
+        h, tl = suggest_endpoints(wm.binary, spacing=wm.working_spacing, volume=wm.volume)
+        ends = Endpoints(head=tuple(wm.from_working(np.asarray(h))), tail=tuple(wm.from_working(np.asarray(tl))))
+        suggested = True
+        t = _stage("endpoints", timings, t)
+    tol = snap_tolerance * vox
+    chain = list(ends.chain) or [(ends.head, ends.tail)]
+    if ends.chain:
+        if np.linalg.norm(np.subtract(chain[0][0], ends.head)) > 1e-6 or \
+                np.linalg.norm(np.subtract(chain[-1][1], ends.tail)) > 1e-6:
+            raise InvalidInputError("the chain must start at the head and end at the tail: its first pair starts at "
+                                    f"{list(chain[0][0])} (head {list(ends.head)}) and its last ends at "
+                                    f"{list(chain[-1][1])} (tail {list(ends.tail)})")
+    snapped = []
+    for i, (a, b) in enumerate(chain):
+        what = "specimen" if len(chain) == 1 else f"part {i + 1} of the chain"
+        pa = _snap(np.asarray(a), wm, tol, f"start of the {what}" if len(chain) > 1 else "head")
+        pb = _snap(np.asarray(b), wm, tol, f"end of the {what}" if len(chain) > 1 else "tail")
+        if np.linalg.norm((pa - pb) * sp) < 2 * wm.factor * vox:
+            raise InvalidInputError(f"the start {np.round(pa, 2).tolist()} and end {np.round(pb, 2).tolist()} of the "
+                                    f"{what} are (nearly) the same point; click the two ends of the specimen")
+        snapped.append((pa, pb))
+    t = _stage("endpoints", timings, t)
+
+    pieces = []
+    mesh_info: list[dict[str, int]] = []
+    for i, (pa, pb) in enumerate(snapped):
+        what = "specimen" if len(snapped) == 1 else f"part {i + 1} of the chain"
+        pts = yield from _part_curve(wm, labels, wm.to_working(pa), wm.to_working(pb), what=what,
+                                     chained=len(snapped) > 1, n_levels=int(n_levels), level_spacing=level_spacing,
+                                     timings=timings, mesh_info=mesh_info, note=note,
+                                     max_triangles=max_triangles, mesher=dict(mesher or {}))
+        t = time.perf_counter()
+        yield Progress("smoothing", i, len(snapped), what)
+        pieces.append(smooth_curve(pts, iterations=int(smoothing_iterations), method=smoothing))
+        t = _stage("smoothing", timings, t)
+    # parts are joined by the straight segments between one part's end and the next one's start
+    curve = resample_curve(np.vstack(pieces), min_step=0.5 * vox)
+    frames = parallel_transport_frames(curve, up=up)
+    t = _stage("frames", timings, t)
+    yield Progress("frames", 1, 1, f"{len(curve)} points")
+
+    curve_w = curve - wm.offset  # physical, origin at working voxel 0 (the helpers' convention)
+    theta = np.zeros(len(curve))
+    if estimate_twist:
+        yield Progress("twist", 0, 1, "orienting the cross-sections")
+        # The orientation of a cross-section needs it several voxels across: at the working resolution a
+        # slender body is only a few voxels wide (the twist error doubled on the phantoms). The sections are
+        # read from a finer copy, box-averaged only as much as keeps the body's half-width >= 8 voxels.
+        tw = wm
+        if wm.factor > 1:
+            rough_he, _ = propose_cage(wm.binary, curve_w, frames, spacing=wm.working_spacing, margin=0.0,
+                                       min_margin=0.0)
+            tf = int(max(1, min(wm.factor, math.floor(min(rough_he) / (8.0 * vox)))))
+            if tf < wm.factor:
+                tw = working_mask(mask, spacing=tuple(sp), volume=volume, factor=tf)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            theta = np.asarray(twist_angles(curve - tw.offset, frames, mask=tw.binary, spacing=tw.working_spacing,
+                                            volume=tw.volume), dtype=float)
+        for w in caught:
+            note(str(w.message))
+        frames = apply_twist(frames, theta)
+        t = _stage("twist", timings, t)
+    yield Progress("cage", 0, 1, "cross-section extent")
+    auto_he, auto_pad = propose_cage(wm.binary, curve_w, frames, spacing=wm.working_spacing)
+    he = auto_he if half_extent is None else half_extent
+    pd = auto_pad if pad is None else pad
+    length = float(arclength(curve)[-1])
+    width = 2.0 * float(np.max(auto_he))
+    if length < 1.5 * width:
+        note(f"the specimen is nearly spherical (length {length:.3g} against a width of about {width:.3g}): there is "
+             "no clear axis to straighten along; the curve runs between the given ends")
+    t = _stage("cage", timings, t)
+    yield Progress("keyframes", 0, 1, "prism subdivision")
+    idx = select_keyframes(curve, frames, radius=cage_radius * vox, tolerance=tolerance * vox)
+    deformation = Deformation.from_keyframes(curve[idx] + org, frames[idx], he, pad=pd, spacing=tuple(sp),
+                                             origin=tuple(org), unit=unit)
+    _stage("keyframes", timings, t)
+    yield Progress("keyframes", 1, 1, f"{len(idx)} keyframes")
+    used = Endpoints(head=tuple(snapped[0][0]), tail=tuple(snapped[-1][1]),
+                     chain=tuple((tuple(a), tuple(b)) for a, b in snapped) if len(snapped) > 1 else ())
+    return SkeletonResult(
+        deformation=deformation, endpoints=used, suggested=suggested, curve=curve / sp, frames=frames,
+        twist=theta, keyframe_indices=idx, factor=wm.factor,
+        mesh={"parts": mesh_info}, timings=timings, warnings=tuple(notes))
+
+
+def estimate_deformation(
+    mask: Any,
+    endpoints: Any = None,
+    *,
+    spacing: Sequence[float] | float | None = None,
+    n_levels: int = 100,
+    smoothing_iterations: int = 50,
+    cage_radius: float = 10.0,
+    estimate_twist: bool = True,
+    volume: Any = None,
+    **options: Any,
+) -> Deformation:
+    """Estimate the straightening deformation of a specimen from its mask and its two ends.
+
+    The paper's pipeline (DESIGN.md section 4): the mask at a working resolution, connectivity by dilation, a
+    marching-cubes surface, an fTetWild tet mesh, the cotangent-Laplacian harmonic function with ``u = 0`` at the
+    head and ``u = 1`` at the tail, ``n_levels`` level sets by marching tets with area-weighted centroids,
+    smoothing, resampling by arclength, parallel-transport frames and the fewest keyframes (prism subdivision).
+    Beyond the paper: the twist from the specimen's own cross-sections, suggested endpoints, and the cage and
+    end padding from the cross-section extent.
+
+    Parameters
+    ----------
+    mask : ndarray, dask array or Volume, shape (N0, N1, N2)
+        The specimen (nonzero voxels). Only its bounding box is read, box-averaged to at most ``max_side``
+        voxels along its longest side.
+    endpoints : Endpoints, (head, tail) pair, or None
+        Head and tail in full-resolution voxel coordinates (array index order); for a specimen in pieces an
+        :class:`~napari_unwind.session.Endpoints` with its ``chain`` of (start, end) pairs, head to tail. A point
+        just outside the mask is snapped to the nearest mask voxel (within ``snap_tolerance`` voxels). None: the
+        ends of the longest geodesic are suggested, the thicker end taken as the head.
+    spacing : float or sequence of 3 float
+        Voxel size (axis0, axis1, axis2); optional when ``mask`` is a Volume.
+    n_levels : int
+        Number of level sets (the paper's k = 100).
+    smoothing_iterations : int
+        Smoothing iterations (the paper's s = 50).
+    cage_radius : float
+        Half-size r of the box (voxels) whose corners the keyframes must reproduce within ``tolerance`` voxels
+        (the paper's r = 10).
+    estimate_twist : bool
+        Turn each frame about the curve so ``v`` points dorsal, from the cross-sections' principal axes.
+    volume : array, optional
+        The scan's intensities (same shape as the mask), used by the twist estimate and endpoint suggestion.
+    **options
+        ``smoothing`` ("taubin" or the paper's "laplacian"), ``level_spacing`` ("arclength" or the paper's
+        "uniform"), ``tolerance`` (0.5 voxels), ``half_extent`` and ``pad`` (physical; default proposed from the
+        cross-sections), ``max_side`` (128), ``snap_tolerance`` (5 voxels), ``up`` (world direction for the first
+        frame's v without twist estimation), ``origin``, ``unit``, ``max_triangles`` (3000: the marching-cubes
+        surface is decimated to this many triangles before meshing, None for no decimation; the mesher's time
+        grows with the surface) and ``mesher`` (options of :func:`tet_mesh`, e.g. ``edge_length_fac``).
+
+    Returns
+    -------
+    Deformation
+
+    Raises
+    ------
+    InvalidInputError
+        Empty mask, head = tail, an end too far from the mask, ends in parts that cannot be joined (the message
+        names the parts), invalid options.
+    """
+    gen = estimate_deformation_iter(mask, endpoints, spacing=spacing, n_levels=n_levels,
+                                    smoothing_iterations=smoothing_iterations, cage_radius=cage_radius,
+                                    estimate_twist=estimate_twist, volume=volume, **options)
+    return run(gen).deformation

@@ -1,0 +1,160 @@
+"""Cage half-extents and end padding proposed from the mask around a curve.
+
+Every boundary voxel of the mask (the extremes of any coordinate are reached on the boundary) is given the
+straight coordinates of the curve point nearest to it: ``x = (p - c_j) . u_j``, ``y = (p - c_j) . v_j`` and the
+offset ``z = (p - c_j) . n_j`` along the curve. Voxels nearest the first point with ``z < 0`` lie beyond the head;
+voxels nearest the last point with ``z > 0`` lie beyond the tail.
+
+- ``(rx, ry)``: the largest ``|x|`` and ``|y|`` over all those voxels (beyond-end voxels included, seen in the
+  end frames, which is how the padded straight box sees them), enlarged by ``margin`` (relative) plus
+  ``min_margin`` (absolute) so that fins and partial-volume edges are not cut.
+- ``(before, after)``: how far the mask reaches beyond the first point along ``-n_0`` and beyond the last one
+  along ``+n_K``, plus ``end_margin``, so that fleshy ends the curve does not reach are kept.
+
+Stray voxels: parts of the mask smaller than 0.1 % of it (specks left by a segmentation) are ignored. Curves
+with points farther apart than a voxel are first densified (positions linear, frames by quaternion SLERP, as
+:class:`napari_unwind.deformation.Deformation` interpolates them).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation, Slerp
+
+from ..errors import InvalidInputError
+from ..io._volume import check_spacing
+from ._twist import _check_frames, _check_points
+
+__all__ = ["propose_cage"]
+
+_STRUCT26 = np.ones((3, 3, 3), dtype=bool)
+_SPECK_FRACTION = 1e-3  # parts smaller than this fraction of the mask are ignored
+
+
+def _nonneg(name: str, value: Any) -> float:
+    if isinstance(value, (bool, np.bool_)) or not (np.isscalar(value) and np.isfinite(value) and float(value) >= 0):
+        raise InvalidInputError(f"{name} must be a number >= 0, got {value!r}")
+    return float(value)
+
+
+def propose_cage(
+    mask: Any,
+    points: np.ndarray,
+    frames: np.ndarray,
+    *,
+    spacing: Sequence[float] | float,
+    margin: float = 0.1,
+    min_margin: float | None = None,
+    end_margin: float | None = None,
+) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Propose the cage half-extents and the end padding that hold the whole mask.
+
+    See the module docstring for the method.
+
+    Parameters
+    ----------
+    mask : ndarray of bool, shape (N0, N1, N2)
+        The specimen (non-zero = inside).
+    points : ndarray, shape (K, 3)
+        Curve points, physical units (voxel index x spacing, origin 0), head first, consecutive points distinct.
+    frames : ndarray, shape (K, 3, 3)
+        Rows ``u, v, n`` at each point, orthonormal and right-handed (the twisted frames if the twist is known:
+        ``rx`` is measured along ``u`` and ``ry`` along ``v``).
+    spacing : float or sequence of 3 float
+        Voxel size of ``mask`` along axis0, axis1, axis2.
+    margin : float
+        Relative enlargement of the half-extents (0.1: 10 %).
+    min_margin : float, optional
+        Absolute enlargement added to the half-extents, physical units. Default: 2 voxels (the largest spacing).
+    end_margin : float, optional
+        Added to each end's padding, physical units. Default: 2 voxels (the largest spacing).
+
+    Returns
+    -------
+    half_extent : tuple of 2 float
+        ``(rx, ry)``, physical units.
+    pad : tuple of 2 float
+        ``(before, after)``: padding before the first point and after the last one, physical units.
+
+    Raises
+    ------
+    InvalidInputError
+        For malformed inputs or an empty mask.
+    """
+    arr = np.asarray(mask)
+    if arr.ndim != 3:
+        raise InvalidInputError(f"mask must be a 3D array (axis0, axis1, axis2), got shape {arr.shape}")
+    if arr.dtype != bool:
+        if not np.issubdtype(arr.dtype, np.number):
+            raise InvalidInputError(f"mask must hold booleans or numbers (non-zero = inside), got dtype {arr.dtype}")
+        arr = arr != 0
+    pts = _check_points(points)
+    fr = _check_frames(frames, len(pts))
+    sp = np.asarray(check_spacing(spacing))
+    margin = _nonneg("margin", margin)
+    vox = float(sp.max())
+    min_margin = 2.0 * vox if min_margin is None else _nonneg("min_margin", min_margin)
+    end_margin = 2.0 * vox if end_margin is None else _nonneg("end_margin", end_margin)
+
+    vox_idx = _boundary_voxels(arr)
+    if len(vox_idx) == 0:
+        raise InvalidInputError("the mask is empty: there is no specimen to fit a cage around; check the segmentation")
+    p = vox_idx * sp
+
+    pts, fr = _densify(pts, fr, float(sp.min()))
+    _, j = cKDTree(pts).query(p, workers=-1)
+    d = p - pts[j]
+    x = np.einsum("ij,ij->i", d, fr[j, 0])
+    y = np.einsum("ij,ij->i", d, fr[j, 1])
+    z = np.einsum("ij,ij->i", d, fr[j, 2])
+    rx = float(np.abs(x).max()) * (1.0 + margin) + min_margin
+    ry = float(np.abs(y).max()) * (1.0 + margin) + min_margin
+    last = len(pts) - 1
+    ahead = (j == 0) & (z < 0)
+    behind = (j == last) & (z > 0)
+    before = (float(-z[ahead].min()) if ahead.any() else 0.0) + end_margin
+    after = (float(z[behind].max()) if behind.any() else 0.0) + end_margin
+    return (rx, ry), (before, after)
+
+
+def _boundary_voxels(mask: np.ndarray) -> np.ndarray:
+    """Index coordinates (N, 3) of the mask voxels with a face neighbour outside, specks removed."""
+    sl = []
+    for ax in range(3):
+        other = tuple(a for a in range(3) if a != ax)
+        nz = np.flatnonzero(np.any(mask, axis=other))
+        if len(nz) == 0:
+            return np.empty((0, 3), dtype=np.int64)
+        sl.append(slice(int(nz[0]), int(nz[-1]) + 1))
+    crop = mask[tuple(sl)]
+    labels, n = ndimage.label(crop, _STRUCT26)
+    if n > 1:
+        sizes = np.bincount(labels.reshape(-1), minlength=n + 1)
+        sizes[0] = 0
+        small = sizes < _SPECK_FRACTION * sizes.sum()
+        small[0] = True
+        crop = ~small[labels]
+    inner = ndimage.binary_erosion(np.pad(crop, 1))[1:-1, 1:-1, 1:-1]
+    edge = crop & ~inner
+    return np.argwhere(edge) + np.array([s.start for s in sl])
+
+
+def _densify(pts: np.ndarray, fr: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Insert points (linear) and frames (SLERP) so that consecutive points are at most ``step`` apart."""
+    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    m = np.maximum(1, np.ceil(seg / step).astype(int))
+    if (m == 1).all():
+        return pts, fr
+    rots = Rotation.from_matrix(np.transpose(fr, (0, 2, 1)))  # columns u, v, n
+    knots = np.arange(len(pts), dtype=float)
+    t = np.concatenate([i + np.arange(k) / k for i, k in enumerate(m)] + [[len(pts) - 1.0]])
+    i0 = np.minimum(np.floor(t).astype(int), len(pts) - 2)
+    lam = (t - i0)[:, None]
+    new_pts = (1 - lam) * pts[i0] + lam * pts[i0 + 1]
+    new_fr = np.transpose(Slerp(knots, rots)(t).as_matrix(), (0, 2, 1))
+    return new_pts, new_fr

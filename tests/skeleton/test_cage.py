@@ -1,0 +1,120 @@
+"""Cage half-extents and end padding (napari_unwind.skeleton._cage), checked with the Deformation's inverse map."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+from napari_unwind.datasets import fish_phantom
+from napari_unwind.deformation import Deformation
+from napari_unwind.errors import InvalidInputError
+from napari_unwind.skeleton._cage import propose_cage
+
+
+@functools.cache
+def _fish(curve: str, spacing=1.0, twist: float = 2.0, roll: float = 0.7):
+    return fish_phantom(curve=curve, twist=twist, roll=roll, spacing=spacing, noise=0.0, tube=False)
+
+
+def _true_extent(ph):
+    """The specimen's own half extent: the phantom's cage minus the 2-voxel pad it adds."""
+    return np.asarray(ph.half_extent) - 2.0 * max(ph.spacing)
+
+
+def _all_inside(ph, pts, frames, he, pad, mask=None):
+    """Fraction of the mask's voxels that the cage holds, by the Deformation's own inverse map."""
+    mask = ph.mask if mask is None else mask
+    d = Deformation.from_keyframes(pts, frames, he, pad=pad, spacing=ph.spacing)
+    inv = d.inverse(np.argwhere(mask) * np.asarray(ph.spacing))
+    return inv.inside
+
+
+@pytest.mark.parametrize(("curve", "spacing"), [("s-bend", 1.0), ("c-bend", (2.0, 1.0, 1.0)), ("helix", 1.0)])
+def test_cage_holds_the_whole_fish(curve, spacing):
+    ph = _fish(curve, spacing)
+    pts, frames = ph.centerline_physical[::2], ph.frames[::2]
+    (rx, ry), (before, after) = propose_cage(ph.mask, pts, frames, spacing=ph.spacing)
+    true_rx, true_ry = _true_extent(ph)
+    vox = max(ph.spacing)
+    # at least the true extent (fin included), at most 1.5 x it plus the default margin (10 % + 2 voxels)
+    assert true_rx <= rx <= 1.5 * true_rx * 1.1 + 2 * vox
+    assert true_ry <= ry <= 1.5 * true_ry * 1.1 + 2 * vox
+    # the curve reaches both tips: only the end margin is padded
+    assert before == pytest.approx(2 * vox, abs=0.6 * vox)
+    assert after == pytest.approx(2 * vox, abs=0.6 * vox)
+    inside = _all_inside(ph, pts, frames, (rx, ry), (before, after))
+    assert inside.all(), f"{(~inside).sum()} mask voxels outside the cage"
+
+
+def test_margins_are_applied():
+    ph = _fish("s-bend")
+    pts, frames = ph.centerline_physical[::2], ph.frames[::2]
+    (rx0, ry0), (b0, a0) = propose_cage(ph.mask, pts, frames, spacing=ph.spacing, margin=0.0, min_margin=0.0,
+                                        end_margin=0.0)
+    (rx1, ry1), (b1, a1) = propose_cage(ph.mask, pts, frames, spacing=ph.spacing, margin=0.2, min_margin=1.5,
+                                        end_margin=3.0)
+    assert rx1 == pytest.approx(1.2 * rx0 + 1.5) and ry1 == pytest.approx(1.2 * ry0 + 1.5)
+    assert (b1, a1) == pytest.approx((b0 + 3.0, a0 + 3.0))
+    # without margins the cage is the voxel-centre extent: within a voxel of the true extent
+    np.testing.assert_allclose([rx0, ry0], _true_extent(ph), atol=1.0)
+
+
+@pytest.mark.parametrize("curve", ["s-bend", "helix"])
+def test_truncated_curve_is_padded(curve):
+    ph = _fish(curve)
+    k = len(ph.arclength)
+    cut = int(0.1 * k)
+    pts, frames = ph.centerline_physical[cut:k - cut:2], ph.frames[cut:k - cut:2]
+    missing_head = ph.arclength[cut]
+    missing_tail = ph.length - ph.arclength[k - cut - 1]
+    he, (before, after) = propose_cage(ph.mask, pts, frames, spacing=ph.spacing)
+    # the body beyond each end of the curve (0.1 L each) is covered by the padding
+    assert before >= 0.9 * missing_head and after >= 0.9 * missing_tail
+    assert before <= missing_head + 4 and after <= missing_tail + 4
+    inside = _all_inside(ph, pts, frames, he, (before, after))
+    assert inside.all(), f"{(~inside).sum()} mask voxels outside the cage"
+
+
+def test_sparse_keyframes():
+    # keyframes 20 voxels apart: the frames between them are SLERPed, as the Deformation does
+    ph = _fish("c-bend")
+    idx = np.unique(np.r_[0:len(ph.arclength):40, len(ph.arclength) - 1])
+    pts, frames = ph.centerline_physical[idx], ph.frames[idx]
+    he, pad = propose_cage(ph.mask, pts, frames, spacing=ph.spacing)
+    assert _all_inside(ph, pts, frames, he, pad).all()
+
+
+def test_stray_voxels_are_ignored():
+    ph = _fish("s-bend")
+    pts, frames = ph.centerline_physical[::2], ph.frames[::2]
+    clean = propose_cage(ph.mask, pts, frames, spacing=ph.spacing)
+    noisy = ph.mask.copy()
+    noisy[0, 0, 0] = noisy[-1, 3, 5] = noisy[40, 0, -1] = True  # specks in the corners
+    (rx, ry), pad = propose_cage(noisy, pts, frames, spacing=ph.spacing)
+    assert (rx, ry, *pad) == pytest.approx((*clean[0], *clean[1]))
+    # a real part of the specimen (a detached fin of many voxels) is kept
+    big = ph.mask.copy()
+    big[75:85, :4, :4] = True
+    (rx, ry), _ = propose_cage(big, pts, frames, spacing=ph.spacing)
+    assert max(rx, ry) > max(clean[0]) + 5
+
+
+def test_validation():
+    ph = _fish("s-bend")
+    pts, frames = ph.centerline_physical[::2], ph.frames[::2]
+    with pytest.raises(InvalidInputError, match="empty"):
+        propose_cage(np.zeros_like(ph.mask), pts, frames, spacing=ph.spacing)
+    with pytest.raises(InvalidInputError, match="3D"):
+        propose_cage(ph.mask[0], pts, frames, spacing=ph.spacing)
+    with pytest.raises(InvalidInputError, match="frames must have shape"):
+        propose_cage(ph.mask, pts, frames[1:], spacing=ph.spacing)
+    with pytest.raises(InvalidInputError, match=r"shape \(K, 3\)"):
+        propose_cage(ph.mask, pts[:1], frames[:1], spacing=ph.spacing)
+    with pytest.raises(InvalidInputError, match="margin"):
+        propose_cage(ph.mask, pts, frames, spacing=ph.spacing, margin=-0.1)
+    with pytest.raises(InvalidInputError, match="end_margin"):
+        propose_cage(ph.mask, pts, frames, spacing=ph.spacing, end_margin=float("nan"))
+    with pytest.raises(InvalidInputError, match="spacing"):
+        propose_cage(ph.mask, pts, frames, spacing=(1.0, 1.0))

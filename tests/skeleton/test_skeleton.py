@@ -1,0 +1,272 @@
+"""estimate_deformation against phantoms with ground truth, the spine MRI's manual centreline, and bad input.
+
+The references are the phantoms' analytic centrelines, frames and straight masks (napari_unwind.datasets, made
+without any skeleton code) and an expert's centreline of a real MRI; the straightened mask is sampled here with
+scipy's map_coordinates at the phantom's own straight grid.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import dask.array as da
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
+
+from napari_unwind.datasets import fish_phantom
+from napari_unwind.errors import InvalidInputError
+from napari_unwind.io import Volume
+from napari_unwind.progress import Progress
+from napari_unwind.session import Endpoints
+from napari_unwind.skeleton import SkeletonResult, estimate_deformation, estimate_deformation_iter
+
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+
+
+def _solve(mask, endpoints, **kw) -> tuple[SkeletonResult, list[str]]:
+    """The result and the stages the generator reported."""
+    gen = estimate_deformation_iter(mask, endpoints, **kw)
+    stages = []
+    while True:
+        try:
+            p = next(gen)
+        except StopIteration as stop:
+            return stop.value, stages
+        assert isinstance(p, Progress)
+        stages.append(p.stage)
+
+
+def _solve_quiet(mask, endpoints, **kw) -> SkeletonResult:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gen = estimate_deformation_iter(mask, endpoints, **kw)
+        while True:
+            try:
+                next(gen)
+            except StopIteration as stop:
+                return stop.value
+
+
+def centreline_errors(ph, dfm) -> tuple[float, float]:
+    """RMS distance (in voxels of the finest spacing) of the deformation's centre from the true centreline, and the
+    relative arclength error."""
+    c, _ = dfm.sample(np.linspace(0.0, dfm.length, 2000))
+    dist, _ = cKDTree(ph.centerline_physical).query(c - np.asarray(dfm.origin))
+    return float(np.sqrt((dist**2).mean()) / min(ph.spacing)), dfm.length / ph.length - 1.0
+
+
+def residual_twist_deg(ph, dfm) -> np.ndarray:
+    """Angle (degrees) between the deformation's v and the true v, along the curve (true v at the closest true
+    centreline point, our v projected onto the plane normal to the true n)."""
+    s = np.linspace(0.0, dfm.length, 400)
+    c, frames = dfm.sample(s)
+    _, k = cKDTree(ph.centerline_physical).query(c - np.asarray(dfm.origin))
+    v_true, n_true = ph.frames[k, 1], ph.frames[k, 2]
+    v = frames[:, 1] - np.sum(frames[:, 1] * n_true, axis=1, keepdims=True) * n_true
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    return np.degrees(np.arccos(np.clip(np.sum(v * v_true, axis=1), -1, 1)))
+
+
+def straight_dice(ph, dfm) -> float:
+    """Dice of the phantom's mask sampled through the deformation at the straight ground truth's grid."""
+    s, y, x = ph.straight_grid()
+    ss, yy, xx = np.meshgrid(s, y, x, indexing="ij")
+    xys = np.stack([xx.ravel(), yy.ravel(), ss.ravel()], axis=1)
+    pts = (dfm.forward(xys) - np.asarray(dfm.origin)) / np.asarray(ph.spacing)
+    got = ndi.map_coordinates(ph.mask.astype(np.float32), pts.T, order=1, cval=0.0).reshape(ss.shape) >= 0.5
+    truth = ph.straight_mask
+    return 2.0 * (got & truth).sum() / (got.sum() + truth.sum())
+
+
+CASES = {
+    "s-bend": dict(curve="s-bend", twist=np.pi / 2),
+    "c-bend": dict(curve="c-bend", twist=np.pi / 2, roll=1.0),
+    "helix": dict(curve="helix", twist=-3 * np.pi / 4, roll=np.pi),
+    "anisotropic": dict(curve="s-bend", twist=np.pi / 2, spacing=(1.6, 1.0, 1.0)),
+}
+
+
+@pytest.fixture(scope="module", params=list(CASES))
+def solved(request):
+    ph = fish_phantom(seed=7, **CASES[request.param])
+    res = _solve_quiet(ph.mask, (ph.head, ph.tail), spacing=ph.spacing, volume=ph.volume)
+    return ph, res
+
+
+def test_centreline_and_length_match_the_truth(solved):
+    ph, res = solved
+    rms, length_err = centreline_errors(ph, res.deformation)
+    assert rms <= 1.0, f"centreline RMS {rms:.2f} voxels"
+    assert abs(length_err) <= 0.02, f"arclength error {100 * length_err:.2f} %"
+
+
+def test_twist_is_undone(solved):
+    ph, res = solved
+    err = residual_twist_deg(ph, res.deformation)
+    # the tips are a few voxels across: their cross-sections carry no orientation
+    body = slice(int(0.03 * len(err)), int(0.97 * len(err)))
+    assert err[body].max() <= 10.0, f"residual twist up to {err[body].max():.1f} degrees"
+    assert np.median(err) <= 5.0
+
+
+def test_straightened_mask_matches_the_straight_truth(solved):
+    ph, res = solved
+    assert straight_dice(ph, res.deformation) >= 0.9
+
+
+def test_cage_and_padding_hold_the_whole_specimen(solved):
+    ph, res = solved
+    dfm = res.deformation
+    pts = np.argwhere(ph.mask)[::7] * np.asarray(ph.spacing) + np.asarray(dfm.origin)
+    inv = dfm.inverse(pts)
+    assert inv.inside.mean() >= 0.995
+
+
+def test_result_describes_the_run(solved):
+    ph, res = solved
+    dfm = res.deformation
+    assert dfm.spacing == tuple(float(s) for s in ph.spacing)
+    assert res.keyframe_indices[0] == 0 and res.keyframe_indices[-1] == len(res.curve) - 1
+    np.testing.assert_allclose(res.curve[res.keyframe_indices] * ph.spacing, dfm.positions, atol=1e-9)
+    assert 2 <= len(dfm.keyframes) <= 60
+    assert {"surface", "tet mesh", "harmonic", "level sets", "smoothing", "frames", "twist", "keyframes"} <= set(
+        res.timings)
+    # the true ends c(0) and c(L) are the tips of the body; the used ends are snapped into the working mask
+    np.testing.assert_allclose(res.endpoints.head, ph.head, atol=2.5)
+    np.testing.assert_allclose(res.endpoints.tail, ph.tail, atol=2.5)
+
+
+def test_twist_off_keeps_parallel_transport():
+    ph = fish_phantom(seed=1, curve="c-bend", twist=np.pi / 2, noise=0, tube=False)
+    res = _solve_quiet(ph.mask, (ph.head, ph.tail), spacing=ph.spacing, estimate_twist=False)
+    assert np.all(res.twist == 0)
+    # without the estimate the residual equals the phantom's own twist (90 degrees at the tail)
+    err = residual_twist_deg(ph, res.deformation)
+    assert err[-20:].mean() > 45
+
+
+def test_generator_reports_stages_in_order_and_plain_function_agrees():
+    ph = fish_phantom(seed=2, curve="c-bend", noise=0, tube=False)
+    res, stages = _solve(ph.mask, (ph.head, ph.tail), spacing=ph.spacing, estimate_twist=False)
+    order = [s for i, s in enumerate(stages) if i == 0 or stages[i - 1] != s]
+    expected = ["working mask", "surface", "tet mesh", "harmonic", "level sets", "smoothing", "frames", "cage",
+                "keyframes"]
+    assert [s for s in order if s in expected] == expected
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dfm = estimate_deformation(ph.mask, (ph.head, ph.tail), spacing=ph.spacing, estimate_twist=False)
+    assert centreline_errors(ph, dfm)[0] <= 1.0
+
+
+def test_dask_and_volume_inputs_and_origin():
+    ph = fish_phantom(seed=3, curve="s-bend", noise=0, tube=False)
+    vol = Volume(da.from_array(ph.mask.astype(np.uint8), chunks=32), spacing=ph.spacing, unit="micrometer",
+                 origin=(100.0, -5.0, 2.0))
+    res = _solve_quiet(vol, Endpoints(head=tuple(ph.head), tail=tuple(ph.tail)), estimate_twist=False)
+    dfm = res.deformation
+    assert dfm.origin == (100.0, -5.0, 2.0) and dfm.unit == "micrometer"
+    assert centreline_errors(ph, dfm)[0] <= 1.0
+
+
+def test_a_specimen_in_two_parts_needs_a_chain():
+    ph = fish_phantom(seed=4, curve="c-bend", noise=0, tube=False)
+    mask = ph.mask.copy()
+    k = len(ph.centerline) // 2
+    cut = int(round(ph.centerline[k, 0]))
+    mask[cut - 8: cut + 8] = False  # a gap of 16 voxels: more than dilation by 3 working voxels (x2) closes
+    with pytest.raises(InvalidInputError, match=r"different parts.*part 1.*part 2.*chain"):
+        _solve_quiet(mask, (ph.head, ph.tail), spacing=ph.spacing, estimate_twist=False)
+    # the user clicks the ends of each part: here the middle of each cut face, 1.5 voxels inside
+    a = ph.centerline[np.argmin(np.abs(ph.centerline[:, 0] - (cut - 9.5)))]
+    b = ph.centerline[np.argmin(np.abs(ph.centerline[:, 0] - (cut + 9.5)))]
+    ends = Endpoints(head=tuple(ph.head), tail=tuple(ph.tail), chain=((tuple(ph.head), tuple(a)),
+                                                                      (tuple(b), tuple(ph.tail))))
+    res = _solve_quiet(mask, ends, spacing=ph.spacing, estimate_twist=False)
+    rms, length_err = centreline_errors(ph, res.deformation)
+    # four point-like ends instead of two (each bends the first and last level sets a little)
+    assert rms <= 1.0 and abs(length_err) <= 0.03
+    assert len(res.endpoints.chain) == 2
+
+
+def test_a_small_gap_is_bridged_by_dilation():
+    ph = fish_phantom(seed=4, curve="c-bend", noise=0, tube=False)
+    mask = ph.mask.copy()
+    cut = int(round(ph.centerline[len(ph.centerline) // 2, 0]))
+    mask[cut: cut + 4] = False  # 4 voxels: two working voxels at the factor 2 of this phantom
+    with pytest.warns(UserWarning, match="dilation"):
+        res, _ = _solve(mask, (ph.head, ph.tail), spacing=ph.spacing, estimate_twist=False)
+    assert centreline_errors(ph, res.deformation)[0] <= 1.0
+
+
+def test_endpoints_are_snapped_into_the_mask_or_refused():
+    ph = fish_phantom(seed=5, curve="c-bend", noise=0, tube=False)
+    head_out = ph.head - 3 * ph.frames[0, 2]  # 3 voxels beyond the head's tip, along the body
+    res = _solve_quiet(ph.mask, (head_out, ph.tail), spacing=ph.spacing, estimate_twist=False)
+    hi = np.round(res.endpoints.head).astype(int)
+    assert ph.mask[tuple(hi)] or ndi.binary_dilation(ph.mask)[tuple(hi)]
+    assert np.linalg.norm(np.subtract(res.endpoints.head, head_out)) <= 5.0
+    dist = ndi.distance_transform_edt(~ph.mask)
+    far = np.argwhere((dist > 8) & (dist < 12))[0]  # 8-12 voxels from the mask; the tolerance is 5
+    with pytest.raises(InvalidInputError, match="from the mask.*snapping tolerance"):
+        _solve_quiet(ph.mask, (far, ph.tail), spacing=ph.spacing, estimate_twist=False)
+    with pytest.raises(InvalidInputError, match="outside the volume"):
+        _solve_quiet(ph.mask, ((-50, 3, 3), ph.tail), spacing=ph.spacing, estimate_twist=False)
+
+
+def test_bad_input_is_refused_clearly():
+    ph = fish_phantom(seed=6, curve="c-bend", noise=0, tube=False)
+    with pytest.raises(InvalidInputError, match="empty"):
+        estimate_deformation(np.zeros((20, 20, 20), bool), ((5, 5, 5), (15, 15, 15)), spacing=1.0)
+    with pytest.raises(InvalidInputError, match="same point"):
+        estimate_deformation(ph.mask, (ph.head, ph.head), spacing=ph.spacing)
+    near = ph.centerline[3]
+    with pytest.raises(InvalidInputError, match="same point"):
+        estimate_deformation(ph.mask, (ph.centerline[1], near), spacing=ph.spacing)
+    with pytest.raises(InvalidInputError, match="spacing is required"):
+        estimate_deformation(ph.mask, (ph.head, ph.tail))
+    with pytest.raises(InvalidInputError, match="3-dimensional"):
+        estimate_deformation(ph.mask[0], (ph.head, ph.tail), spacing=1.0)
+    with pytest.raises(InvalidInputError, match="n_levels"):
+        estimate_deformation(ph.mask, (ph.head, ph.tail), spacing=1.0, n_levels=1)
+    with pytest.raises(InvalidInputError, match="volume's shape"):
+        estimate_deformation(ph.mask, (ph.head, ph.tail), spacing=1.0, volume=np.zeros((3, 3, 3)))
+    with pytest.raises(InvalidInputError, match="endpoints must be"):
+        estimate_deformation(ph.mask, 5, spacing=1.0)
+
+
+def test_mask_touching_the_border_is_handled_with_a_warning():
+    ph = fish_phantom(seed=8, curve="c-bend", noise=0, tube=False)
+    cut = int(ph.centerline[int(0.9 * len(ph.centerline)), 0])
+    mask = ph.mask[:cut]  # the scan ends inside the fish
+    tail = ph.centerline[np.argmin(np.abs(ph.centerline[:, 0] - (cut - 1.5)))]
+    with pytest.warns(UserWarning, match=r"touches the volume's border \(axis0 end\)"):
+        res, _ = _solve(mask, (ph.head, tail), spacing=ph.spacing, estimate_twist=False)
+    c, _ = res.deformation.sample(np.linspace(0, res.deformation.length, 500))
+    assert cKDTree(ph.centerline_physical).query(c)[0].max() <= 2.0
+
+
+def test_nearly_spherical_specimen_is_handled_with_a_warning():
+    z, y, x = np.mgrid[:40, :40, :40]
+    ball = (z - 20) ** 2 + (y - 20) ** 2 + (x - 20) ** 2 <= 15**2
+    with pytest.warns(UserWarning, match="nearly spherical"):
+        res, _ = _solve(ball, ((7, 20, 20), (33, 20, 20)), spacing=1.0)
+    c, _ = res.deformation.sample(np.linspace(0, res.deformation.length, 50))
+    np.testing.assert_allclose(c[:, 1:], 20, atol=1.5)  # by symmetry the curve runs straight between the clicks
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data is not present")
+def test_spine_mri_follows_the_manual_centreline():
+    import nrrd
+
+    mask, header = nrrd.read(str(DATA / "spine_t2_cord_mask.nrrd"), index_order="C")
+    scan, _ = nrrd.read(str(DATA / "spine_t2.nrrd"), index_order="C")
+    spacing = np.abs(np.diag(header["space directions"])).astype(float)
+    manual = np.loadtxt(DATA / "spine_t2_centerline_manual.csv", delimiter=",", skiprows=1)
+    res = _solve_quiet(mask, (manual[0], manual[-1]), spacing=spacing, volume=scan)
+    c, _ = res.deformation.sample(np.linspace(0, res.deformation.length, 2000))
+    dist, _ = cKDTree(c).query(manual * spacing)  # mm from every manual point to our curve
+    assert dist.mean() <= 1.5, f"mean distance {dist.mean():.2f} mm"
+    assert dist.max() <= 3.0

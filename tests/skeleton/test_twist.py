@@ -1,0 +1,234 @@
+"""Automatic twist (napari_unwind.skeleton._twist) against the fish phantoms' true dorsal direction."""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import warnings
+
+import numpy as np
+import pytest
+
+from napari_unwind.datasets import cylinder_phantom, fish_phantom, tank_phantom
+from napari_unwind.deformation import parallel_transport_frames
+from napari_unwind.errors import InvalidInputError
+from napari_unwind.skeleton._twist import apply_twist, estimate_twist
+
+CURVES = ("s-bend", "c-bend", "helix")
+TWISTS = (0.0, np.pi / 2, np.pi, -3 * np.pi / 4)
+ROLLS = (0.0, 1.0, np.pi)
+# every (curve, twist) pair once; the rolls cycle so that every (curve, roll) and (twist, roll) pair occurs too
+CASES = [(c, t, ROLLS[(i + j) % 3]) for (i, c), (j, t) in itertools.product(enumerate(CURVES), enumerate(TWISTS))]
+
+
+@functools.cache
+def _fish(curve: str, twist: float, roll: float, spacing=1.0, seed: int = 0):
+    return fish_phantom(curve=curve, twist=twist, roll=roll, spacing=spacing, seed=seed)
+
+
+def _truth(ph, up=None):
+    """The true centreline about one point per (finest) voxel, its parallel-transport frames and the true v."""
+    step = max(1, int(round(1.0 / (0.5 * min(ph.spacing)))))  # the phantom samples every half voxel
+    pts = ph.centerline_physical[::step]
+    return pts, parallel_transport_frames(pts, up=up), ph.frames[::step, 1], ph.arclength[::step]
+
+
+def _angle_errors(frames, v_true):
+    """Degrees between each frame's v and the true v (not modulo pi: the sign matters)."""
+    return np.degrees(np.arccos(np.clip(np.sum(frames[:, 1] * v_true, axis=1), -1.0, 1.0)))
+
+
+def _check(ph, errors, s, *, max_deg=10.0, median_deg=5.0):
+    core = (s >= 0.03 * ph.length) & (s <= 0.97 * ph.length)
+    worst = int(np.argmax(errors[core]))
+    assert errors[core].max() <= max_deg, f"worst {errors[core].max():.2f} deg at s = {s[core][worst]:.1f}"
+    assert np.median(errors) <= median_deg
+
+
+@pytest.mark.parametrize(("case", "curve", "twist", "roll"), [(i, *c) for i, c in enumerate(CASES)])
+def test_v_points_dorsal_on_fish_phantoms(case, curve, twist, roll):
+    ph = _fish(curve, twist, roll)
+    # parallel-transport frames started in an arbitrary direction: the result must not depend on it
+    a = 2.4 * case
+    pts, frames, v_true, s = _truth(ph, up=(0.0, np.cos(a), np.sin(a)))
+    # with the intensities (spine cue) in even cases, the mask alone (fin cue) in odd ones
+    volume = ph.volume if case % 2 == 0 else None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a clear case: no warning
+        angles, info = estimate_twist(pts, frames, mask=ph.mask, spacing=ph.spacing, volume=volume,
+                                      return_info=True)
+    assert angles.shape == (len(pts),)
+    assert info["sign_cue"] == ("density" if volume is not None else "shape")
+    _check(ph, _angle_errors(apply_twist(frames, angles), v_true), s)
+    # continuous along the curve: no jumps between neighbouring points
+    assert np.abs(np.diff(angles)).max() < np.radians(10)
+    if volume is not None:
+        # the mask-only cue agrees with the spine: both say which side is dorsal, clearly
+        assert info["scores"]["shape"] * info["scores"]["density"] > 0
+        assert abs(info["scores"]["shape"]) >= 0.05 and abs(info["scores"]["density"]) >= 0.1
+
+
+@pytest.mark.parametrize("spacing", [(2.0, 1.0, 1.0), (1.5, 0.7, 1.0)])
+def test_anisotropic_spacing(spacing):
+    ph = _fish("s-bend", -3 * np.pi / 4, 1.0, spacing)
+    pts, frames, v_true, s = _truth(ph)
+    for volume in (ph.volume, None):
+        angles = estimate_twist(pts, frames, mask=ph.mask, spacing=spacing, volume=volume)
+        _check(ph, _angle_errors(apply_twist(frames, angles), v_true), s)
+
+
+def test_each_cue_alone_finds_the_dorsal_side():
+    ph = _fish("helix", np.pi, 1.0)
+    pts, frames, v_true, s = _truth(ph)
+    for cue, volume in (("density", ph.volume), ("shape", ph.volume), ("auto", None)):
+        angles, info = estimate_twist(pts, frames, mask=ph.mask, spacing=ph.spacing, volume=volume, cue=cue,
+                                      return_info=True)
+        assert info["sign_cue"] == ("shape" if cue == "auto" else cue)
+        _check(ph, _angle_errors(apply_twist(frames, angles), v_true), s)
+
+
+def test_coarse_curve_points():
+    ph = _fish("s-bend", np.pi / 2, 1.0)
+    pts, frames = ph.centerline_physical[::10], parallel_transport_frames(ph.centerline_physical[::10])
+    angles = estimate_twist(pts, frames, mask=ph.mask, spacing=ph.spacing, volume=ph.volume)
+    err = _angle_errors(apply_twist(frames, angles), ph.frames[::10, 1])
+    _check(ph, err, ph.arclength[::10])
+
+
+def test_fish_in_a_tank():
+    tank = tank_phantom(n_fish=2, seed=4)
+    for i, ph in enumerate(tank.fish):
+        pts, frames, v_true, s = _truth(ph)
+        mask = tank.labels == i + 1
+        angles = estimate_twist(pts, frames, mask=mask, spacing=tank.spacing, volume=tank.volume)
+        _check(ph, _angle_errors(apply_twist(frames, angles), v_true), s)
+
+
+def test_minor_axis_option():
+    ph = _fish("s-bend", np.pi / 2, 1.0)
+    pts, frames, v_true, _ = _truth(ph)
+    with pytest.warns(UserWarning, match="dorsal side could not be told"):  # no fin sideways
+        angles = estimate_twist(pts, frames, mask=ph.mask, spacing=ph.spacing, dorsal_axis="minor")
+    cos = np.abs(np.sum(apply_twist(frames, angles)[:, 1] * v_true, axis=1))
+    assert np.median(cos) < np.sin(np.radians(5))  # v now lies across the body, along u
+
+
+def test_round_cylinder_warns_and_keeps_the_frames():
+    cyl = cylinder_phantom(noise=20.0)
+    pts = cyl.centerline_physical[::2]
+    frames = parallel_transport_frames(pts)
+    with pytest.warns(UserWarning, match="round"):
+        angles, info = estimate_twist(pts, frames, mask=cyl.mask, spacing=cyl.spacing, volume=cyl.volume,
+                                      return_info=True)
+    assert info["round"]
+    np.testing.assert_array_equal(angles, np.zeros(len(pts)))
+
+
+def test_unclear_dorsal_side_warns():
+    # an elliptic rod: the axis is clear but nothing tells dorsal from ventral
+    g = np.mgrid[:80, :31, :31].astype(float)
+    mask = ((g[1] - 15) / 8) ** 2 + ((g[2] - 15) / 4) ** 2 <= 1
+    mask[:5] = mask[75:] = False
+    pts = np.stack([np.arange(5.0, 75.0), np.full(70, 15.0), np.full(70, 15.0)], axis=1)
+    frames = parallel_transport_frames(pts, up=(0, 0, 1))
+    with pytest.warns(UserWarning, match="dorsal side could not be told"):
+        angles = estimate_twist(pts, frames, mask=mask, spacing=1.0)
+    v = apply_twist(frames, angles)[:, 1]
+    assert np.abs(v[:, 1]).min() > np.cos(np.radians(3))  # along the major axis (axis1), either sign
+
+
+def test_reads_only_a_crop_of_the_volume():
+    ph = _fish("s-bend", np.pi / 2, 1.0)
+    pts, frames, v_true, s = _truth(ph)
+
+    class Recording:
+        """An array-like that records the size of every read."""
+
+        def __init__(self, arr):
+            self.arr, self.shape, self.dtype, self.reads = arr, arr.shape, arr.dtype, []
+
+        def __getitem__(self, key):
+            out = self.arr[key]
+            self.reads.append(out.size)
+            return out
+
+    vol = Recording(ph.volume)
+    angles = estimate_twist(pts, frames, mask=ph.mask, spacing=ph.spacing, volume=vol)
+    _check(ph, _angle_errors(apply_twist(frames, angles), v_true), s)
+    assert vol.reads and max(vol.reads) < 0.6 * ph.volume.size
+
+
+def test_apply_twist_convention():
+    rng = np.random.default_rng(1)
+    pts = np.cumsum(rng.normal(size=(20, 3)) + [3, 0, 0], axis=0)
+    frames = parallel_transport_frames(pts)
+    quarter = apply_twist(frames, np.full(20, np.pi / 2))
+    np.testing.assert_allclose(quarter[:, 0], frames[:, 1], atol=1e-12)  # u' = v
+    np.testing.assert_allclose(quarter[:, 1], -frames[:, 0], atol=1e-12)  # v' = -u
+    np.testing.assert_array_equal(quarter[:, 2], frames[:, 2])
+    theta = rng.uniform(-4, 4, 20)
+    np.testing.assert_allclose(apply_twist(apply_twist(frames, theta), -theta), frames, atol=1e-12)
+    out = apply_twist(frames, 0.7)  # a scalar for every frame
+    np.testing.assert_allclose(np.einsum("kij,klj->kil", out, out), np.broadcast_to(np.eye(3), (20, 3, 3)),
+                               atol=1e-12)
+    np.testing.assert_allclose(np.cross(out[:, 0], out[:, 1]), out[:, 2], atol=1e-12)
+    with pytest.raises(InvalidInputError, match="angles"):
+        apply_twist(frames, np.zeros(3))
+    with pytest.raises(InvalidInputError, match="frames"):
+        apply_twist(frames[:, :2], 0.0)
+
+
+def test_validation():
+    ph = _fish("s-bend", np.pi / 2, 1.0)
+    pts, frames, _, _ = _truth(ph)
+    kw = {"mask": ph.mask, "spacing": ph.spacing}
+    with pytest.raises(InvalidInputError, match=r"shape \(K, 3\)"):
+        estimate_twist(pts[:, :2], frames, **kw)
+    with pytest.raises(InvalidInputError, match="frames must have shape"):
+        estimate_twist(pts, frames[:-1], **kw)
+    with pytest.raises(InvalidInputError, match="orthonormal"):
+        estimate_twist(pts, frames * 2.0, **kw)
+    with pytest.raises(InvalidInputError, match="coincide"):
+        estimate_twist(np.vstack([pts[:1], pts]), np.vstack([frames[:1], frames]), **kw)
+    with pytest.raises(InvalidInputError, match="3D"):
+        estimate_twist(pts, frames, mask=ph.mask[0], spacing=ph.spacing)
+    with pytest.raises(InvalidInputError, match="spacing"):
+        estimate_twist(pts, frames, mask=ph.mask, spacing=(1.0, 0.0, 1.0))
+    with pytest.raises(InvalidInputError, match="volume must have the mask's shape"):
+        estimate_twist(pts, frames, volume=ph.volume[1:], **kw)
+    with pytest.raises(InvalidInputError, match="needs the intensities"):
+        estimate_twist(pts, frames, cue="density", **kw)
+    with pytest.raises(InvalidInputError, match="cue"):
+        estimate_twist(pts, frames, cue="fins", **kw)
+    with pytest.raises(InvalidInputError, match="dorsal_axis"):
+        estimate_twist(pts, frames, dorsal_axis="up", **kw)
+    with pytest.raises(InvalidInputError, match="radius"):
+        estimate_twist(pts, frames, radius=-1.0, **kw)
+    with pytest.raises(InvalidInputError, match="empty"):
+        estimate_twist(pts, frames, mask=np.zeros_like(ph.mask), spacing=ph.spacing)
+    with pytest.raises(InvalidInputError, match="meets the mask"):
+        estimate_twist(pts + 500.0, frames, radius=20.0, **kw)
+
+
+def test_round_stretch_takes_its_angle_from_the_neighbours():
+    # a straight elliptic rod along axis0 whose major axis turns steadily, round over a fifth of its length
+    n0, c = 120, 20
+    k = np.arange(n0)
+    alpha = 0.02 * k  # major-axis angle in the (axis1, axis2) plane
+    a = np.where((k >= 50) & (k < 74), 7.0, 10.0)
+    b = np.where((k >= 50) & (k < 74), 7.0, 5.0)
+    g1, g2 = np.mgrid[: 2 * c + 1, : 2 * c + 1] - c
+    p = np.cos(alpha)[:, None, None] * g1 + np.sin(alpha)[:, None, None] * g2
+    q = -np.sin(alpha)[:, None, None] * g1 + np.cos(alpha)[:, None, None] * g2
+    mask = (p / a[:, None, None]) ** 2 + (q / b[:, None, None]) ** 2 <= 1
+    mask[:3] = mask[-3:] = False
+    pts = np.stack([k[3:-3].astype(float), np.full(n0 - 6, float(c)), np.full(n0 - 6, float(c))], axis=1)
+    frames = parallel_transport_frames(pts, up=(0, 1, 0))
+    with pytest.warns(UserWarning, match="dorsal side could not be told"):  # symmetric: no dorsal cue
+        angles, info = estimate_twist(pts, frames, mask=mask, spacing=1.0, return_info=True)
+    assert info["anisotropy"][(pts[:, 0] > 55) & (pts[:, 0] < 69)].max() < 0.08  # the round stretch is seen
+    major = np.stack([np.zeros(n0), np.cos(alpha), np.sin(alpha)], axis=1)[3:-3]
+    v = apply_twist(frames, angles)[:, 1]
+    err = np.degrees(np.arccos(np.clip(np.abs(np.sum(v * major, axis=1)), 0, 1)))  # modulo pi: no dorsal side
+    assert err.max() <= 10.0 and np.median(err) <= 3.0
+    assert np.abs(np.diff(angles)).max() < np.radians(5)
