@@ -11,7 +11,7 @@
 
 from ._api import SkeletonResult, WorkingMask, estimate_deformation, estimate_deformation_iter, working_mask
 from ._cage import propose_cage
-from ._curve import resample_curve, select_keyframes, smooth_curve
+from ._curve import regularise_ends, resample_curve, select_keyframes, smooth_curve
 from ._endpoints import snap_to_mask, suggest_endpoints
 from ._harmonic import TetMesh, harmonic_field, level_set_centroids, surface_mesh, tet_mesh
 from ._twist import apply_twist, estimate_twist
@@ -27,6 +27,7 @@ __all__ = [
     "harmonic_field",
     "level_set_centroids",
     "propose_cage",
+    "regularise_ends",
     "resample_curve",
     "select_keyframes",
     "smooth_curve",

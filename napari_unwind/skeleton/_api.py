@@ -17,7 +17,7 @@ from ..errors import InvalidInputError
 from ..io._volume import Volume, check_spacing, normalise_unit
 from ..progress import Progress, ProgressGenerator, run
 from ..session import Endpoints
-from ._curve import arclength, resample_curve, select_keyframes, smooth_curve
+from ._curve import arclength, regularise_ends, resample_curve, select_keyframes, smooth_curve
 from ._harmonic import decimate_surface, harmonic_field, level_set_centroids, surface_mesh, tet_mesh
 
 __all__ = ["estimate_deformation", "estimate_deformation_iter", "SkeletonResult", "WorkingMask", "working_mask"]
@@ -340,6 +340,7 @@ def estimate_deformation_iter(
     unit: str | None = None,
     max_triangles: int | None = 3000,
     mesher: dict[str, Any] | None = None,
+    end_window_factor: float = 2.0,
 ) -> ProgressGenerator[SkeletonResult]:
     """Generator form of :func:`estimate_deformation`: yields :class:`Progress` per stage, returns a
     :class:`SkeletonResult` (its ``deformation`` is what :func:`estimate_deformation` returns).
@@ -431,6 +432,10 @@ def estimate_deformation_iter(
         t = _stage("smoothing", timings, t)
     # parts are joined by the straight segments between one part's end and the next one's start
     curve = resample_curve(np.vstack(pieces), min_step=0.5 * vox)
+    # the ends: a quadratic over about one body width instead of the kinks of the point-like Dirichlet ends
+    end_window = float(ndi.distance_transform_edt(np.pad(wm.binary, 1), sampling=wm.working_spacing).max())
+    if end_window_factor:
+        curve = regularise_ends(curve, end_window_factor * end_window)
     frames = parallel_transport_frames(curve, up=up)
     t = _stage("frames", timings, t)
     yield Progress("frames", 1, 1, f"{len(curve)} points")
@@ -455,6 +460,12 @@ def estimate_deformation_iter(
                                             volume=tw.volume), dtype=float)
         for w in caught:
             note(str(w.message))
+        # the tips are a few voxels across: their sections carry no orientation, keep the body's
+        sc = arclength(curve)
+        hold = min(end_window, sc[-1] / 4.0)
+        if hold > 0:
+            theta = np.where(sc < hold, np.interp(hold, sc, theta), theta)
+            theta = np.where(sc > sc[-1] - hold, np.interp(sc[-1] - hold, sc, theta), theta)
         frames = apply_twist(frames, theta)
         t = _stage("twist", timings, t)
     yield Progress("cage", 0, 1, "cross-section extent")
@@ -471,6 +482,11 @@ def estimate_deformation_iter(
     idx = select_keyframes(curve, frames, radius=cage_radius * vox, tolerance=tolerance * vox)
     deformation = Deformation.from_keyframes(curve[idx] + org, frames[idx], he, pad=pd, spacing=tuple(sp),
                                              origin=tuple(org), unit=unit)
+    folds = deformation.folds()
+    if folds:
+        where = ", ".join(f"{a:.4g}-{b:.4g}" for a, b in folds)
+        note(f"the deformation folds (the cage is wider than the bend's radius) at s = {where} {unit or 'units'}: "
+             "give a smaller half_extent or edit the keyframes there")
     _stage("keyframes", timings, t)
     yield Progress("keyframes", 1, 1, f"{len(idx)} keyframes")
     used = Endpoints(head=tuple(snapped[0][0]), tail=tuple(snapped[-1][1]),
@@ -531,7 +547,9 @@ def estimate_deformation(
         cross-sections), ``max_side`` (128), ``snap_tolerance`` (5 voxels), ``up`` (world direction for the first
         frame's v without twist estimation), ``origin``, ``unit``, ``max_triangles`` (3000: the marching-cubes
         surface is decimated to this many triangles before meshing, None for no decimation; the mesher's time
-        grows with the surface) and ``mesher`` (options of :func:`tet_mesh`, e.g. ``edge_length_fac``).
+        grows with the surface), ``mesher`` (options of :func:`tet_mesh`, e.g. ``edge_length_fac``) and
+        ``end_window_factor`` (2: the curve's ends, over this many times the largest inscribed radius, are
+        replaced by a quadratic fit, see :func:`~napari_unwind.skeleton.regularise_ends`; 0 keeps them).
 
     Returns
     -------

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from ..errors import InvalidInputError
 
-__all__ = ["smooth_curve", "resample_curve", "select_keyframes", "arclength"]
+__all__ = ["smooth_curve", "resample_curve", "regularise_ends", "select_keyframes", "arclength"]
 
 #: Taubin's (lambda, mu) pair: a shrinking step then an inflating one, so bends keep their radius.
 _TAUBIN = (0.5, -0.53)
@@ -53,6 +53,43 @@ def smooth_curve(points: np.ndarray, *, iterations: int = 50, method: str = "tau
     for _ in range(int(iterations)):
         for lam in steps:
             pts[1:-1] += lam * (0.5 * (pts[:-2] + pts[2:]) - pts[1:-1])
+    return pts
+
+
+def regularise_ends(points: np.ndarray, window: float) -> np.ndarray:
+    """Replace the first and last ``window`` of a curve by quadratic fits over twice that length.
+
+    Near a point-like Dirichlet end the level sets are small caps around one mesh vertex, and their centroids
+    wander by a voxel or two: at the scale of the cage that is a sharp kink, and the deformation folds there
+    (a kink of curvature k folds a cage wider than 1 / k). A quadratic in arclength, fitted to the curve over
+    ``[0, 2 window]`` (and the same at the tail), keeps the body's real bend and drops the kink; the fit takes over
+    fully within ``window`` of the end and blends linearly into the curve over the next ``window``.
+
+    Parameters
+    ----------
+    points : ndarray, shape (K, 3)
+        A curve sampled densely and evenly (after :func:`resample_curve`).
+    window : float
+        Length of the end stretch to replace, in the units of ``points``; 0 leaves the curve alone.
+
+    Returns
+    -------
+    ndarray, shape (K, 3)
+    """
+    pts = np.array(points, dtype=float)
+    s = arclength(pts)
+    total = s[-1]
+    window = min(float(window), total / 4.0)
+    if window <= 0 or len(pts) < 8:
+        return pts
+    for dist in (s, total - s):  # head end, then tail end
+        fit_on = dist <= 2.0 * window
+        if fit_on.sum() < 4:
+            continue
+        coef = np.polynomial.polynomial.polyfit(dist[fit_on], pts[fit_on], 2)
+        fitted = np.polynomial.polynomial.polyval(dist[fit_on], coef).T
+        w = np.clip((2.0 * window - dist[fit_on]) / window, 0.0, 1.0)[:, None]
+        pts[fit_on] = w * fitted + (1.0 - w) * pts[fit_on]
     return pts
 
 

@@ -115,3 +115,28 @@ def test_twist_alone_needs_keyframes():
     dense = np.stack([line, line + 10 * (u + v), line - 10 * (u + v), line + 10 * (u - v), line - 10 * (u - v)], 1)
     worst = max(np.linalg.norm(box - dense[seg], axis=2).max() for seg, box in _interp_boxes(line, frames, idx, 10.0))
     assert worst <= 0.5
+
+
+def test_regularise_ends_removes_an_end_kink_and_keeps_the_bend():
+    from napari_unwind.skeleton import regularise_ends
+
+    arc = resample_curve(_arc(radius=40.0, angle=1.5), step=0.5)
+    kinked = arc.copy()
+    s = arclength(arc)
+    kinked[s < 3.0] += np.array([0.0, 0.0, 2.0]) * (1 - s[s < 3.0, None] / 3.0)  # a 2-voxel wander at the tip
+    out = regularise_ends(kinked, 8.0)
+
+    def curvature(p):
+        t = np.diff(p, axis=0)
+        t /= np.linalg.norm(t, axis=1, keepdims=True)
+        return np.arccos(np.clip(np.sum(t[1:] * t[:-1], axis=1), -1, 1)) / 0.5
+
+    # the kink (curvature ~1 per voxel) is gone: the ends bend no more than a few times the arc's 1/40
+    assert curvature(kinked).max() > 0.3
+    assert curvature(out).max() < 3 / 40.0
+    # and the curve stays within the kink's size of the circle
+    centre = np.array([0.0, 40.0, 0.0])
+    assert np.abs(np.linalg.norm(out - centre, axis=1) - 40.0).max() < 2.0
+    # away from the ends nothing moved
+    np.testing.assert_array_equal(out[(s > 16.0) & (s < s[-1] - 16.0)], kinked[(s > 16.0) & (s < s[-1] - 16.0)])
+    np.testing.assert_array_equal(regularise_ends(kinked, 0.0), kinked)

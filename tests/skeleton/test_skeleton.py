@@ -117,6 +117,12 @@ def test_straightened_mask_matches_the_straight_truth(solved):
     assert straight_dice(ph, res.deformation) >= 0.9
 
 
+def test_the_deformation_does_not_fold(solved):
+    ph, res = solved
+    assert res.deformation.folds() == []
+    assert not any("folds" in w for w in res.warnings)
+
+
 def test_cage_and_padding_hold_the_whole_specimen(solved):
     ph, res = solved
     dfm = res.deformation
