@@ -349,6 +349,310 @@ def cmd_select(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------------------------------------
+# skeleton solve and the whole pipeline
+# ------------------------------------------------------------------------------------------------------------------
+def _fmt_point(p: Sequence[float]) -> str:
+    return "(" + ", ".join(f"{float(v):.1f}" for v in p) + ")"
+
+
+def _arg_point(p: Sequence[float]) -> str:
+    """A point as the command line takes it (``A0,A1,A2``)."""
+    return ",".join(f"{float(v):.4g}" for v in p)
+
+
+def _endpoints_from_args(args: argparse.Namespace):
+    """``--head``/``--tail``/``--chain`` as an Endpoints, or None (suggest them)."""
+    import numpy as np
+
+    from .session import Endpoints
+
+    head, tail = args.head, args.tail
+    chain = [tuple(pair) for pair in (args.chain or [])]
+    if chain:
+        # the chain runs head to tail: its first part starts at the head, its last ends at the tail
+        for name, given, end, which in (("--head", head, chain[0][0], "first --chain pair starts"),
+                                        ("--tail", tail, chain[-1][1], "last --chain pair ends")):
+            if given is not None and not np.allclose(given, end, atol=1e-6):
+                raise UnwindError(f"the {which} at {_arg_point(end)} but {name} is {_arg_point(given)}; the chain runs "
+                                  "from the head to the tail: make them the same point, or leave out " + name)
+        head, tail = chain[0][0], chain[-1][1]
+        if len(chain) == 1:
+            chain = []
+    elif (head is None) != (tail is None):
+        raise UnwindError("give both --head and --tail, or neither to use the suggested ones")
+    if head is None:
+        return None
+    if np.allclose(head, tail, atol=1e-6):
+        raise UnwindError(f"--head and --tail are the same point {_arg_point(head)}; give the two ends of the "
+                          "specimen (or neither, to use the suggested ones)")
+    return Endpoints(head=head, tail=tail, chain=tuple(chain))
+
+
+def _check_session_path(path: str | os.PathLike, overwrite: bool) -> Path:
+    """Check up front that a session file can be written at ``path`` (its name, its folder, an existing file)."""
+    from .io._atomic import check_writable
+    from .session import SESSION_SUFFIX
+
+    name = Path(path).name.lower()
+    if not name.endswith(SESSION_SUFFIX) or name == SESSION_SUFFIX:
+        raise UnwindError(f"a session file name must end with {SESSION_SUFFIX}, got {Path(path).name!r}; name it "
+                          f"e.g. {Path(path).name.split('.')[0] or 'fish'}{SESSION_SUFFIX}")
+    return check_writable(path, overwrite=overwrite)
+
+
+def _default_session_path(output: str | os.PathLike) -> Path:
+    """``OUTPUT``'s name without its suffixes (and slice-number pattern) + ``.unwind.json``, beside it."""
+    import re
+
+    from .session import SESSION_SUFFIX
+
+    out = Path(str(output).rstrip("/\\"))
+    name = re.sub(r"\{[^}]*\}", "", out.name)
+    for ext in (".gz", ".bz2"):
+        if name.lower().endswith(ext):
+            name = name[: -len(ext)]
+    stem = Path(name).stem if Path(name).suffix else name
+    stem = stem.rstrip("_-. ") or "straight"
+    return out.with_name(stem + SESSION_SUFFIX)
+
+
+def _mask_geometry(mask: Any, scan: Any, mask_path: Any) -> tuple[tuple, tuple, str | None, list[str]]:
+    """Spacing, origin and unit of the deformation: the scan's (same shape as the mask) or the mask's own."""
+    import numpy as np
+
+    if scan is None:
+        return mask.spacing, mask.origin, mask.unit, []
+    if tuple(mask.shape) != tuple(scan.shape):
+        raise UnwindError(f"the mask {mask_path} has shape {_fmt_triple(mask.shape)} but the scan "
+                          f"{scan.source} has {_fmt_triple(scan.shape)}; the mask must be at the scan's full "
+                          "resolution (unwind select ... --full-resolution SCAN)")
+    notes = []
+    if not (np.allclose(mask.spacing, scan.spacing, rtol=1e-6) and np.allclose(mask.origin, scan.origin,
+                                                                                 atol=1e-6 * max(scan.spacing))):
+        notes.append(f"the mask's spacing {_fmt_triple(mask.spacing)} / origin {_fmt_triple(mask.origin)} differ "
+                     f"from the scan's {_fmt_triple(scan.spacing)} / {_fmt_triple(scan.origin)}: the scan's are used "
+                     "(same shape, voxel for voxel)")
+    return scan.spacing, scan.origin, scan.unit, notes
+
+
+def _estimate(mask_data: Any, endpoints: Any, *, spacing: Sequence[float], origin: Sequence[float],
+              unit: str | None, volume: Any, args: argparse.Namespace) -> tuple[Any, list[str]]:
+    """Run the skeleton solve with a progress bar; returns the SkeletonResult and its warnings (one line each)."""
+    import warnings
+
+    from .skeleton import estimate_deformation_iter
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = _run_with_bar(
+            estimate_deformation_iter(mask_data, endpoints, spacing=spacing, origin=origin, unit=unit,
+                                      volume=volume, estimate_twist=not args.no_twist, n_levels=args.levels,
+                                      smoothing_iterations=args.smoothing_iterations, cage_radius=args.cage_radius),
+            args.quiet,
+        )
+    messages = list(result.warnings)
+    messages += [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+    return result, [" ".join(m.split()) for m in dict.fromkeys(messages)]
+
+
+def _skeleton_report(result: Any, args: argparse.Namespace) -> list[str]:
+    """The lines of the skeleton summary."""
+    import numpy as np
+
+    from .io._volume import UNIT_ABBREVIATIONS
+
+    d = result.deformation
+    unit = UNIT_ABBREVIATIONS.get(d.unit or "", "px")
+    he = d.half_extents
+    if np.allclose(he, he[0]):
+        cage = f"{he[0, 0]:.4g} x {he[0, 1]:.4g} {unit}"
+    else:
+        cage = (f"{he[:, 0].min():.4g}-{he[:, 0].max():.4g} x {he[:, 1].min():.4g}-{he[:, 1].max():.4g} {unit}")
+    lines = [
+        f"{len(d)} keyframes, length {d.length:.4g} {unit}, cage half extents (u x v) {cage}, padding "
+        f"{d.pad[0]:.4g} / {d.pad[1]:.4g} {unit} (head / tail)",
+    ]
+    if args.no_twist:
+        lines.append("twist: not estimated (--no-twist): frames by parallel transport")
+    else:
+        deg = np.degrees(np.asarray(result.twist, dtype=float))
+        lines.append(f"twist: {deg.min():.1f} to {deg.max():.1f} degrees along the body (relative to parallel "
+                     "transport)")
+    total = sum(result.timings.values())
+    lines.append("times: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings.items()) + f" (total {total:.1f} s)")
+    return lines
+
+
+def _say_endpoints(result: Any, say: Callable[..., Any]) -> None:
+    e = result.endpoints
+    if result.suggested:
+        say(f"suggested head: {_fmt_point(e.head)}, tail: {_fmt_point(e.tail)} (voxels, axis0,axis1,axis2); check "
+            f"them, or give the ends: --head {_arg_point(e.head)} --tail {_arg_point(e.tail)}")
+    else:
+        say(f"head: {_fmt_point(e.head)}, tail: {_fmt_point(e.tail)} (voxels, after snapping into the mask)"
+            + (f", {len(e.chain)} parts chained" if e.chain else ""))
+
+
+def _warn_lines(messages: Sequence[str]) -> None:
+    for m in messages:
+        print(f"unwind: warning: {m}", file=sys.stderr)
+
+
+def _source_info(path: str | os.PathLike, volume: Any, quiet: bool):
+    from .progress import progress_bar
+    from .session import SourceInfo
+
+    callback, close = progress_bar(quiet)
+    try:
+        return SourceInfo.from_path(path, volume=volume, progress=callback)
+    finally:
+        close()
+
+
+def cmd_skeleton(args: argparse.Namespace) -> int:
+    from .io import open_volume
+    from .session import Segmentation, Session, save_session
+
+    target = _check_session_path(args.output, args.overwrite)
+    endpoints = _endpoints_from_args(args)
+    mask = open_volume(args.mask)
+    scan = open_volume(args.volume, **_reader_options(args)) if args.volume else None
+    spacing, origin, unit, notes = _mask_geometry(mask, scan, args.mask)
+    say = (lambda *a: None) if args.quiet else print
+    t0 = time.perf_counter()
+    result, messages = _estimate(mask.data, endpoints, spacing=spacing, origin=origin, unit=unit,
+                                 volume=None if scan is None else scan.data, args=args)
+    dt = time.perf_counter() - t0
+    source_path, source_vol = (args.volume, scan) if scan is not None else (args.mask, mask)
+    source = _source_info(source_path, source_vol, args.quiet)
+    refined = (mask.metadata.get("unwind") or {}).get("refined_mask") if isinstance(mask.metadata, dict) else None
+    segmentation = None
+    if isinstance(refined, dict) and refined.get("isovalue") is not None:
+        segmentation = Segmentation(isovalue=refined["isovalue"])
+    session = Session(source=source, deformation=result.deformation, segmentation=segmentation,
+                      endpoints=result.endpoints,
+                      notes=f"unwind skeleton: mask {Path(args.mask).absolute()}"
+                            + ("; suggested endpoints" if result.suggested else ""))
+    written = save_session(session, target, overwrite=args.overwrite)
+    folds = result.deformation.folds()
+    if folds:
+        where = ", ".join(f"s = {a:.4g}..{b:.4g}" for a, b in folds)
+        messages.append(f"the deformation folds where the cage is larger than the radius of curvature ({where} "
+                        f"{result.deformation.unit or 'units'}); unwind straighten refuses it without --allow-folds: "
+                        "shrink the cage or add keyframes there")
+    _warn_lines(notes + messages)
+    _say_endpoints(result, say)
+    say(f"skeleton of {args.mask} in {dt:.1f} s -> {written}")
+    for line in _skeleton_report(result, args):
+        say(line)
+    if scan is None:
+        say(f"the session's source is the mask itself ({args.mask}, no --volume given): unwind straighten MASK "
+            "--session ... straightens the mask; to straighten the scan, run again with --volume SCAN (or pass "
+            "--no-verify to unwind straighten)")
+    else:
+        say(f"the session's source is the scan {args.volume}: unwind straighten {args.volume} --session {written} "
+            "-o OUTPUT")
+    return 0
+
+
+def _segment_select(volume: Any, args: argparse.Namespace) -> tuple[Any, Any, str]:
+    """Join tree, the features under the ``--select`` points, refined at full resolution (lazy)."""
+    from .segmentation import refine_mask_iter, segment_iter, select, selected_ids
+    from .session import Segmentation
+
+    k = 5 if args.features is None else args.features
+    t0 = time.perf_counter()
+    features = _run_with_bar(segment_iter(volume, features=k, level=args.level), args.quiet)
+    dt = time.perf_counter() - t0
+    ids = selected_ids(features, seeds=args.select)
+    working = select(features, ids=ids, fill_holes=args.fill_holes)
+    iso = args.isovalue if args.isovalue is not None else min(features.stat(i).threshold for i in ids)
+    lazy = _run_with_bar(refine_mask_iter(volume, working, features=features, isovalue=iso), args.quiet)
+    segmentation = Segmentation(k=k, level=features.level, selected=tuple(ids),
+                                seeds=tuple(tuple(p) for p in args.select), isovalue=iso, fill_holes=args.fill_holes)
+    report = (f"segmented {args.input} at level {features.level} ({_fmt_triple(features.shape)}) into {features.k} "
+              f"features in {dt:.1f} s; selected feature{'s' if len(ids) > 1 else ''} "
+              f"{', '.join(map(str, ids))} under {', '.join(_fmt_point(p) for p in args.select)}, refined at full "
+              f"resolution (isovalue {iso:.4g})")
+    return lazy, segmentation, report
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import warnings
+
+    from .io import open_volume
+    from .io._atomic import check_writable
+    from .io._formats import output_format
+    from .session import Session, save_session
+    from .warp import FoldWarning, export_iter
+
+    if args.mask and args.select:
+        raise UnwindError("give either --mask MASK or --select A0,A1,A2 (segmentation), not both")
+    if not args.mask and not args.select:
+        raise UnwindError("say which specimen to straighten: --select A0,A1,A2 (a point inside it, full-resolution "
+                          "voxels; the scan is segmented first) or --mask MASK (a mask from unwind select)")
+    if args.mask and (args.features is not None or args.fill_holes or args.isovalue is not None
+                      or args.level is not None):
+        raise UnwindError("--features, --level, --isovalue and --fill-holes choose the segmentation; they do not "
+                          "apply with --mask")
+    output_format(args.output)
+    check_writable(args.output, overwrite=args.overwrite)
+    session_path = Path(args.session) if args.session else _default_session_path(args.output)
+    target = _check_session_path(session_path, args.overwrite)
+    endpoints = _endpoints_from_args(args)
+    say = (lambda *a: None) if args.quiet else print
+    t_all = time.perf_counter()
+
+    volume = open_volume(args.input, **_reader_options(args))
+    notes: list[str] = []
+    if args.mask:
+        mask_vol = open_volume(args.mask)
+        _, _, _, notes = _mask_geometry(mask_vol, volume, args.mask)
+        mask, segmentation = mask_vol.data, None
+        what = f"mask {args.mask}"
+    else:
+        mask, segmentation, what = _segment_select(volume, args)
+        say(what)
+        what = "the selected features"
+    t0 = time.perf_counter()
+    result, messages = _estimate(mask, endpoints, spacing=volume.spacing, origin=volume.origin, unit=volume.unit,
+                                 volume=volume.data, args=args)
+    dt = time.perf_counter() - t0
+    _warn_lines(notes + messages)
+    _say_endpoints(result, say)
+    say(f"skeleton of {what} in {dt:.1f} s")
+    for line in _skeleton_report(result, args):
+        say(line)
+
+    deformation = result.deformation
+    source = _source_info(args.input, volume, args.quiet)
+    session = Session(source=source, deformation=deformation, segmentation=segmentation, endpoints=result.endpoints,
+                      notes="unwind run" + (f": mask {Path(args.mask).absolute()}" if args.mask else "")
+                            + ("; suggested endpoints" if result.suggested else ""))
+    written_session = save_session(session, target, overwrite=args.overwrite)
+    say(f"session -> {written_session}")
+    try:
+        _check_folds(deformation, args.allow_folds)
+    except UnwindError as exc:
+        raise UnwindError(f"{exc}; the session was saved: edit it, or export as it is with unwind straighten "
+                          f"{args.input} --session {written_session} -o {args.output} --allow-folds") from None
+    t1 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FoldWarning)  # reported above
+        written = _run_with_bar(
+            export_iter(volume, deformation, args.output, order=args.order, spacing=args.spacing, pad=args.pad,
+                        chunks=args.chunks, overwrite=args.overwrite, session=session.to_dict()),
+            args.quiet,
+        )
+    if not args.quiet:
+        out = open_volume(written)
+        print(f"straightened {args.input} -> {written} in {time.perf_counter() - t1:.1f} s: shape "
+              f"{_fmt_triple(out.shape)} (s x y x x), spacing {_fmt_triple(out.spacing)} {out.unit_abbreviation}")
+        print(f"done in {time.perf_counter() - t_all:.1f} s")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -372,6 +676,22 @@ def _add_output_options(p: argparse.ArgumentParser) -> None:
                    help="replace NaN in float data by this value (default: NaN is an error)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+
+
+def _add_skeleton_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--head", type=_triple, default=None, metavar="A0,A1,A2",
+                   help="the head, full-resolution voxels in array index order (default: suggested)")
+    p.add_argument("--tail", type=_triple, default=None, metavar="A0,A1,A2",
+                   help="the tail, full-resolution voxels (default: suggested)")
+    p.add_argument("--chain", type=_triple, nargs=2, action="append", metavar=("START", "END"),
+                   help="a specimen in pieces: the start and end of one part, repeated for every part from head to "
+                   "tail (the first starts at the head, the last ends at the tail)")
+    p.add_argument("--no-twist", action="store_true",
+                   help="do not estimate the twist (frames by parallel transport)")
+    p.add_argument("--levels", type=int, default=100, help="level sets of the harmonic field (default 100)")
+    p.add_argument("--smoothing-iterations", type=int, default=50, help="curve smoothing iterations (default 50)")
+    p.add_argument("--cage-radius", type=float, default=10.0,
+                   help="keyframe tolerance box half size, voxels (default 10): larger, fewer keyframes")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -437,6 +757,43 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
     _add_input_options(p)
     p.set_defaults(func=cmd_select)
+
+    p = sub.add_parser("skeleton", help="estimate the deformation of a specimen mask: a session file")
+    p.add_argument("mask", help="the specimen's mask (nonzero = inside), any format, e.g. from unwind select")
+    p.add_argument("-o", "--output", required=True, help="the session file to write (*.unwind.json)")
+    _add_skeleton_options(p)
+    p.add_argument("--volume", metavar="SCAN", default=None,
+                   help="the scan the mask belongs to (same shape): the session's source, the one unwind "
+                   "straighten will straighten; also guides the twist and the head/tail choice")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing session file")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+    _add_input_options(p)
+    p.set_defaults(func=cmd_skeleton)
+
+    p = sub.add_parser("run", help="the whole pipeline: segment, select, skeleton, straighten")
+    p.add_argument("input", help="the scan, any supported format")
+    p.add_argument("-o", "--output", required=True, help="the straight volume to write; the suffix chooses the format")
+    p.add_argument("--mask", default=None, help="the specimen's mask (same shape as INPUT) instead of segmenting")
+    p.add_argument("--select", type=_triple, action="append", metavar="A0,A1,A2",
+                   help="a point inside the specimen, full-resolution voxels (repeatable: several features)")
+    p.add_argument("--features", type=int, default=None, help="features the segmentation keeps, 1-100 (default 5)")
+    p.add_argument("--level", type=int, default=None, help="pyramid level to segment (default: every side <= 256)")
+    p.add_argument("--isovalue", type=float, default=None,
+                   help="full-resolution threshold of the mask (default: the selected features' own)")
+    p.add_argument("--fill-holes", action="store_true", help="fill cavities of the mask")
+    p.add_argument("--session", default=None,
+                   help="the session file to write (default: OUTPUT's name + .unwind.json beside OUTPUT)")
+    _add_skeleton_options(p)
+    p.add_argument("--order", type=int, choices=(0, 1, 3), default=1,
+                   help="interpolation: 0 nearest (labels), 1 linear (default), 3 cubic")
+    p.add_argument("--pad", type=int, default=0, help="extra slices at both ends (default 0)")
+    p.add_argument("--spacing", type=float, default=None, help="output voxel size (default: finest scan spacing)")
+    p.add_argument("--chunks", type=_chunks, default=None, help="output chunk shape (default 64 x cross-section)")
+    p.add_argument("--allow-folds", action="store_true", help="export even where the deformation folds")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs once the new ones are complete")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+    _add_input_options(p)
+    p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("straighten", help="export the straight volume of a session's deformation")
     p.add_argument("input", help="the scan the session was made on (any supported format)")
