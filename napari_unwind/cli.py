@@ -298,8 +298,9 @@ def cmd_map_points(args: argparse.Namespace) -> int:
 
 def cmd_segment(args: argparse.Namespace) -> int:
     from .io import open_volume
-    from .segmentation import save_features_iter, segment_iter
+    from .segmentation import check_segmentation_output, save_features_iter, segment_iter
 
+    check_segmentation_output(args.output, overwrite=args.overwrite)  # before minutes of work, not after
     volume = open_volume(args.input, **_reader_options(args))
     t0 = time.perf_counter()
     features = _run_with_bar(segment_iter(volume, features=args.features, level=args.level, smooth=args.smooth),

@@ -56,3 +56,13 @@ def test_segment_refuses_bad_input(tmp_path):
     code, _, err = _run("segment", flat, "-o", tmp_path / "l.zarr", "--features", "101")
     assert code == 1 and "100" in err
     assert not (tmp_path / "l.zarr").exists()
+
+
+def test_segment_checks_its_output_before_working(tmp_path):
+    # a flat volume fails in the tree build ("nothing to segment"); a bad output name must be reported first
+    flat = write_volume(np.full((20, 20, 20), 7, np.uint16), tmp_path / "flat.zarr")
+    code, _, err = _run("segment", flat, "-o", tmp_path / "labels.tif")
+    assert code == 1 and "*.zarr" in err and "nothing to segment" not in err
+    (tmp_path / "labels.zarr").mkdir()
+    code, _, err = _run("segment", flat, "-o", tmp_path / "labels.zarr")
+    assert code == 1 and "--overwrite" in err and "nothing to segment" not in err
