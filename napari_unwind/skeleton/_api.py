@@ -330,7 +330,7 @@ def estimate_deformation_iter(
     volume: Any = None,
     smoothing: str = "taubin",
     level_spacing: str = "arclength",
-    tolerance: float = 0.5,
+    tolerance: float = 1.0,
     half_extent: Sequence[float] | float | None = None,
     pad: Sequence[float] | float | None = None,
     max_side: int = 128,
@@ -543,7 +543,7 @@ def estimate_deformation(
         The scan's intensities (same shape as the mask), used by the twist estimate and endpoint suggestion.
     **options
         ``smoothing`` ("taubin" or the paper's "laplacian"), ``level_spacing`` ("arclength" or the paper's
-        "uniform"), ``tolerance`` (0.5 voxels), ``half_extent`` and ``pad`` (physical; default proposed from the
+        "uniform"), ``tolerance`` (1 voxel), ``half_extent`` and ``pad`` (physical; default proposed from the
         cross-sections), ``max_side`` (128), ``snap_tolerance`` (5 voxels), ``up`` (world direction for the first
         frame's v without twist estimation), ``origin``, ``unit``, ``max_triangles`` (3000: the marching-cubes
         surface is decimated to this many triangles before meshing, None for no decimation; the mesher's time
