@@ -71,10 +71,11 @@ def _bbox(mask: np.ndarray) -> tuple[slice, ...] | None:
 
 
 def _pool(block: np.ndarray, f: Sequence[int], how: str) -> np.ndarray:
-    """Reduce ``block`` by factors ``f`` (zero-padded to multiples): ``"any"`` or ``"sum"`` over each block."""
+    """Reduce ``block`` by factors ``f`` (zero-padded to multiples): ``"any"``, ``"max"`` or ``"sum"`` over each
+    block."""
     f = tuple(int(x) for x in f)
     if f == (1, 1, 1):
-        return block.copy() if how == "any" else block.astype(np.float64)
+        return block.copy() if how in ("any", "max") else block.astype(np.float64)
     shape = tuple(int(math.ceil(n / k)) * k for n, k in zip(block.shape, f))
     if shape != block.shape:
         padded = np.zeros(shape, dtype=block.dtype)
@@ -83,6 +84,8 @@ def _pool(block: np.ndarray, f: Sequence[int], how: str) -> np.ndarray:
     r = block.reshape(shape[0] // f[0], f[0], shape[1] // f[1], f[1], shape[2] // f[2], f[2])
     if how == "any":
         return r.any(axis=(1, 3, 5))
+    if how == "max":
+        return r.max(axis=(1, 3, 5))
     return r.sum(axis=(1, 3, 5), dtype=np.float64)
 
 
@@ -288,7 +291,7 @@ def _inset_point(
         part = np.repeat(part, f[ax], axis=ax)
     local = crop[sub] & part[: hi[0] - lo[0], : hi[1] - lo[1], : hi[2] - lo[2]]
     edt = ndimage.distance_transform_edt(np.pad(local, 1), sampling=sp)[1:-1, 1:-1, 1:-1]
-    depth = _pool_max(edt, f)  # deepest voxel of each coarse node of the region
+    depth = _pool(edt, f, "max")  # deepest voxel of each coarse node of the region
     radii = depth[tuple((window - lo_c).T)]
     inset = min(2.0 * float(sp.max()), 0.5 * float(radii.max()))
     cand = np.flatnonzero(radii >= inset - 1e-9)
@@ -297,16 +300,6 @@ def _inset_point(
     blk = edt[q[0]:q[0] + f[0], q[1]:q[1] + f[1], q[2]:q[2] + f[2]]
     k = np.asarray(np.unravel_index(int(np.argmax(blk)), blk.shape))
     return (k + q + lo).astype(float)
-
-
-def _pool_max(a: np.ndarray, f: np.ndarray) -> np.ndarray:
-    shape = tuple(int(math.ceil(n / k)) * k for n, k in zip(a.shape, f))
-    if shape != a.shape:
-        padded = np.zeros(shape, dtype=a.dtype)
-        padded[tuple(slice(0, n) for n in a.shape)] = a
-        a = padded
-    r = a.reshape(shape[0] // f[0], f[0], shape[1] // f[1], f[1], shape[2] // f[2], f[2])
-    return r.max(axis=(1, 3, 5))
 
 
 def snap_to_mask(

@@ -256,20 +256,14 @@ def level_set_centroids(mesh: TetMesh, u: np.ndarray, levels: np.ndarray) -> tup
         below = (ff < c).sum(axis=1)
         acc_a = 0.0
         acc_c = np.zeros(3)
-        one = below == 1
-        if one.any():
-            q, g = pp[one], ff[one]
-            a, cen = _tri_area_centroid(_cut_points(q, g, 0, 1, c), _cut_points(q, g, 0, 2, c),
-                                        _cut_points(q, g, 0, 3, c))
-            acc_a += a.sum()
-            acc_c += (a[:, None] * cen).sum(axis=0)
-        three = below == 3
-        if three.any():
-            q, g = pp[three], ff[three]
-            a, cen = _tri_area_centroid(_cut_points(q, g, 0, 3, c), _cut_points(q, g, 1, 3, c),
-                                        _cut_points(q, g, 2, 3, c))
-            acc_a += a.sum()
-            acc_c += (a[:, None] * cen).sum(axis=0)
+        # one vertex below (cut edges 01, 02, 03) or one above (03, 13, 23): a triangle
+        for count, edges in ((1, ((0, 1), (0, 2), (0, 3))), (3, ((0, 3), (1, 3), (2, 3)))):
+            sel = below == count
+            if sel.any():
+                q, g = pp[sel], ff[sel]
+                a, cen = _tri_area_centroid(*(_cut_points(q, g, e0, e1, c) for e0, e1 in edges))
+                acc_a += a.sum()
+                acc_c += (a[:, None] * cen).sum(axis=0)
         two = below == 2
         if two.any():
             q, g = pp[two], ff[two]
