@@ -449,7 +449,8 @@ def _estimate(mask_data: Any, endpoints: Any, *, spacing: Sequence[float], origi
         result = _run_with_bar(
             estimate_deformation_iter(mask_data, endpoints, spacing=spacing, origin=origin, unit=unit,
                                       volume=volume, estimate_twist=not args.no_twist, n_levels=args.levels,
-                                      smoothing_iterations=args.smoothing_iterations, cage_radius=args.cage_radius),
+                                      smoothing_iterations=args.smoothing_iterations, cage_radius=args.cage_radius,
+                                      tolerance=args.tolerance, snap_tolerance=args.snap_tolerance),
             args.quiet,
         )
     messages = list(result.warnings)
@@ -536,12 +537,8 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
                       notes=f"unwind skeleton: mask {Path(args.mask).absolute()}"
                             + ("; suggested endpoints" if result.suggested else ""))
     written = save_session(session, target, overwrite=args.overwrite)
-    folds = result.deformation.folds()
-    if folds:
-        where = ", ".join(f"s = {a:.4g}..{b:.4g}" for a, b in folds)
-        messages.append(f"the deformation folds where the cage is larger than the radius of curvature ({where} "
-                        f"{result.deformation.unit or 'units'}); unwind straighten refuses it without --allow-folds: "
-                        "shrink the cage or add keyframes there")
+    if result.deformation.folds():  # the skeleton's own warning says where; say what it means here
+        messages.append("unwind straighten refuses a folding deformation without --allow-folds")
     _warn_lines(notes + messages)
     _say_endpoints(result, say)
     say(f"skeleton of {args.mask} in {dt:.1f} s -> {written}")
@@ -692,7 +689,13 @@ def _add_skeleton_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--levels", type=int, default=100, help="level sets of the harmonic field (default 100)")
     p.add_argument("--smoothing-iterations", type=int, default=50, help="curve smoothing iterations (default 50)")
     p.add_argument("--cage-radius", type=float, default=10.0,
-                   help="keyframe tolerance box half size, voxels (default 10): larger, fewer keyframes")
+                   help="half size (voxels) of the box whose centre and corners the keyframes must reproduce within "
+                   "--tolerance (default 10): larger, more keyframes")
+    p.add_argument("--tolerance", type=float, default=1.0,
+                   help="how far (voxels) the keyframed box may stray from the dense curve's (default 1): larger, "
+                   "fewer keyframes")
+    p.add_argument("--snap-tolerance", type=float, default=5.0,
+                   help="ends outside the mask move onto it when within this many voxels (default 5)")
 
 
 def build_parser() -> argparse.ArgumentParser:

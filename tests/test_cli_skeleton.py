@@ -153,7 +153,7 @@ def test_bad_ends_and_masks_are_refused_in_one_line(fish, tmp_path, capsys):
     assert not f.mask[1, 1, 1]
     cases = [
         (["skeleton", mask, "--head", _arg(f.head), "--tail", _arg(f.head)], "same point"),
-        (["skeleton", mask, "--head", _arg(corner), "--tail", _arg(f.tail)], "from the mask"),
+        (["skeleton", mask, "--head", _arg(corner), "--tail", _arg(f.tail)], "--snap-tolerance"),
         (["skeleton", mask, "--head=-40,0,0", "--tail", _arg(f.tail)], "outside the volume"),
         (["skeleton", mask, "--head", _arg(f.head)], "both --head and --tail"),
         (["skeleton", mask, "--head", _arg(f.tail), "--chain", _arg(f.head), _arg(f.tail)], "--head"),

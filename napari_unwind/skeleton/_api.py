@@ -210,7 +210,7 @@ def _describe_part(labels: np.ndarray, lab: int, wm: WorkingMask) -> str:
     return f"part {lab} ({len(idx) * wm.factor ** 3} voxels, from {lo} to {hi})"
 
 
-def _snap(point_vox: np.ndarray, wm: WorkingMask, tolerance: float, what: str) -> np.ndarray:
+def _snap(point_vox: np.ndarray, wm: WorkingMask, tolerance: float, what: str, unit: str | None) -> np.ndarray:
     """A full-resolution voxel point moved into the working mask (if within ``tolerance`` physical)."""
     p = np.asarray(point_vox, dtype=float)
     shape = np.asarray(wm.shape)
@@ -226,9 +226,12 @@ def _snap(point_vox: np.ndarray, wm: WorkingMask, tolerance: float, what: str) -
     d = np.linalg.norm((cand - w) * wsp, axis=1)
     k = int(np.argmin(d))
     if d[k] > tolerance:
+        u = unit or "units"
+        vox = min(wm.spacing)
         raise InvalidInputError(
-            f"the {what} {np.round(p, 2).tolist()} is {d[k]:.3g} (physical units) from the mask, more than the "
-            f"snapping tolerance {tolerance:.3g}; click inside the specimen, or raise snap_tolerance")
+            f"the {what} {np.round(p, 2).tolist()} is {d[k]:.3g} {u} ({d[k] / vox:.3g} voxels) from the mask, more "
+            f"than the snapping tolerance of {tolerance / vox:.3g} voxels; click inside the specimen, or raise the "
+            "tolerance (snap_tolerance, --snap-tolerance)")
     return wm.from_working(cand[k])
 
 
@@ -410,8 +413,8 @@ def estimate_deformation_iter(
     snapped = []
     for i, (a, b) in enumerate(chain):
         what = "specimen" if len(chain) == 1 else f"part {i + 1} of the chain"
-        pa = _snap(np.asarray(a), wm, tol, f"start of the {what}" if len(chain) > 1 else "head")
-        pb = _snap(np.asarray(b), wm, tol, f"end of the {what}" if len(chain) > 1 else "tail")
+        pa = _snap(np.asarray(a), wm, tol, f"start of the {what}" if len(chain) > 1 else "head", unit)
+        pb = _snap(np.asarray(b), wm, tol, f"end of the {what}" if len(chain) > 1 else "tail", unit)
         if np.linalg.norm((pa - pb) * sp) < 2 * wm.factor * vox:
             raise InvalidInputError(f"the start {np.round(pa, 2).tolist()} and end {np.round(pb, 2).tolist()} of the "
                                     f"{what} are (nearly) the same point; click the two ends of the specimen")
