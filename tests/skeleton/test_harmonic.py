@@ -75,7 +75,8 @@ def test_harmonic_level_sets_of_a_cylinder_are_cross_sections(cylinder_mesh):
     # by symmetry the centroids lie on the axis, in order from head to tail; near the point-like ends the mesh
     # vertex that holds the Dirichlet value may be off the axis (the mesh is coarse), which tilts the first and
     # last level sets, so only the middle is held to the axis closely
-    assert (np.diff(cents[:, 0]) > 0).all()
+    levels_inner = slice(2, -2)  # u in [0.15, 0.85]: the first and last caps may wrap round the end vertex
+    assert (np.diff(cents[levels_inner, 0]) > 0).all()
     np.testing.assert_allclose(cents[:, 1:], c, atol=4.0)
     mid = (cents[:, 0] > 20) & (cents[:, 0] < 48)
     assert mid.sum() >= 3
