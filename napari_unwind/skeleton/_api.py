@@ -421,6 +421,10 @@ def estimate_deformation_iter(
         snapped.append((pa, pb))
     t = _stage("endpoints", timings, t)
 
+    # the ends of every part: a quadratic over about one body width instead of the kinks that the point-like
+    # Dirichlet ends give the level-set centroids (the cage folds at such kinks)
+    end_window = end_window_factor * float(
+        ndi.distance_transform_edt(np.pad(wm.binary, 1), sampling=wm.working_spacing).max())
     pieces = []
     mesh_info: list[dict[str, int]] = []
     for i, (pa, pb) in enumerate(snapped):
@@ -431,14 +435,12 @@ def estimate_deformation_iter(
                                      max_triangles=max_triangles, mesher=dict(mesher or {}))
         t = time.perf_counter()
         yield Progress("smoothing", i, len(snapped), what)
-        pieces.append(smooth_curve(pts, iterations=int(smoothing_iterations), method=smoothing))
+        piece = resample_curve(smooth_curve(pts, iterations=int(smoothing_iterations), method=smoothing),
+                               min_step=0.5 * vox)
+        pieces.append(regularise_ends(piece, end_window) if end_window > 0 else piece)
         t = _stage("smoothing", timings, t)
     # parts are joined by the straight segments between one part's end and the next one's start
     curve = resample_curve(np.vstack(pieces), min_step=0.5 * vox)
-    # the ends: a quadratic over about one body width instead of the kinks of the point-like Dirichlet ends
-    end_window = float(ndi.distance_transform_edt(np.pad(wm.binary, 1), sampling=wm.working_spacing).max())
-    if end_window_factor:
-        curve = regularise_ends(curve, end_window_factor * end_window)
     frames = parallel_transport_frames(curve, up=up)
     t = _stage("frames", timings, t)
     yield Progress("frames", 1, 1, f"{len(curve)} points")
@@ -465,7 +467,7 @@ def estimate_deformation_iter(
             note(str(w.message))
         # the tips are a few voxels across: their sections carry no orientation, keep the body's
         sc = arclength(curve)
-        hold = min(end_window, sc[-1] / 4.0)
+        hold = min(end_window / max(end_window_factor, 1e-9), sc[-1] / 4.0) if end_window > 0 else 0.0
         if hold > 0:
             theta = np.where(sc < hold, np.interp(hold, sc, theta), theta)
             theta = np.where(sc > sc[-1] - hold, np.interp(sc[-1] - hold, sc, theta), theta)
