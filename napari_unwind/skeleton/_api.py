@@ -373,6 +373,8 @@ def estimate_deformation_iter(
     for name, value in (("cage_radius", cage_radius), ("tolerance", tolerance), ("snap_tolerance", snap_tolerance)):
         if not (isinstance(value, (int, float, np.number)) and np.isfinite(value) and value > 0):
             raise InvalidInputError(f"{name} must be a positive number (voxels), got {value!r}")
+    if not (isinstance(end_window_factor, (int, float, np.number)) and 0 <= end_window_factor < np.inf):
+        raise InvalidInputError(f"end_window_factor must be a number >= 0, got {end_window_factor!r}")
     if level_spacing not in ("arclength", "uniform"):
         raise InvalidInputError(f"level_spacing must be 'arclength' or 'uniform', got {level_spacing!r}")
     if smoothing not in ("taubin", "laplacian"):

@@ -238,6 +238,10 @@ def test_bad_input_is_refused_clearly():
         estimate_deformation(ph.mask, (ph.head, ph.tail), spacing=1.0, n_levels=1)
     with pytest.raises(InvalidInputError, match="volume's shape"):
         estimate_deformation(ph.mask, (ph.head, ph.tail), spacing=1.0, volume=np.zeros((3, 3, 3)))
+    with pytest.raises(InvalidInputError, match="end_window_factor"):
+        estimate_deformation(ph.mask, (ph.head, ph.tail), spacing=1.0, end_window_factor=-1)
+    with pytest.raises(InvalidInputError, match="tolerance must be"):
+        estimate_deformation(ph.mask, (ph.head, ph.tail), spacing=1.0, tolerance=0)
     with pytest.raises(InvalidInputError, match="endpoints must be"):
         estimate_deformation(ph.mask, 5, spacing=1.0)
 
