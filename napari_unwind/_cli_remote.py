@@ -1,0 +1,395 @@
+"""The remote commands of ``unwind``: ``serve``, ``submit``, ``jobs`` and ``run --server``.
+
+:func:`add_remote_commands` adds the subcommands to the ``unwind`` parser; :func:`run_remote` runs ``unwind run``
+on a server. ``python -m napari_unwind._cli_remote ...`` is a thin entry with the same subcommands (for scripts
+and tests). Needs the ``server`` extra.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from .errors import InvalidInputError, UnwindError
+
+__all__ = ["add_remote_commands", "run_remote", "main"]
+
+
+def _add_client_options(p: argparse.ArgumentParser, server_required: bool = False) -> None:
+    p.add_argument("--server", default=None if server_required else os.environ.get("UNWIND_SERVER", "127.0.0.1:50051"),
+                   required=server_required and not os.environ.get("UNWIND_SERVER"), metavar="HOST:PORT",
+                   help="the server's address (default $UNWIND_SERVER or 127.0.0.1:50051)")
+    _add_token_options(p)
+
+
+def _add_token_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--token", default=None, help="your token (default $UNWIND_TOKEN)")
+    p.add_argument("--tls", action="store_true", help="connect with TLS (system root certificates)")
+    p.add_argument("--tls-ca", default=None, metavar="PEM", help="connect with TLS, trusting this CA certificate")
+    p.add_argument("--timeout", type=float, default=60.0, help="deadline of each call, seconds (default 60)")
+
+
+def _client(args: argparse.Namespace):
+    from .client import Client
+
+    server = getattr(args, "server", None) or os.environ.get("UNWIND_SERVER", "127.0.0.1:50051")
+    tls: Any = getattr(args, "tls_ca", None) or bool(getattr(args, "tls", False))
+    return Client(server, token=getattr(args, "token", None), tls=tls, timeout=getattr(args, "timeout", 60.0),
+                  progress=not getattr(args, "quiet", False))
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return v
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# unwind serve
+# ------------------------------------------------------------------------------------------------------------------
+def cmd_serve(args: argparse.Namespace) -> int:
+    from unwind_services.auth import add_token
+    from unwind_services.catalog import Limits
+    from unwind_services.server import ServerConfig, UnwindServer
+
+    if args.add_token:
+        if not args.tokens:
+            raise InvalidInputError("--add-token USER needs --tokens FILE (where the token's hash is stored)")
+        token = add_token(args.tokens, args.add_token, days=args.expires_days)
+        print(f"token for {args.add_token} (shown once; its hash is in {args.tokens}):")
+        print(token)
+        return 0
+    if not args.data_root:
+        raise InvalidInputError("give the folder the server keeps its data in: --data-root DIR")
+    logging.basicConfig(level=getattr(logging, args.log_level.upper(), logging.INFO),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    limits = Limits(max_upload_bytes=args.max_upload_bytes, max_voxels=args.max_voxels,
+                    max_message_bytes=args.max_message_bytes, max_jobs_per_user=args.max_jobs_per_user)
+    config = ServerConfig(data_root=Path(args.data_root), port=args.port, listen=args.listen,
+                          services=args.service or (), scheduler=args.scheduler,
+                          tokens=Path(args.tokens) if args.tokens else None,
+                          tls_cert=Path(args.tls_cert) if args.tls_cert else None,
+                          tls_key=Path(args.tls_key) if args.tls_key else None, limits=limits, workers=args.workers,
+                          drain_seconds=args.drain)
+    UnwindServer(config).serve_forever()
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# unwind submit
+# ------------------------------------------------------------------------------------------------------------------
+def _print_job(job: Any, file=None) -> None:
+    from unwind_services._proto.unwind.v1 import common_pb2 as pb
+
+    state = pb.JobState.Name(job.state)[len("JOB_STATE_"):].lower()
+    kind = pb.JobKind.Name(job.kind)[len("JOB_KIND_"):].lower()
+    line = f"{job.id}  {kind:<20} {state:<10} {job.name}"
+    if job.progress.stage:
+        p = job.progress
+        line += f"  [{p.stage} {p.done}/{p.total or '?'}]"
+    if job.interrupted:
+        line += "  (interrupted)"
+    if job.error.code:
+        line += f"  {job.error.code}: {job.error.message}"
+    if job.result.volume_id:
+        line += f"  -> {job.result.volume_id}"
+    print(line, file=file or sys.stdout)
+
+
+def cmd_submit(args: argparse.Namespace) -> int:
+    from .client import BatchItem
+
+    client = _client(args)
+    with client:
+        if args.batch:
+            items = _read_batch(Path(args.batch), register=args.register)
+            rows = client.run_batch(items, max_parallel=args.max_parallel, out_dir=args.out_dir,
+                                    summary=args.summary, progress=not args.quiet)
+            failed = [r for r in rows if r.get("state") != "succeeded"]
+            if not args.quiet:
+                print(f"{len(rows) - len(failed)} of {len(rows)} specimens straightened"
+                      + (f"; summary: {args.summary or Path(args.out_dir) / 'summary.csv'}"
+                         if args.summary or args.out_dir else ""))
+                for r in failed:
+                    print(f"unwind: {r['name']}: {r.get('error', '')}", file=sys.stderr)
+            return 1 if failed else 0
+        if not args.input:
+            raise InvalidInputError("give a scan (INPUT) or a collection (--batch FILE.csv)")
+        if not args.select and not args.mask:
+            raise InvalidInputError("say which specimen: --select A0,A1,A2 (a point inside it) or --mask MASK")
+        item = BatchItem(scan=args.input, register=args.register)
+        if args.register:
+            vid = client.register(args.input).volume_id
+        elif args.input.startswith("vol-") and not Path(args.input).exists():
+            vid = args.input
+        else:
+            vid = client.upload(args.input).volume_id
+        mask_id = ""
+        if args.mask:
+            mask_id = (client.register(args.mask) if args.register else client.upload(args.mask)).volume_id
+        name = args.name or (Path(item.scan).name.split(".")[0] + ".zarr")
+        job = client.pipeline(vid, select=args.select, mask_volume_id=mask_id, features=args.features,
+                              isovalue=args.isovalue, fill_holes=args.fill_holes, head=args.head, tail=args.tail,
+                              output_name=name, order=args.order, pad=args.pad, spacing=args.spacing,
+                              allow_folds=args.allow_folds, wait=args.wait, name=name)
+        _print_job(job)
+    return 0
+
+
+def _read_batch(path: Path, register: bool) -> list:
+    """A collection CSV: columns scan, select ('all' or points 'a0 a1 a2; b0 b1 b2'), name (optional)."""
+    import csv
+
+    from .client import BatchItem
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} does not exist")
+    items = []
+    with open(path, newline="") as f:
+        for n, row in enumerate(csv.DictReader(f), start=2):
+            scan = (row.get("scan") or "").strip()
+            if not scan:
+                raise InvalidInputError(f"{path} line {n}: the scan column is empty")
+            sel = (row.get("select") or "all").strip()
+            if sel != "all":
+                try:
+                    sel = [[float(v) for v in p.replace(",", " ").split()] for p in sel.split(";") if p.strip()]
+                except ValueError:
+                    raise InvalidInputError(f"{path} line {n}: select must be 'all' or points like '10 20 30; 1 2 "
+                                            f"3', got {row.get('select')!r}") from None
+                if not sel or any(len(p) != 3 for p in sel):
+                    raise InvalidInputError(f"{path} line {n}: every select point needs 3 numbers, got {sel}")
+            items.append(BatchItem(scan=scan, select=sel, name=(row.get("name") or "").strip() or None,
+                                   register=register))
+    return items
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# unwind jobs
+# ------------------------------------------------------------------------------------------------------------------
+def cmd_jobs(args: argparse.Namespace) -> int:
+    from unwind_services._proto.unwind.v1 import common_pb2 as pb
+
+    if args.action != "list" and not args.job_id:
+        raise InvalidInputError(f"unwind jobs {args.action} needs a job id")
+    with _client(args) as client:
+        if args.action == "list":
+            for job in client.jobs(limit=args.limit):
+                _print_job(job)
+        elif args.action == "get":
+            job = client.job(args.job_id)
+            if args.json:
+                from google.protobuf.json_format import MessageToDict
+
+                print(json.dumps(MessageToDict(job), indent=2))
+            else:
+                _print_job(job)
+                for k, v in sorted(job.result.figures.items()):
+                    print(f"  {k}: {v}")
+        elif args.action == "watch":
+            job = client.wait(args.job_id, check=False)
+            _print_job(job)
+            return 0 if job.state == pb.JOB_STATE_SUCCEEDED else 1
+        elif args.action == "cancel":
+            _print_job(client.cancel(args.job_id))
+        elif args.action == "resubmit":
+            _print_job(client.resubmit(args.job_id))
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# unwind run --server
+# ------------------------------------------------------------------------------------------------------------------
+def _suffix(path: str | os.PathLike) -> str:
+    name = Path(str(path).rstrip("/\\")).name.lower()
+    for s in (".nii.gz", ".zarr", ".tif", ".tiff", ".nrrd", ".nii"):
+        if name.endswith(s):
+            return s
+    return ".zarr"
+
+
+def run_remote(args: argparse.Namespace) -> int:
+    """``unwind run ... --server ADDR``: upload, the pipeline as a server job, download output and session.
+
+    Takes the namespace of ``unwind run`` (plus ``server``, ``token``, ``tls``); writes the same files as the
+    local run: the straight volume at ``--output`` and the session beside it (or at ``--session``), whose source
+    is the local scan.
+    """
+    import time
+
+    from .cli import _check_session_path, _default_session_path, _endpoints_from_args, _reader_options
+    from .io import open_volume
+    from .io._atomic import check_writable
+    from .io._formats import output_format
+    from .session import Session, SourceInfo, save_session
+
+    if args.mask and args.select:
+        raise UnwindError("give either --mask MASK or --select A0,A1,A2 (segmentation), not both")
+    if not args.mask and not args.select:
+        raise UnwindError("say which specimen to straighten: --select A0,A1,A2 (a point inside it, full-resolution "
+                          "voxels; the scan is segmented first) or --mask MASK (a mask from unwind select)")
+    output_format(args.output)
+    check_writable(args.output, overwrite=args.overwrite)
+    session_path = Path(args.session) if args.session else _default_session_path(args.output)
+    target = _check_session_path(session_path, args.overwrite)
+    endpoints = _endpoints_from_args(args)
+    say = (lambda *a: None) if args.quiet else print
+    t0 = time.perf_counter()
+    volume = open_volume(args.input, **_reader_options(args))
+    with _client(args) as client:
+        say(f"uploading {args.input} to {client.address}")
+        vid = client.upload(volume, name=Path(str(args.input).rstrip("/")).name.split(".")[0] or "scan").volume_id
+        mask_id = ""
+        if args.mask:
+            mask_id = client.upload(open_volume(args.mask), name="mask").volume_id
+        skeleton = dict(no_twist=args.no_twist, levels=args.levels, smoothing_iterations=args.smoothing_iterations,
+                        cage_radius=args.cage_radius, tolerance=args.tolerance, snap_tolerance=args.snap_tolerance)
+        job = client.pipeline(
+            vid, select=args.select, mask_volume_id=mask_id, features=args.features, level=args.level,
+            isovalue=args.isovalue, fill_holes=args.fill_holes,
+            head=None if endpoints is None else endpoints.head, tail=None if endpoints is None else endpoints.tail,
+            chain=None if endpoints is None else endpoints.chain, skeleton=skeleton,
+            output_name="straight" + _suffix(args.output), order=args.order, spacing=args.spacing, pad=args.pad,
+            chunks=args.chunks, allow_folds=args.allow_folds, name=Path(str(args.output)).name)
+        for w in job.result.warnings:
+            print(f"unwind: warning: {w}", file=sys.stderr)
+        written = client.download(job.result.volume_id, args.output, overwrite=args.overwrite)
+    remote = Session.from_dict(json.loads(job.result.session_json))
+    # the session describes the local scan (its checksum), so unwind straighten INPUT --session verifies
+    session = Session(source=SourceInfo.from_path(args.input, volume=volume), deformation=remote.deformation,
+                      segmentation=remote.segmentation, endpoints=remote.endpoints,
+                      notes=f"unwind run --server {args.server} (job {job.id})")
+    written_session = save_session(session, target, overwrite=args.overwrite)
+    f = job.result.figures
+    say(f"job {job.id} on {args.server}: length {f.get('length', '?')} {f.get('unit', '')}, "
+        f"{f.get('keyframes', '?')} keyframes")
+    say(f"straightened {args.input} -> {written}; session -> {written_session}; done in "
+        f"{time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------------------------
+def add_remote_commands(subparsers: Any) -> None:
+    """Add ``serve``, ``submit`` and ``jobs`` to the ``unwind`` parser's subparsers."""
+    from .cli import _triple
+
+    p = subparsers.add_parser("serve", help="run the gRPC server: every service in one process by default")
+    p.add_argument("--data-root", default=None, metavar="DIR",
+                   help="folder of the server's data: uploads, outputs, the job table (SQLite)")
+    p.add_argument("--port", type=_positive_int, default=50051, help="port (default 50051; 0: any free port)")
+    p.add_argument("--listen", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1, this machine only; 0.0.0.0 needs --tokens)")
+    p.add_argument("--service", action="append", choices=("volume", "segmentation", "skeleton", "warp", "jobs"),
+                   help="run only this service (repeatable; the job service always runs)")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:8786",
+                   help="dask.distributed scheduler for the chunked export (default: threads in this process)")
+    p.add_argument("--tokens", default=None, metavar="FILE", help="tokens file: USER sha256:<hash> per line")
+    p.add_argument("--add-token", default=None, metavar="USER",
+                   help="print a new token for USER, store its hash in --tokens FILE, and exit")
+    p.add_argument("--expires-days", type=float, default=None, help="with --add-token: the token expires after this")
+    p.add_argument("--tls-cert", default=None, metavar="PEM", help="TLS certificate chain (with --tls-key)")
+    p.add_argument("--tls-key", default=None, metavar="PEM", help="TLS private key (with --tls-cert)")
+    p.add_argument("--max-upload-bytes", type=_positive_int, default=8 * 1024**3,
+                   help="largest upload, bytes (default 8 GiB; 0: no limit)")
+    p.add_argument("--max-voxels", type=_positive_int, default=4 * 1024**3,
+                   help="largest volume, voxels (default 4 Gi; 0: no limit)")
+    p.add_argument("--max-message-bytes", type=_positive_int, default=64 * 1024**2,
+                   help="largest gRPC message, bytes (default 64 MiB)")
+    p.add_argument("--max-jobs-per-user", type=_positive_int, default=4,
+                   help="jobs one user may have queued or running (default 4; 0: no limit)")
+    p.add_argument("--workers", type=int, default=2, help="jobs running at once (default 2)")
+    p.add_argument("--drain", type=float, default=10.0,
+                   help="on SIGTERM, seconds running jobs may finish before they are interrupted (default 10)")
+    p.add_argument("--log-level", default="info", help="debug, info (default), warning, error")
+    p.set_defaults(func=cmd_serve)
+
+    p = subparsers.add_parser("submit", help="straighten on a server: a pipeline job, or a whole collection (--batch)")
+    p.add_argument("input", nargs="?", help="a local scan to upload, a volume id (vol-...), or with --register a "
+                                            "path under the server's data root")
+    p.add_argument("--select", type=_triple, action="append", metavar="A0,A1,A2",
+                   help="a point inside the specimen (full-resolution voxels, repeatable)")
+    p.add_argument("--mask", default=None, help="the specimen's mask instead of segmenting")
+    p.add_argument("--features", type=int, default=None, help="features the segmentation keeps (default 5)")
+    p.add_argument("--isovalue", type=float, default=None, help="full-resolution threshold of the mask")
+    p.add_argument("--fill-holes", action="store_true", help="fill cavities of the mask")
+    p.add_argument("--head", type=_triple, default=None, metavar="A0,A1,A2", help="the head (default: suggested)")
+    p.add_argument("--tail", type=_triple, default=None, metavar="A0,A1,A2", help="the tail (default: suggested)")
+    p.add_argument("--order", type=int, choices=(0, 1, 3), default=1, help="interpolation order (default 1)")
+    p.add_argument("--pad", type=int, default=0, help="extra slices at both ends")
+    p.add_argument("--spacing", type=float, default=None, help="output voxel size")
+    p.add_argument("--allow-folds", action="store_true", help="export even where the deformation folds")
+    p.add_argument("--name", default=None, help="the output's file name on the server (default INPUT.zarr)")
+    p.add_argument("--register", action="store_true", help="INPUT (and --mask) are paths under the data root")
+    p.add_argument("--wait", action="store_true", help="follow the job to its end")
+    p.add_argument("--batch", default=None, metavar="CSV",
+                   help="a collection: CSV with columns scan, select ('all' or 'a0 a1 a2; ...'), name")
+    p.add_argument("--max-parallel", type=int, default=4, help="with --batch: pipelines at once (default 4)")
+    p.add_argument("--out-dir", default=None, help="with --batch: download outputs, sessions and summary.csv here")
+    p.add_argument("--summary", default=None, help="with --batch: the summary CSV to write")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_client_options(p)
+    p.set_defaults(func=cmd_submit)
+
+    p = subparsers.add_parser("jobs", help="list, get, watch, cancel or resubmit jobs on a server")
+    p.add_argument("action", choices=("list", "get", "watch", "cancel", "resubmit"), help="what to do")
+    p.add_argument("job_id", nargs="?", help="the job's id (all but list)")
+    p.add_argument("--limit", type=int, default=50, help="list: at most this many (default 50)")
+    p.add_argument("--json", action="store_true", help="get: print the job as JSON")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_client_options(p)
+    p.set_defaults(func=cmd_jobs)
+
+
+def add_run_server_options(p: argparse.ArgumentParser) -> None:
+    """The options ``unwind run`` needs to run on a server: ``--server``, ``--token``, ``--tls``."""
+    p.add_argument("--server", default=None, metavar="HOST:PORT",
+                   help="run the pipeline on this server (upload, job, download) instead of here")
+    _add_token_options(p)
+
+
+def _parse_run(argv: Sequence[str]) -> argparse.Namespace:
+    """``run ... --server ADDR``: the options of ``unwind run`` plus the server's."""
+    from .cli import build_parser
+
+    args, rest = build_parser().parse_known_args(list(argv))
+    extra = argparse.ArgumentParser(prog="unwind run")
+    add_run_server_options(extra)
+    extra.parse_args(rest, namespace=args)
+    if not args.server:
+        extra.error("the remote entry runs `run` on a server: give --server HOST:PORT")
+    args.func = run_remote
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m napari_unwind._cli_remote serve|submit|jobs|run ...``."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["run"]:
+        args = _parse_run(argv)
+    else:
+        parser = argparse.ArgumentParser(prog="unwind", description="napari-unwind remote commands")
+        sub = parser.add_subparsers(dest="command", required=True)
+        add_remote_commands(sub)
+        args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (UnwindError, OSError) as exc:
+        print(f"unwind: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("unwind: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,650 @@
+"""Python client of the napari-unwind services: the in-process API, run on a server.
+
+>>> from napari_unwind.client import Client                       # doctest: +SKIP
+>>> with Client("unwind.facility.org:50051", token="...", tls=True) as c:
+...     scan = c.upload("tank_042.tif", spacing=(35.7, 35.7, 35.7), unit="um")
+...     job = c.pipeline(scan.volume_id, select=[(120, 80, 400)], output_name="fish1.zarr")
+...     c.download(job.result.volume_id, "fish1.nrrd")
+
+Every call has a deadline and is retried with exponential backoff while the server is UNAVAILABLE (restarting);
+``wait`` and ``watch`` reconnect and resume the progress stream where it stopped. Long operations are jobs:
+with ``wait=True`` (the default) the call follows the job with a tqdm bar and returns it finished, or raises
+:class:`RemoteError` with the server's status code and message. :meth:`Client.run_batch` straightens a whole
+collection and ends with a CSV summary.
+
+Needs the ``server`` extra (grpcio); the core does not import this module.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import random
+import shutil
+import tarfile
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import InvalidInputError, UnwindError
+from .progress import Progress, progress_bar
+
+__all__ = ["Client", "RemoteError", "BatchItem", "DEFAULT_ADDRESS"]
+
+DEFAULT_ADDRESS = "127.0.0.1:50051"
+_CHUNK = 2 * 1024 * 1024
+
+
+class RemoteError(UnwindError):
+    """A call or a job failed on the server: ``code`` is the gRPC status code name, the message the server's."""
+
+    def __init__(self, message: str, code: str = "UNKNOWN", job: Any = None):
+        super().__init__(message)
+        self.code = code
+        self.job = job
+
+
+class RemoteInvalidInputError(RemoteError, InvalidInputError):
+    """The server refused the input (INVALID_ARGUMENT)."""
+
+
+def _remote_error(exc: Any, what: str = "") -> RemoteError:
+    import grpc
+
+    code = exc.code() if hasattr(exc, "code") else grpc.StatusCode.UNKNOWN
+    details = exc.details() if hasattr(exc, "details") else str(exc)
+    if code == grpc.StatusCode.UNAVAILABLE:
+        details = f"the server is unavailable ({details})"
+    cls = RemoteInvalidInputError if code == grpc.StatusCode.INVALID_ARGUMENT else RemoteError
+    return cls(f"{what}{details}", code.name)
+
+
+def _points(points: Any, what: str) -> list:
+    from unwind_services._proto.unwind.v1 import common_pb2 as pb
+
+    if points is None:
+        return []
+    arr = np.asarray(points, dtype=float).reshape(-1, 3)
+    return [pb.Point(axis0=a, axis1=b, axis2=c) for a, b, c in arr]
+
+
+def _progress(p: Any) -> Progress:
+    return Progress(p.stage, int(p.done), int(p.total), p.message)
+
+
+@dataclass
+class BatchItem:
+    """One scan of a collection for :meth:`Client.run_batch`.
+
+    Attributes
+    ----------
+    scan : str
+        A local file or folder to upload, a volume id on the server (``vol-...``), or with ``register`` a path
+        relative to the server's data root.
+    select : sequence of points, or "all"
+        Points inside the specimen (full-resolution voxels), or ``"all"``: every feature of the segmentation is a
+        specimen (a tank of fish).
+    name : str, optional
+        The specimen's name in the summary and its output's file name (default: the scan's).
+    features : int
+        Features the segmentation keeps (default 5).
+    register : bool
+        ``scan`` is a path under the server's data root: register it instead of uploading.
+    """
+
+    scan: str
+    select: Any = "all"
+    name: str | None = None
+    features: int = 5
+    register: bool = False
+    options: dict[str, Any] = field(default_factory=dict)
+
+
+class Client:
+    """A connection to an ``unwind serve`` server.
+
+    Parameters
+    ----------
+    address : str
+        ``host:port`` (default ``127.0.0.1:50051``).
+    token : str, optional
+        The bearer token the server's administrator gave you (default: ``$UNWIND_TOKEN``).
+    tls : bool or path-like
+        Use TLS: True with the system's root certificates, or the path of a CA certificate (PEM).
+    timeout : float
+        Deadline of each unary call, seconds.
+    retry_seconds : float
+        How long to keep retrying while the server is UNAVAILABLE (restarting), seconds.
+    progress : bool
+        Show tqdm bars while waiting for jobs.
+    max_message_bytes : int
+        Message size limit of the channel (both ways).
+    """
+
+    def __init__(self, address: str = DEFAULT_ADDRESS, *, token: str | None = None,
+                 tls: bool | str | os.PathLike = False, timeout: float = 60.0, retry_seconds: float = 60.0,
+                 progress: bool = True, max_message_bytes: int = 64 * 1024**2):
+        import grpc
+
+        from unwind_services._proto.unwind.v1 import (
+            jobs_pb2_grpc,
+            segmentation_pb2_grpc,
+            skeleton_pb2_grpc,
+            volume_pb2_grpc,
+            warp_pb2_grpc,
+        )
+
+        self.address = address
+        self.timeout, self.retry_seconds, self.progress = float(timeout), float(retry_seconds), bool(progress)
+        token = token if token is not None else os.environ.get("UNWIND_TOKEN") or None
+        self._metadata = (("authorization", f"Bearer {token}"),) if token else ()
+        options = [("grpc.max_receive_message_length", max_message_bytes),
+                   ("grpc.max_send_message_length", max_message_bytes)]
+        if tls:
+            roots = None if tls is True else Path(tls).read_bytes()
+            self._channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(root_certificates=roots), options)
+        else:
+            self._channel = grpc.insecure_channel(address, options)
+        self.volumes_stub = volume_pb2_grpc.VolumeServiceStub(self._channel)
+        self.segmentation_stub = segmentation_pb2_grpc.SegmentationServiceStub(self._channel)
+        self.skeleton_stub = skeleton_pb2_grpc.SkeletonServiceStub(self._channel)
+        self.warp_stub = warp_pb2_grpc.WarpServiceStub(self._channel)
+        self.jobs_stub = jobs_pb2_grpc.JobServiceStub(self._channel)
+
+    # -- plumbing ----------------------------------------------------------------------------------------------------
+    def close(self) -> None:
+        self._channel.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def _retrying(self, fn: Callable[[], Any], what: str) -> Any:
+        """Call ``fn``; on UNAVAILABLE retry with exponential backoff (and jitter) for up to ``retry_seconds``."""
+        import grpc
+
+        deadline = time.monotonic() + self.retry_seconds
+        delay = 0.1
+        while True:
+            try:
+                return fn()
+            except grpc.RpcError as exc:
+                if exc.code() != grpc.StatusCode.UNAVAILABLE or time.monotonic() + delay > deadline:
+                    raise _remote_error(exc, what) from None
+            time.sleep(delay * (0.5 + random.random()))
+            delay = min(delay * 2, 5.0)
+
+    def _unary(self, method: Callable, request: Any, what: str = "", timeout: float | None = None) -> Any:
+        return self._retrying(lambda: method(request, timeout=timeout or self.timeout, metadata=self._metadata), what)
+
+    def health(self, service: str = "") -> str:
+        """The server's health status name (``SERVING``...) for the whole server or one service."""
+        from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+        stub = health_pb2_grpc.HealthStub(self._channel)
+        r = self._unary(stub.Check, health_pb2.HealthCheckRequest(service=service))
+        return health_pb2.HealthCheckResponse.ServingStatus.Name(r.status)
+
+    # -- volumes -----------------------------------------------------------------------------------------------------
+    def upload(self, data: Any, *, name: str | None = None, spacing: Any = None, unit: str | None = None,
+               origin: Any = None, labels: bool = False, timeout: float = 3600.0, **reader_options: Any):
+        """Upload a scan (a path any reader opens, a Volume, or an array); it lands as an OME-Zarr pyramid.
+
+        Returns the server's ``VolumeInfo`` (``.volume_id`` names it in later calls).
+        """
+        from unwind_services._proto.unwind.v1 import volume_pb2
+
+        from .io import as_volume, open_volume
+
+        if isinstance(data, (str, os.PathLike)):
+            path = Path(data)
+            volume = open_volume(path, **reader_options)
+            name = name or path.name.split(".")[0]
+        else:
+            volume = as_volume(data)
+            name = name or "upload"
+        volume = as_volume(volume, spacing=spacing, unit=unit, origin=origin)
+        from unwind_services.convert import dtype_enum
+
+        header = volume_pb2.UploadHeader(
+            name=name, shape=list(volume.shape), dtype=dtype_enum(volume.dtype), spacing=list(volume.spacing),
+            unit=volume.unit or "", origin=list(volume.origin),
+            labels=labels)
+        le = volume.dtype.newbyteorder("<")
+
+        def messages() -> Iterator[Any]:
+            yield volume_pb2.UploadRequest(header=header)
+            data = volume.data
+            step = max(1, int(data.chunks[0][0]))
+            for i in range(0, volume.shape[0], step):
+                block = np.ascontiguousarray(data[i:i + step].compute(), dtype=le)
+                mv = memoryview(block).cast("B")
+                for a in range(0, len(mv), _CHUNK):
+                    yield volume_pb2.UploadRequest(chunk=bytes(mv[a:a + _CHUNK]))
+
+        return self._retrying(lambda: self.volumes_stub.Upload(messages(), timeout=timeout, metadata=self._metadata),
+                              "upload: ")
+
+    def register(self, path: str, *, name: str = ""):
+        """Register a scan already under the server's data root (``path`` relative to it)."""
+        from unwind_services._proto.unwind.v1 import volume_pb2
+
+        return self._unary(self.volumes_stub.Register, volume_pb2.RegisterRequest(path=str(path), name=name))
+
+    def volumes(self, limit: int = 100) -> list:
+        from unwind_services._proto.unwind.v1 import volume_pb2
+
+        return list(self._unary(self.volumes_stub.List, volume_pb2.ListVolumesRequest(limit=limit)).volumes)
+
+    def info(self, volume_id: str):
+        from unwind_services._proto.unwind.v1 import volume_pb2
+
+        return self._unary(self.volumes_stub.Info, volume_pb2.VolumeRef(volume_id=volume_id))
+
+    def _download_stream(self, volume_id: str, fmt: str, level: int, timeout: float) -> tuple[Any, Iterator[bytes]]:
+        from unwind_services._proto.unwind.v1 import volume_pb2
+
+        request = volume_pb2.DownloadRequest(volume_id=volume_id, format=fmt, level=level)
+
+        def start():
+            stream = self.volumes_stub.Download(request, timeout=timeout, metadata=self._metadata)
+            first = next(stream)
+            return first, stream
+
+        first, stream = self._retrying(start, "download: ")
+
+        def chunks() -> Iterator[bytes]:
+            import grpc
+
+            try:
+                for msg in stream:
+                    yield msg.chunk
+            except grpc.RpcError as exc:
+                raise _remote_error(exc, "download: ") from None
+
+        return first.header, chunks()
+
+    def open(self, volume_id: str, *, level: int = 0, timeout: float = 3600.0):
+        """Download a volume's voxels into memory: a :class:`~napari_unwind.io.Volume` with its geometry."""
+        from unwind_services.convert import dtype_of
+
+        from .io import as_volume
+
+        header, chunks = self._download_stream(volume_id, "raw", level, timeout)
+        dtype = dtype_of(header.dtype).newbyteorder("<")
+        buf = bytearray(header.total_bytes)
+        pos = 0
+        for c in chunks:
+            buf[pos:pos + len(c)] = c
+            pos += len(c)
+        if pos != header.total_bytes:
+            raise RemoteError(f"download: the server sent {pos} bytes of {header.total_bytes}", "DATA_LOSS")
+        arr = np.frombuffer(buf, dtype=dtype).reshape(tuple(header.shape)).astype(dtype.newbyteorder("="), copy=False)
+        return as_volume(arr, spacing=tuple(header.spacing), unit=header.unit or None, origin=tuple(header.origin))
+
+    def download(self, volume_id: str, path: str | os.PathLike, *, level: int = 0, overwrite: bool = False,
+                 timeout: float = 3600.0) -> Path:
+        """Download a volume into ``path``; its suffix chooses the format, written on the server by the core.
+
+        The file (or folder) appears atomically.
+        """
+        from .io._atomic import atomic_output, check_writable
+        from .io._formats import output_format
+
+        path = Path(path)
+        output_format(path)
+        check_writable(path, overwrite=overwrite)
+        suffix = "".join(path.suffixes[-2:]) if path.name.lower().endswith(".nii.gz") else path.suffix
+        header, chunks = self._download_stream(volume_id, suffix, level, timeout)
+        with atomic_output(path, overwrite=overwrite) as tmp:
+            blob = tmp.with_name(tmp.name + ".part")
+            try:
+                with open(blob, "wb") as f:
+                    for c in chunks:
+                        f.write(c)
+                if blob.stat().st_size != header.total_bytes:
+                    raise RemoteError(f"download: the server sent {blob.stat().st_size} bytes of "
+                                      f"{header.total_bytes}", "DATA_LOSS")
+                if header.tar:
+                    unpack = tmp.with_name(tmp.name + ".d")
+                    with tarfile.open(blob) as tar:
+                        tar.extractall(unpack, filter="data")
+                    inner = unpack / header.file_name
+                    os.replace(inner if inner.exists() else unpack, tmp)
+                    shutil.rmtree(unpack, ignore_errors=True)
+                else:
+                    os.replace(blob, tmp)
+            finally:
+                blob.unlink(missing_ok=True)
+        return path
+
+    # -- jobs --------------------------------------------------------------------------------------------------------
+    def submit(self, request: Any, *, wait: bool = True, name: str = "", timeout_seconds: float = 0.0):
+        """Submit a ``SubmitRequest`` (safe to retry: it carries a request id); with ``wait``, follow it."""
+        if not request.request_id:
+            request.request_id = uuid.uuid4().hex
+        if name:
+            request.name = name
+        if timeout_seconds:
+            request.timeout_seconds = timeout_seconds
+        job = self._unary(self.jobs_stub.Submit, request, "submit: ")
+        return self.wait(job.id) if wait else job
+
+    def job(self, job_id: str):
+        from unwind_services._proto.unwind.v1 import jobs_pb2
+
+        return self._unary(self.jobs_stub.Get, jobs_pb2.JobRef(job_id=job_id))
+
+    def jobs(self, state: int = 0, limit: int = 100) -> list:
+        from unwind_services._proto.unwind.v1 import jobs_pb2
+
+        return list(self._unary(self.jobs_stub.List, jobs_pb2.ListJobsRequest(state=state, limit=limit)).jobs)
+
+    def cancel(self, job_id: str):
+        from unwind_services._proto.unwind.v1 import jobs_pb2
+
+        return self._unary(self.jobs_stub.Cancel, jobs_pb2.JobRef(job_id=job_id))
+
+    def resubmit(self, job_id: str, *, wait: bool = False):
+        from unwind_services._proto.unwind.v1 import jobs_pb2
+
+        job = self._unary(self.jobs_stub.Resubmit, jobs_pb2.JobRef(job_id=job_id))
+        return self.wait(job.id) if wait else job
+
+    def watch(self, job_id: str, *, timeout: float | None = None) -> Iterator[Any]:
+        """The job's events (``JobEvent``: progress records, then the final job), reconnecting after a server restart
+        and resuming after the last record received. Ends with the finished job."""
+        import grpc
+
+        from unwind_services._proto.unwind.v1 import common_pb2 as pb
+        from unwind_services._proto.unwind.v1 import jobs_pb2
+
+        after = 0
+        end = None if timeout is None else time.monotonic() + timeout
+        outage: float | None = None
+        delay = 0.2
+        while True:
+            left = None if end is None else max(0.01, end - time.monotonic())
+            try:
+                stream = self.jobs_stub.Watch(jobs_pb2.WatchRequest(job_id=job_id, after_seq=after),
+                                              timeout=left or 86400, metadata=self._metadata)
+                for event in stream:
+                    outage, delay = None, 0.2
+                    if event.HasField("progress"):
+                        after = event.progress.seq
+                    yield event
+                    if event.HasField("job") and event.job.state in (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED,
+                                                                     pb.JOB_STATE_CANCELLED):
+                        return
+            except grpc.RpcError as exc:
+                if exc.code() != grpc.StatusCode.UNAVAILABLE:
+                    raise _remote_error(exc, f"watch {job_id}: ") from None
+                outage = outage or time.monotonic()
+                if time.monotonic() - outage > self.retry_seconds:
+                    raise _remote_error(exc, f"watch {job_id}: ") from None
+                time.sleep(delay * (0.5 + random.random()))
+                delay = min(delay * 2, 5.0)
+
+    def wait(self, job_id: str, *, progress: bool | None = None, timeout: float | None = None, check: bool = True):
+        """Follow a job to its end (tqdm bars from its progress); returns it, or raises :class:`RemoteError` when it
+        failed or was cancelled (with ``check``)."""
+        from unwind_services._proto.unwind.v1 import common_pb2 as pb
+
+        callback, close = progress_bar(not (self.progress if progress is None else progress))
+        job = None
+        try:
+            for event in self.watch(job_id, timeout=timeout):
+                if event.HasField("progress"):
+                    callback(_progress(event.progress))
+                else:
+                    job = event.job
+        finally:
+            close()
+        if check and job.state != pb.JOB_STATE_SUCCEEDED:
+            raise RemoteError(f"job {job.id} {pb.JobState.Name(job.state)[10:].lower()}: {job.error.message}",
+                              job.error.code or "UNKNOWN", job)
+        return job
+
+    @staticmethod
+    def session(job: Any):
+        """The :class:`~napari_unwind.session.Session` a skeleton or pipeline job produced."""
+        from .session import Session
+
+        if not job.result.session_json:
+            raise InvalidInputError(f"job {job.id} produced no session")
+        return Session.from_dict(json.loads(job.result.session_json))
+
+    # -- the pipeline's steps ----------------------------------------------------------------------------------------
+    def segment(self, volume_id: str, *, features: int = 5, level: int | None = None, smooth: float | None = None,
+                wait: bool = True):
+        """Join tree + simplification (a job); its result names the segmentation (``result.segmentation_id``)."""
+        from unwind_services._proto.unwind.v1 import jobs_pb2, segmentation_pb2
+
+        req = segmentation_pb2.SegmentRequest(volume_id=volume_id, features=features, level=level or 0,
+                                              has_level=level is not None, smooth=smooth or 0.0,
+                                              has_smooth=smooth is not None)
+        return self.submit(jobs_pb2.SubmitRequest(segment=req), wait=wait)
+
+    def segmentation(self, segmentation_id: str):
+        from unwind_services._proto.unwind.v1 import segmentation_pb2
+
+        return self._unary(self.segmentation_stub.Info,
+                           segmentation_pb2.SegmentationRef(segmentation_id=segmentation_id))
+
+    def simplify(self, segmentation_id: str, features: int):
+        """Keep another number of features, from the server's cached join tree (no rebuild)."""
+        from unwind_services._proto.unwind.v1 import segmentation_pb2
+
+        return self._unary(self.segmentation_stub.Simplify,
+                           segmentation_pb2.SimplifyRequest(segmentation_id=segmentation_id, features=features))
+
+    def select(self, segmentation_id: str, *, seeds: Any = None, ids: Sequence[int] | None = None,
+               fill_holes: bool = False, isovalue: float | None = None, output_name: str = "", wait: bool = True):
+        """The chosen features refined to a full-resolution mask (a job; ``result.volume_id`` is the mask)."""
+        from unwind_services._proto.unwind.v1 import jobs_pb2, segmentation_pb2
+
+        req = segmentation_pb2.SelectRequest(segmentation_id=segmentation_id, seeds=_points(seeds, "seed"),
+                                             ids=list(ids or ()), fill_holes=fill_holes, isovalue=isovalue or 0.0,
+                                             has_isovalue=isovalue is not None, output_name=output_name)
+        return self.submit(jobs_pb2.SubmitRequest(select=req), wait=wait)
+
+    def suggest_ends(self, mask_volume_id: str, volume_id: str = "") -> tuple[np.ndarray, np.ndarray]:
+        from unwind_services._proto.unwind.v1 import skeleton_pb2
+
+        e = self._unary(self.skeleton_stub.SuggestEnds,
+                        skeleton_pb2.SuggestEndsRequest(mask_volume_id=mask_volume_id, volume_id=volume_id))
+        return (np.array([e.head.axis0, e.head.axis1, e.head.axis2]),
+                np.array([e.tail.axis0, e.tail.axis1, e.tail.axis2]))
+
+    @staticmethod
+    def _ends(head: Any, tail: Any, chain: Any = None):
+        from unwind_services._proto.unwind.v1 import skeleton_pb2
+
+        if head is None and tail is None:
+            return None
+        if head is None or tail is None:
+            raise InvalidInputError("give both head and tail, or neither to use the suggested ones")
+        msg = skeleton_pb2.Ends(head=_points([head], "head")[0], tail=_points([tail], "tail")[0])
+        for a, b in chain or ():
+            msg.chain.add(start=_points([a], "chain")[0], end=_points([b], "chain")[0])
+        return msg
+
+    @staticmethod
+    def _skeleton_options(no_twist: bool = False, levels: int = 100, smoothing_iterations: int = 50,
+                          cage_radius: float = 10.0, tolerance: float = 1.0, snap_tolerance: float = 5.0):
+        from unwind_services._proto.unwind.v1 import skeleton_pb2
+
+        return skeleton_pb2.SkeletonOptions(no_twist=no_twist, levels=levels, smoothing_iterations=smoothing_iterations,
+                                            has_smoothing_iterations=True, cage_radius=cage_radius,
+                                            tolerance=tolerance, snap_tolerance=snap_tolerance)
+
+    @staticmethod
+    def _export_options(output_name: str = "", order: int = 1, spacing: float | None = None, pad: int = 0,
+                        chunks: Sequence[int] | None = None, allow_folds: bool = False):
+        from unwind_services._proto.unwind.v1 import warp_pb2
+
+        return warp_pb2.ExportOptions(order=order, has_order=True, spacing=spacing or 0.0, pad=pad,
+                                      chunks=list(chunks or ()), allow_folds=allow_folds, output_name=output_name)
+
+    def skeleton(self, mask_volume_id: str, *, volume_id: str = "", head: Any = None, tail: Any = None,
+                 chain: Any = None, wait: bool = True, **options: Any):
+        """Skeleton solve (a job); ``Client.session(job)`` is the resulting session."""
+        from unwind_services._proto.unwind.v1 import jobs_pb2, skeleton_pb2
+
+        req = skeleton_pb2.EstimateDeformationRequest(mask_volume_id=mask_volume_id, volume_id=volume_id,
+                                                      ends=self._ends(head, tail, chain),
+                                                      options=self._skeleton_options(**options))
+        return self.submit(jobs_pb2.SubmitRequest(estimate_deformation=req), wait=wait)
+
+    def straighten(self, volume_id: str, session_id: str, *, wait: bool = True, **export: Any):
+        """Export the straight volume (a job; ``result.volume_id``)."""
+        from unwind_services._proto.unwind.v1 import jobs_pb2, warp_pb2
+
+        req = warp_pb2.StraightenRequest(volume_id=volume_id, session_id=session_id,
+                                         options=self._export_options(**export))
+        return self.submit(jobs_pb2.SubmitRequest(straighten=req), wait=wait)
+
+    def bend(self, volume_id: str, session_id: str, *, order: int = 1, output_name: str = "", wait: bool = True):
+        """Bend a straight volume into the session's pose (a job; ``result.volume_id``)."""
+        from unwind_services._proto.unwind.v1 import jobs_pb2, warp_pb2
+
+        req = warp_pb2.BendRequest(volume_id=volume_id, session_id=session_id, order=order, has_order=True,
+                                   output_name=output_name)
+        return self.submit(jobs_pb2.SubmitRequest(bend=req), wait=wait)
+
+    def map_points(self, session_id: str, points: Any, *, to: str = "straight", spacing: float | None = None,
+                   pad: int = 0) -> np.ndarray:
+        from unwind_services._proto.unwind.v1 import warp_pb2
+
+        if to not in ("straight", "scan"):
+            raise InvalidInputError(f"to must be 'straight' or 'scan', got {to!r}")
+        direction = warp_pb2.MAP_DIRECTION_TO_SCAN if to == "scan" else warp_pb2.MAP_DIRECTION_TO_STRAIGHT
+        r = self._unary(self.warp_stub.MapPoints, warp_pb2.MapPointsRequest(
+            session_id=session_id, points=_points(points, "point"), direction=direction, spacing=spacing or 0.0,
+            pad=pad))
+        return np.array([(p.axis0, p.axis1, p.axis2) for p in r.points], dtype=float).reshape(-1, 3)
+
+    def pipeline_request(self, volume_id: str, *, select: Any = None, ids: Sequence[int] | None = None,
+                         segmentation_id: str = "", mask_volume_id: str = "", features: int | None = None,
+                         level: int | None = None, isovalue: float | None = None, fill_holes: bool = False,
+                         head: Any = None, tail: Any = None, chain: Any = None, skeleton: dict | None = None,
+                         **export: Any):
+        """The ``SubmitRequest`` of :meth:`pipeline` (for :meth:`submit` with other options)."""
+        from unwind_services._proto.unwind.v1 import jobs_pb2
+
+        req = jobs_pb2.PipelineRequest(
+            volume_id=volume_id, select=_points(select, "select point"), ids=list(ids or ()),
+            segmentation_id=segmentation_id, mask_volume_id=mask_volume_id, features=features or 0,
+            level=level or 0, has_level=level is not None, isovalue=isovalue or 0.0,
+            has_isovalue=isovalue is not None, fill_holes=fill_holes, ends=self._ends(head, tail, chain),
+            skeleton=self._skeleton_options(**(skeleton or {})), export=self._export_options(**export))
+        return jobs_pb2.SubmitRequest(pipeline=req)
+
+    def pipeline(self, volume_id: str, *, wait: bool = True, name: str = "", **options: Any):
+        """``unwind run`` on the server: segment (or a mask), select, skeleton, straighten (a job).
+
+        Its result holds the straight volume (``result.volume_id``), the session (``Client.session(job)``) and
+        figures (length, keyframes, seconds...). Options: see :meth:`pipeline_request`.
+        """
+        return self.submit(self.pipeline_request(volume_id, **options), wait=wait, name=name)
+
+    # -- collections -------------------------------------------------------------------------------------------------
+    def run_batch(self, items: Iterable[BatchItem | dict], *, max_parallel: int = 4, out_dir: str | os.PathLike | None
+                  = None, suffix: str = ".zarr", summary: str | os.PathLike | None = None, retries: int = 1,
+                  progress: bool = False) -> list[dict[str, str]]:
+        """Straighten a collection: every item is a scan plus a selection (or ``"all"`` for a tank).
+
+        Up to ``max_parallel`` pipelines run at once. A job interrupted by a server restart is resubmitted (up to
+        ``retries`` times); waiting resumes after the restart. With ``out_dir`` every straight volume (``suffix``
+        format) and its session are downloaded. Returns one summary row per specimen and writes them as CSV to
+        ``summary`` (default ``out_dir/summary.csv`` when ``out_dir`` is given): name, scan, job, state, figures,
+        error.
+        """
+        from unwind_services._proto.unwind.v1 import common_pb2 as pb
+
+        items = [i if isinstance(i, BatchItem) else BatchItem(**i) for i in items]
+        out = Path(out_dir) if out_dir is not None else None
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+        rows: list[dict[str, str]] = []
+        lock = threading.Lock()
+
+        def record(row: dict[str, Any]) -> None:
+            with lock:
+                rows.append({k: str(v) for k, v in row.items()})
+
+        def volume_of(item: BatchItem) -> str:
+            if item.register:
+                return self.register(item.scan).volume_id
+            if item.scan.startswith("vol-") and not Path(item.scan).exists():
+                return item.scan
+            return self.upload(item.scan, name=Path(item.scan).name.split(".")[0]).volume_id
+
+        def one(item: BatchItem, name: str, scan_label: str, **selection: Any) -> None:
+            row: dict[str, Any] = {"name": name, "scan": scan_label, "job": "", "state": "", "error": ""}
+            try:
+                request = self.pipeline_request(output_name=f"{name}{suffix}", **selection, **item.options)
+                job = self.submit(request, wait=False, name=name)
+                for attempt in range(retries + 1):
+                    job = self.wait(job.id, progress=progress, check=False)
+                    if job.state == pb.JOB_STATE_FAILED and job.interrupted and attempt < retries:
+                        job = self.resubmit(job.id)
+                        continue
+                    break
+                row.update(job=job.id, state=pb.JobState.Name(job.state)[10:].lower())
+                if job.state != pb.JOB_STATE_SUCCEEDED:
+                    row["error"] = f"{job.error.code}: {job.error.message}"
+                else:
+                    row.update(dict(job.result.figures))
+                    row["volume_id"] = job.result.volume_id
+                    if out is not None:
+                        row["output"] = str(self.download(job.result.volume_id, out / f"{name}{suffix}",
+                                                          overwrite=True))
+                        (out / f"{name}.unwind.json").write_text(job.result.session_json)
+            except UnwindError as exc:
+                row.update(state=row["state"] or "failed", error=f"{getattr(exc, 'code', 'ERROR')}: {exc}")
+            record(row)
+
+        def prepare(item: BatchItem) -> list[tuple]:
+            name = item.name or Path(item.scan).name.split(".")[0]
+            vid = volume_of(item)
+            if isinstance(item.select, str):
+                if item.select != "all":
+                    raise InvalidInputError(f"select must be points or 'all', got {item.select!r}")
+                seg = self.segment(vid, features=item.features).result.segmentation_id
+                info = self.segmentation(seg)
+                return [(item, f"{name}_f{f.id}", item.scan, dict(volume_id=vid, ids=[f.id], segmentation_id=seg))
+                        for f in info.feature]
+            return [(item, name, item.scan, dict(volume_id=vid, select=item.select, features=item.features))]
+
+        with ThreadPoolExecutor(max_workers=max(1, max_parallel)) as pool:
+            tasks: list[tuple] = []
+            for item, fut in [(i, pool.submit(prepare, i)) for i in items]:
+                try:
+                    tasks += fut.result()
+                except UnwindError as exc:
+                    record({"name": item.name or Path(item.scan).name, "scan": item.scan, "job": "", "state": "failed",
+                            "error": f"{getattr(exc, 'code', 'ERROR')}: {exc}"})
+            for f in [pool.submit(one, it, n, s, **sel) for it, n, s, sel in tasks]:
+                f.result()
+        rows.sort(key=lambda r: r["name"])
+        target = Path(summary) if summary is not None else (out / "summary.csv" if out is not None else None)
+        if target is not None:
+            columns = ["name", "scan", "job", "state", "volume_id", "length", "unit", "keyframes", "ids", "isovalue",
+                       "seconds", "skeleton_seconds", "export_seconds", "output", "error"]
+            columns += sorted({k for r in rows for k in r} - set(columns))
+            with open(target, "w", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=columns, restval="")
+                w.writeheader()
+                w.writerows(rows)
+        return rows

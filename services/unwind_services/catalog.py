@@ -1,0 +1,71 @@
+"""Objects a user owns: volumes, segmentations and sessions, as rows in the store and files under the data root."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from napari_unwind.io import Volume, open_volume
+
+from .errors import LimitError
+from .paths import DataRoot
+from .store import ObjectRow, Store
+
+__all__ = ["Catalog", "Limits"]
+
+
+@dataclass(frozen=True)
+class Limits:
+    """What one server accepts (0: no limit)."""
+
+    max_upload_bytes: int = 8 * 1024**3
+    max_voxels: int = 4 * 1024**3
+    max_message_bytes: int = 64 * 1024**2
+    max_jobs_per_user: int = 4
+
+    def check_voxels(self, shape: Any, what: str) -> None:
+        n = int(np.prod([int(s) for s in shape], dtype=object))
+        if self.max_voxels and n > self.max_voxels:
+            raise LimitError(f"{what} has {n} voxels, more than this server's limit of {self.max_voxels}; ask its "
+                             "administrator, or crop the scan first")
+
+
+class Catalog:
+    """Look-ups by owner (another user's id is not found) and registration of new objects."""
+
+    def __init__(self, store: Store, root: DataRoot, limits: Limits):
+        self.store, self.root, self.limits = store, root, limits
+        self._locks: dict[str, threading.Lock] = {}
+        self._locks_guard = threading.Lock()
+
+    def lock(self, object_id: str) -> threading.Lock:
+        with self._locks_guard:
+            return self._locks.setdefault(object_id, threading.Lock())
+
+    def path(self, row: ObjectRow) -> Path:
+        return self.root.absolute(row.path)
+
+    def volume(self, owner: str, volume_id: str) -> tuple[ObjectRow, Volume]:
+        row = self.store.get_object(owner, volume_id, "volume")
+        return row, open_volume(self.path(row))
+
+    def add_volume(self, owner: str, path: Path, name: str, origin: str, job_id: str = "",
+                   object_id: str | None = None) -> tuple[ObjectRow, Volume]:
+        volume = open_volume(path)
+        self.limits.check_voxels(volume.shape, f"the volume {name!r}")
+        row = self.store.add_object(owner, "volume", name, self.root.relative(path), {"origin": origin}, job_id,
+                                    object_id=object_id)
+        return row, volume
+
+    def segmentation(self, owner: str, segmentation_id: str) -> ObjectRow:
+        return self.store.get_object(owner, segmentation_id, "segmentation")
+
+    def session(self, owner: str, session_id: str):
+        from napari_unwind.session import load_session
+
+        row = self.store.get_object(owner, session_id, "session")
+        return row, load_session(self.path(row))

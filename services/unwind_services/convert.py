@@ -1,0 +1,82 @@
+"""Protobuf <-> core values: the only translation layer (no domain logic)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from napari_unwind.errors import InvalidInputError
+
+from ._proto.unwind.v1 import common_pb2 as pb
+from ._proto.unwind.v1 import segmentation_pb2, skeleton_pb2, volume_pb2
+
+__all__ = ["DTYPES", "dtype_of", "dtype_enum", "points", "point_msg", "endpoints", "volume_info", "feature_msg"]
+
+DTYPES = {
+    pb.DTYPE_UINT8: np.dtype("uint8"), pb.DTYPE_INT8: np.dtype("int8"),
+    pb.DTYPE_UINT16: np.dtype("uint16"), pb.DTYPE_INT16: np.dtype("int16"),
+    pb.DTYPE_UINT32: np.dtype("uint32"), pb.DTYPE_INT32: np.dtype("int32"),
+    pb.DTYPE_FLOAT32: np.dtype("float32"), pb.DTYPE_FLOAT64: np.dtype("float64"),
+}
+_ENUMS = {v: k for k, v in DTYPES.items()}
+
+
+def dtype_of(value: int) -> np.dtype:
+    if value not in DTYPES:
+        raise InvalidInputError(f"dtype must be one of {', '.join(pb.DType.Name(k) for k in DTYPES)}, got "
+                                f"{pb.DType.Name(value) if value in pb.DType.values() else value}")
+    return DTYPES[value]
+
+
+def dtype_enum(dtype: Any) -> int:
+    return _ENUMS.get(np.dtype(dtype), pb.DTYPE_UNSPECIFIED)
+
+
+def points(msgs: Sequence[pb.Point], what: str) -> np.ndarray:
+    """(N, 3) array of points; refuses NaN and infinity."""
+    arr = np.array([(p.axis0, p.axis1, p.axis2) for p in msgs], dtype=float).reshape(-1, 3)
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InvalidInputError(f"{what} {i} is not a finite point: {tuple(arr[i])}; give three finite numbers "
+                                "(axis0, axis1, axis2)")
+    return arr
+
+
+def point_msg(p: Sequence[float]) -> pb.Point:
+    return pb.Point(axis0=float(p[0]), axis1=float(p[1]), axis2=float(p[2]))
+
+
+def endpoints(msg: skeleton_pb2.Ends | None, present: bool):
+    """A session Endpoints from an Ends message, or None when not given."""
+    from napari_unwind.session import Endpoints
+
+    if not present:
+        return None
+    head, tail = points([msg.head], "head")[0], points([msg.tail], "tail")[0]
+    chain = tuple((tuple(points([c.start], "chain start")[0]), tuple(points([c.end], "chain end")[0]))
+                  for c in msg.chain)
+    return Endpoints(head=tuple(head), tail=tuple(tail), chain=chain)
+
+
+def ends_msg(e: Any) -> skeleton_pb2.Ends:
+    msg = skeleton_pb2.Ends(head=point_msg(e.head), tail=point_msg(e.tail))
+    for a, b in getattr(e, "chain", ()):
+        msg.chain.add(start=point_msg(a), end=point_msg(b))
+    return msg
+
+
+def volume_info(row: Any, volume: Any) -> volume_pb2.VolumeInfo:
+    return volume_pb2.VolumeInfo(
+        volume_id=row.id, name=row.name, shape=list(volume.shape), dtype=dtype_enum(volume.dtype),
+        spacing=list(volume.spacing), unit=volume.unit or "", origin=list(volume.origin), levels=len(volume.levels),
+        format=volume.format or "", origin_kind=row.meta.get("origin", ""), created=row.created, job_id=row.job_id)
+
+
+def feature_msg(st: Any) -> segmentation_pb2.Feature:
+    return segmentation_pb2.Feature(
+        id=int(st.id), voxel_count=int(st.voxel_count), bbox_full=[int(b) for b in st.bbox_full],
+        value_min=float(st.value_min), value_max=float(st.value_max), threshold=float(st.threshold),
+        max_position_full=point_msg(st.max_position_full))

@@ -1,0 +1,85 @@
+"""Errors the services add to the core's, and the one mapping of every error to a gRPC status code.
+
+The core raises :class:`~napari_unwind.errors.UnwindError` subclasses with one-line messages; the services add
+the conditions only a server has (another user's object, limits, cancellation, shutting down, tokens). The
+interceptor (:mod:`unwind_services.interceptor`) and the job runner both use :func:`status_for`, so a failed job
+and a failed call report the same code and message.
+"""
+
+from __future__ import annotations
+
+import errno
+
+import grpc
+
+from napari_unwind.errors import InvalidInputError, OutputError, UnwindError
+
+__all__ = [
+    "AuthError",
+    "CancelledError",
+    "DeadlineError",
+    "LimitError",
+    "NotFoundError",
+    "PermissionDeniedError",
+    "ShuttingDownError",
+    "StateError",
+    "status_for",
+    "INTERNAL_MESSAGE",
+]
+
+#: What a client sees for a bug: the traceback stays in the server log.
+INTERNAL_MESSAGE = "internal server error (reference {ref}); the server log holds the details"
+
+
+class NotFoundError(UnwindError, LookupError):
+    """No such volume, segmentation, session or job for this user (another user's objects are not found either)."""
+
+
+class PermissionDeniedError(UnwindError, PermissionError):
+    """A path outside the data root, or a folder the server keeps for itself."""
+
+
+class LimitError(UnwindError):
+    """A configured limit (upload bytes, voxels, concurrent jobs per user) would be exceeded."""
+
+
+class StateError(UnwindError):
+    """The object is not in a state that allows this (e.g. a job that has not finished)."""
+
+
+class CancelledError(UnwindError):
+    """The job was cancelled by its owner."""
+
+
+class DeadlineError(UnwindError, TimeoutError):
+    """The job ran longer than the time it was given."""
+
+
+class ShuttingDownError(UnwindError):
+    """The server is shutting down and accepts no new work."""
+
+
+class AuthError(UnwindError):
+    """No token, an unknown token, or an expired one."""
+
+
+def status_for(exc: BaseException) -> tuple[grpc.StatusCode, str | None]:
+    """The status code of an exception and the message a client may see (None: INTERNAL, hide the message)."""
+    msg = str(exc) or type(exc).__name__
+    table: tuple[tuple[type[BaseException] | tuple, grpc.StatusCode], ...] = (
+        (AuthError, grpc.StatusCode.UNAUTHENTICATED),
+        ((NotFoundError, FileNotFoundError), grpc.StatusCode.NOT_FOUND),
+        ((PermissionDeniedError, PermissionError), grpc.StatusCode.PERMISSION_DENIED),
+        ((LimitError, MemoryError), grpc.StatusCode.RESOURCE_EXHAUSTED),
+        (CancelledError, grpc.StatusCode.CANCELLED),
+        ((DeadlineError, TimeoutError), grpc.StatusCode.DEADLINE_EXCEEDED),
+        (ShuttingDownError, grpc.StatusCode.UNAVAILABLE),
+        (InvalidInputError, grpc.StatusCode.INVALID_ARGUMENT),  # UnknownFormatError and SeriesSelectionError too
+        ((OutputError, StateError, UnwindError), grpc.StatusCode.FAILED_PRECONDITION),
+    )
+    for kinds, code in table:
+        if isinstance(exc, kinds):
+            return code, msg
+    if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+        return grpc.StatusCode.RESOURCE_EXHAUSTED, "the server's disk is full"
+    return grpc.StatusCode.INTERNAL, None

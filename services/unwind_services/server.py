@@ -1,0 +1,162 @@
+"""Build and run the gRPC server: services, health, reflection, the interceptor, TLS and graceful shutdown."""
+
+from __future__ import annotations
+
+import ipaddress
+import logging
+import signal
+import sys
+import threading
+import warnings
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from napari_unwind.errors import InvalidInputError
+
+from .auth import TokenAuth
+from .catalog import Catalog, Limits
+from .interceptor import ServiceInterceptor
+from .jobs import JobManager
+from .paths import DataRoot
+from .servicers import SERVICES
+from .store import Store
+
+__all__ = ["ServerConfig", "UnwindServer"]
+
+log = logging.getLogger("unwind_services")
+
+
+@dataclass
+class ServerConfig:
+    """Everything ``unwind serve`` takes."""
+
+    data_root: Path
+    port: int = 50051
+    listen: str = "127.0.0.1"
+    services: Sequence[str] = ()
+    scheduler: str | None = None
+    tokens: Path | None = None
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
+    limits: Limits = field(default_factory=Limits)
+    workers: int = 2
+    grpc_threads: int = 64
+    drain_seconds: float = 10.0
+
+
+def _is_loopback(host: str) -> bool:
+    if host in ("localhost", "127.0.0.1", "::1", "[::1]"):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def _warm_imports() -> None:
+    import importlib
+
+    for name in ("napari_unwind.segmentation", "napari_unwind.skeleton", "napari_unwind.warp",
+                 "napari_unwind.session"):
+        try:
+            importlib.import_module(name)
+        except Exception:  # noqa: BLE001 - a broken import shows in the first job that needs it
+            log.exception("importing %s failed", name)
+
+
+class UnwindServer:
+    """One process serving the chosen services over one port."""
+
+    def __init__(self, config: ServerConfig):
+        self.config = config
+        names = list(config.services) or list(SERVICES)
+        unknown = [n for n in names if n not in SERVICES]
+        if unknown:
+            raise InvalidInputError(f"unknown service {unknown[0]!r}; choose from {', '.join(SERVICES)}")
+        if "jobs" not in names:
+            names.append("jobs")  # every long operation is a job: the job service comes with any other
+        if (config.tls_cert is None) != (config.tls_key is None):
+            raise InvalidInputError("TLS needs both --tls-cert and --tls-key")
+        if not _is_loopback(config.listen) and config.tokens is None:
+            raise InvalidInputError(f"listening on {config.listen} (beyond this machine) needs --tokens FILE: "
+                                    "without tokens anyone who reaches the port could use the server")
+        self.root = DataRoot(config.data_root)
+        self.store = Store(self.root.database)
+        self.catalog = Catalog(self.store, self.root, config.limits)
+        self.auth = TokenAuth(config.tokens)
+        self.jobs = JobManager(self.catalog, workers=config.workers, scheduler=config.scheduler)
+        size = config.limits.max_message_bytes or 64 * 1024**2
+        self.server = grpc.server(
+            ThreadPoolExecutor(max_workers=config.grpc_threads, thread_name_prefix="unwind-rpc"),
+            interceptors=[ServiceInterceptor(self.auth, self.root)],
+            options=[("grpc.max_receive_message_length", size), ("grpc.max_send_message_length", size),
+                     ("grpc.so_reuseport", 0)],
+            maximum_concurrent_rpcs=config.grpc_threads * 4,
+        )
+        self.health = health.HealthServicer(experimental_non_blocking=True)
+        health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
+        full_names = []
+        for name in names:
+            full, factory, add = SERVICES[name]
+            add(factory(self.catalog, self.jobs), self.server)
+            full_names.append(full)
+        self.service_names = full_names
+        reflection.enable_server_reflection(
+            full_names + [health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME],
+            self.server)
+        address = f"{config.listen}:{config.port}" if ":" not in config.listen else f"[{config.listen}]:{config.port}"
+        if config.tls_cert is not None:
+            creds = grpc.ssl_server_credentials([(Path(config.tls_key).read_bytes(),
+                                                  Path(config.tls_cert).read_bytes())])
+            self.port = self.server.add_secure_port(address, creds)
+        else:
+            self.port = self.server.add_insecure_port(address)
+        if not self.port:
+            raise InvalidInputError(f"cannot listen on {address} (in use, or not an address of this machine)")
+        self.address = f"{config.listen}:{self.port}"
+        self._stopped = threading.Event()
+
+    def start(self) -> None:
+        warnings.filterwarnings("ignore", category=UserWarning, module="napari_unwind.warp")
+        # the core's heavy modules (numba kernels, the tet mesher) load once, now, not in the first job
+        threading.Thread(target=_warm_imports, name="unwind-warm", daemon=True).start()
+        self.jobs.start()
+        self.server.start()
+        for name in ["", *self.service_names]:
+            self.health.set(name, health_pb2.HealthCheckResponse.SERVING)
+        log.info("serving %s on %s (data root %s)", ", ".join(self.service_names), self.address, self.root.root)
+
+    def stop(self, grace: float | None = None) -> None:
+        """Graceful shutdown: NOT_SERVING, no new calls, running jobs drained (up to the grace) or interrupted."""
+        if self._stopped.is_set():
+            return
+        grace = self.config.drain_seconds if grace is None else grace
+        self.health.enter_graceful_shutdown()
+        stopping = self.server.stop(grace)
+        self.jobs.shutdown(drain_seconds=grace)
+        stopping.wait()
+        self.store.close()
+        self._stopped.set()
+
+    def wait(self) -> None:
+        self._stopped.wait()
+
+    def serve_forever(self) -> None:
+        """Start, then stop on SIGTERM or SIGINT."""
+        def on_signal(signum, frame):
+            log.info("signal %s: shutting down (drain %s s)", signum, self.config.drain_seconds)
+            threading.Thread(target=self.stop, daemon=True).start()
+
+        signal.signal(signal.SIGTERM, on_signal)
+        signal.signal(signal.SIGINT, on_signal)
+        self.start()
+        print(f"unwind serve: listening on {self.address}", flush=True)
+        while not self._stopped.wait(timeout=0.5):
+            pass
+        print("unwind serve: stopped", file=sys.stderr, flush=True)

@@ -1,0 +1,298 @@
+"""The five servicers: protobuf in, one core call (or a job), protobuf out."""
+
+from __future__ import annotations
+
+import shutil
+import tarfile
+import tempfile
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from napari_unwind.errors import InvalidInputError
+from napari_unwind.io._atomic import remove_path
+
+from . import convert
+from ._proto.unwind.v1 import common_pb2 as pb
+from ._proto.unwind.v1 import (
+    jobs_pb2,
+    jobs_pb2_grpc,
+    segmentation_pb2,
+    segmentation_pb2_grpc,
+    skeleton_pb2,
+    skeleton_pb2_grpc,
+    volume_pb2,
+    volume_pb2_grpc,
+    warp_pb2,
+    warp_pb2_grpc,
+)
+from .catalog import Catalog
+from .errors import LimitError
+from .interceptor import current_user
+from .jobs import JobManager
+from .paths import check_file_name
+
+__all__ = ["VolumeServicer", "SegmentationServicer", "SkeletonServicer", "WarpServicer", "JobServicer", "SERVICES"]
+
+#: Bytes per message of a download (well under the 4 MiB default limit of clients).
+DOWNLOAD_CHUNK = 2 * 1024 * 1024
+#: Formats whose stored file (or folder) holds everything: a download in the same format sends it as it is.
+_SELF_CONTAINED = (".zarr", ".tif", ".tiff", ".nrrd", ".nii", ".nii.gz")
+
+
+def _limit(value: int, default: int = 100, most: int = 1000) -> int:
+    return min(most, value) if value > 0 else default
+
+
+class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
+    def __init__(self, catalog: Catalog):
+        self.catalog = catalog
+
+    def Upload(self, request_iterator, context):
+        from napari_unwind.io import as_volume, import_volume
+
+        owner, limits, root = current_user(), self.catalog.limits, self.catalog.root
+        first = next(request_iterator, None)
+        if first is None or first.WhichOneof("part") != "header":
+            raise InvalidInputError("an upload starts with a header message (name, shape, dtype, spacing, unit), "
+                                    "then the voxels in chunks")
+        h = first.header
+        name = check_file_name(h.name or "upload", "the volume's name")
+        if len(h.shape) != 3 or any(s < 1 for s in h.shape):
+            raise InvalidInputError(f"shape must be 3 positive sizes (axis0, axis1, axis2), got {list(h.shape)}")
+        dtype = convert.dtype_of(h.dtype)
+        for what, values in (("spacing", h.spacing), ("origin", h.origin)):
+            if len(values) not in (0, 3):
+                raise InvalidInputError(f"{what} must be 3 numbers (axis0, axis1, axis2) or empty, got {list(values)}")
+        limits.check_voxels(h.shape, "the upload")
+        expected = int(np.prod(h.shape)) * dtype.itemsize
+        if limits.max_upload_bytes and expected > limits.max_upload_bytes:
+            raise LimitError(f"the upload would be {expected} bytes, more than this server's limit of "
+                             f"{limits.max_upload_bytes}")
+        vid = f"vol-{uuid.uuid4().hex[:12]}"
+        staging = root.tmp / f"{vid}.raw"
+        dst = root.user_dir(owner) / "volumes" / f"{vid}.zarr"
+        try:
+            received = 0
+            with open(staging, "wb") as f:
+                for msg in request_iterator:
+                    if msg.WhichOneof("part") != "chunk":
+                        raise InvalidInputError("only the first message of an upload is a header; the rest are chunks")
+                    received += len(msg.chunk)
+                    if received > expected:
+                        raise InvalidInputError(f"the chunks hold more bytes than the header's shape {list(h.shape)} "
+                                                f"and dtype {dtype.name} ({expected} bytes)")
+                    f.write(msg.chunk)
+            if received != expected:
+                raise InvalidInputError(f"the header promises {expected} bytes (shape {list(h.shape)}, {dtype.name}) "
+                                        f"but the chunks held {received}")
+            data = np.memmap(staging, dtype=dtype.newbyteorder("<"), mode="r", shape=tuple(h.shape))
+            volume = as_volume(data, spacing=tuple(h.spacing) or None, unit=h.unit or None,
+                               origin=tuple(h.origin) or None)
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            import_volume(volume, dst, labels=h.labels)
+            del data, volume
+        finally:
+            remove_path(staging)
+        row, vol = self.catalog.add_volume(owner, dst, name, "upload", object_id=vid)
+        return convert.volume_info(row, vol)
+
+    def Register(self, request, context):
+        owner = current_user()
+        path = self.catalog.root.resolve_client_path(request.path)
+        if not path.exists():
+            raise FileNotFoundError(f"{request.path} does not exist under the server's data root")
+        name = check_file_name(request.name or path.name, "the volume's name")
+        row, vol = self.catalog.add_volume(owner, path, name, "register")
+        return convert.volume_info(row, vol)
+
+    def List(self, request, context):
+        owner = current_user()
+        out = volume_pb2.ListVolumesResponse()
+        for row in self.catalog.store.list_objects(owner, "volume", _limit(request.limit)):
+            try:
+                _, vol = self.catalog.volume(owner, row.id)
+            except Exception:  # noqa: BLE001 - a registered file removed by an admin: list it without its geometry
+                out.volumes.add(volume_id=row.id, name=row.name, origin_kind=row.meta.get("origin", ""),
+                                created=row.created, job_id=row.job_id)
+                continue
+            out.volumes.append(convert.volume_info(row, vol))
+        return out
+
+    def Info(self, request, context):
+        row, vol = self.catalog.volume(current_user(), request.volume_id)
+        return convert.volume_info(row, vol)
+
+    def Download(self, request, context) -> Iterator[volume_pb2.DownloadResponse]:
+        from napari_unwind.io import write_volume
+
+        row, vol = self.catalog.volume(current_user(), request.volume_id)
+        if not 0 <= request.level < len(vol.levels):
+            raise InvalidInputError(f"level must be 0..{len(vol.levels) - 1} for this volume, got {request.level}")
+        level = vol.levels[request.level]
+        spacing = vol.level_spacings[request.level]
+        fmt = (request.format or "raw").lower()
+        header = volume_pb2.DownloadHeader(name=row.name, shape=list(level.shape), dtype=convert.dtype_enum(vol.dtype),
+                                           spacing=list(spacing), unit=vol.unit or "", origin=list(vol.origin))
+        if fmt == "raw":
+            dtype = vol.dtype.newbyteorder("<")
+            header.format, header.total_bytes = "raw", int(np.prod(level.shape)) * dtype.itemsize
+            header.file_name = f"{row.name.split('.')[0]}.raw"
+            yield volume_pb2.DownloadResponse(header=header)
+            step = max(1, int(level.chunks[0][0]))
+            for i in range(0, level.shape[0], step):
+                block = np.ascontiguousarray(level[i:i + step].compute(), dtype=dtype)
+                mv = memoryview(block).cast("B")
+                for a in range(0, len(mv), DOWNLOAD_CHUNK):
+                    yield volume_pb2.DownloadResponse(chunk=bytes(mv[a:a + DOWNLOAD_CHUNK]))
+            return
+        suffix = fmt if fmt.startswith(".") else "." + fmt
+        stem = row.name.split(".")[0] or "volume"
+        stored = self.catalog.path(row)
+        work = Path(tempfile.mkdtemp(prefix="download-", dir=self.catalog.root.tmp))
+        try:
+            target = work / "out" / f"{stem}{suffix}"
+            target.parent.mkdir()
+            if (request.level == 0 and suffix in _SELF_CONTAINED and stored.name.lower().endswith(suffix)
+                    and not stored.is_symlink()):
+                # the stored file itself (e.g. an export with its straightening map): the exact bytes
+                if stored.is_dir():
+                    shutil.copytree(stored, target)
+                else:
+                    shutil.copyfile(stored, target)
+            else:
+                write_volume(vol.with_data(level, spacing=spacing), target)
+            files = [p for p in target.parent.rglob("*") if p.is_file()]
+            if target.is_file() and len(files) == 1:
+                send, header.tar, header.file_name = target, False, target.name
+            else:
+                send = work / "out.tar"
+                with tarfile.open(send, "w") as tar:
+                    for p in sorted(target.parent.iterdir()):
+                        tar.add(p, arcname=p.name)
+                header.tar, header.file_name = True, target.name
+            header.format = suffix.lstrip(".")
+            header.total_bytes = send.stat().st_size
+            yield volume_pb2.DownloadResponse(header=header)
+            with open(send, "rb") as f:
+                while block := f.read(DOWNLOAD_CHUNK):
+                    yield volume_pb2.DownloadResponse(chunk=block)
+        finally:
+            remove_path(work)
+
+
+class JobServicer(jobs_pb2_grpc.JobServiceServicer):
+    def __init__(self, jobs: JobManager):
+        self.jobs = jobs
+
+    def Submit(self, request, context):
+        return self.jobs.submit(current_user(), request)
+
+    def Resubmit(self, request, context):
+        return self.jobs.resubmit(current_user(), request.job_id)
+
+    def Get(self, request, context):
+        return self.jobs.store.get_job(current_user(), request.job_id)
+
+    def Watch(self, request, context):
+        yield from self.jobs.watch(current_user(), request.job_id, request.after_seq, context.is_active)
+
+    def Cancel(self, request, context):
+        return self.jobs.cancel(current_user(), request.job_id)
+
+    def List(self, request, context):
+        return jobs_pb2.ListJobsResponse(jobs=self.jobs.store.list_jobs(current_user(), request.state,
+                                                                        _limit(request.limit)))
+
+
+class SegmentationServicer(segmentation_pb2_grpc.SegmentationServiceServicer):
+    def __init__(self, jobs: JobManager):
+        self.jobs, self.catalog = jobs, jobs.catalog
+
+    def Segment(self, request, context):
+        return self.jobs.submit(current_user(), jobs_pb2.SubmitRequest(segment=request))
+
+    def Select(self, request, context):
+        convert.points(request.seeds, "seed")  # NaN is refused now, not when the job runs
+        return self.jobs.submit(current_user(), jobs_pb2.SubmitRequest(select=request))
+
+    def _info(self, row, features) -> segmentation_pb2.SegmentationInfo:
+        return segmentation_pb2.SegmentationInfo(
+            segmentation_id=row.id, volume_id=row.meta["volume_id"], features=int(features.k),
+            level=int(features.level), shape=list(features.shape), feature=[convert.feature_msg(s)
+                                                                            for s in features.stats])
+
+    def Info(self, request, context):
+        from napari_unwind.segmentation import load_features
+
+        row = self.catalog.segmentation(current_user(), request.segmentation_id)
+        return self._info(row, load_features(self.catalog.root.absolute(row.meta["features"])))
+
+    def Simplify(self, request, context):
+        from napari_unwind.segmentation import JoinTree, save_features
+
+        owner = current_user()
+        row = self.catalog.segmentation(owner, request.segmentation_id)
+        with self.catalog.lock(row.id):
+            tree = JoinTree.from_npz(self.catalog.root.absolute(row.meta["tree"]))
+            features = tree.simplify(request.features)
+            save_features(features, self.catalog.root.absolute(row.meta["features"]), overwrite=True)
+            meta = dict(row.meta, k=int(features.k))
+            self.catalog.store.update_meta(owner, row.id, meta)
+        return self._info(row, features)
+
+
+class SkeletonServicer(skeleton_pb2_grpc.SkeletonServiceServicer):
+    def __init__(self, jobs: JobManager):
+        self.jobs, self.catalog = jobs, jobs.catalog
+
+    def SuggestEnds(self, request, context):
+        from napari_unwind.skeleton import suggest_endpoints
+
+        owner = current_user()
+        _, mask = self.catalog.volume(owner, request.mask_volume_id)
+        scan = self.catalog.volume(owner, request.volume_id)[1] if request.volume_id else None
+        if scan is not None and tuple(scan.shape) != tuple(mask.shape):
+            raise InvalidInputError(f"the mask has shape {mask.shape} but the scan has {scan.shape}")
+        head, tail = suggest_endpoints(mask.data, spacing=mask.spacing, volume=None if scan is None else scan.data)
+        return skeleton_pb2.Ends(head=convert.point_msg(head), tail=convert.point_msg(tail))
+
+    def EstimateDeformation(self, request, context):
+        convert.endpoints(request.ends, request.HasField("ends"))
+        return self.jobs.submit(current_user(), jobs_pb2.SubmitRequest(estimate_deformation=request))
+
+
+class WarpServicer(warp_pb2_grpc.WarpServiceServicer):
+    def __init__(self, jobs: JobManager):
+        self.jobs, self.catalog = jobs, jobs.catalog
+
+    def Straighten(self, request, context):
+        return self.jobs.submit(current_user(), jobs_pb2.SubmitRequest(straighten=request))
+
+    def Bend(self, request, context):
+        return self.jobs.submit(current_user(), jobs_pb2.SubmitRequest(bend=request))
+
+    def MapPoints(self, request, context):
+        from napari_unwind.warp import map_points
+
+        _, session = self.catalog.session(current_user(), request.session_id)
+        pts = convert.points(request.points, "point")
+        to = "scan" if request.direction == warp_pb2.MAP_DIRECTION_TO_SCAN else "straight"
+        mapped = map_points(pts, session.deformation, to=to, spacing=request.spacing or None, pad=request.pad) \
+            if len(pts) else np.zeros((0, 3))
+        return warp_pb2.MapPointsResponse(points=[pb.Point(axis0=a, axis1=b, axis2=c) for a, b, c in mapped])
+
+
+#: service name (for --service) -> (full proto name, servicer factory taking (catalog, jobs))
+SERVICES = {
+    "volume": ("unwind.v1.VolumeService", lambda c, j: VolumeServicer(c),
+               volume_pb2_grpc.add_VolumeServiceServicer_to_server),
+    "segmentation": ("unwind.v1.SegmentationService", lambda c, j: SegmentationServicer(j),
+                     segmentation_pb2_grpc.add_SegmentationServiceServicer_to_server),
+    "skeleton": ("unwind.v1.SkeletonService", lambda c, j: SkeletonServicer(j),
+                 skeleton_pb2_grpc.add_SkeletonServiceServicer_to_server),
+    "warp": ("unwind.v1.WarpService", lambda c, j: WarpServicer(j), warp_pb2_grpc.add_WarpServiceServicer_to_server),
+    "jobs": ("unwind.v1.JobService", lambda c, j: JobServicer(j), jobs_pb2_grpc.add_JobServiceServicer_to_server),
+}

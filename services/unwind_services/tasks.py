@@ -1,0 +1,285 @@
+"""The job kinds: each is a generator that drives core generators, yields their Progress and returns a JobResult.
+
+Thin glue only: protobuf in, core calls, protobuf out. The pipeline job composes the same core calls, with the
+same defaults, as ``unwind run`` (napari_unwind/cli.py: cmd_run), so the local and the remote pipeline write the
+same voxels.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Generator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from napari_unwind.errors import InvalidInputError
+from napari_unwind.progress import Progress
+
+from . import convert
+from ._proto.unwind.v1 import common_pb2 as pb
+from ._proto.unwind.v1 import jobs_pb2
+from .catalog import Catalog
+from .errors import StateError
+from .paths import check_file_name
+
+__all__ = ["TaskContext", "KINDS", "kind_of", "run_task"]
+
+TaskGen = Generator[Progress, None, pb.JobResult]
+
+
+@dataclass
+class TaskContext:
+    """What a running job may touch: its owner's objects and its own work folder."""
+
+    catalog: Catalog
+    owner: str
+    job_id: str
+    workdir: Path
+    scheduler: str | None = None
+
+    def output(self, name: str, default: str) -> Path:
+        from napari_unwind.io._formats import output_format
+
+        name = check_file_name(name or default, "output_name")
+        output_format(name)  # an unknown suffix fails now, before any work
+        return self.workdir / name
+
+    def register(self, path: Path, name: str) -> str:
+        row, _ = self.catalog.add_volume(self.owner, Path(path), name, "output", self.job_id)
+        return row.id
+
+
+KINDS = {
+    "segment": pb.JOB_KIND_SEGMENT,
+    "select": pb.JOB_KIND_SELECT,
+    "estimate_deformation": pb.JOB_KIND_ESTIMATE_DEFORMATION,
+    "straighten": pb.JOB_KIND_STRAIGHTEN,
+    "bend": pb.JOB_KIND_BEND,
+    "pipeline": pb.JOB_KIND_PIPELINE,
+}
+
+
+def kind_of(spec: jobs_pb2.SubmitRequest) -> str:
+    which = spec.WhichOneof("spec")
+    if which is None:
+        raise InvalidInputError("a job needs a spec: one of " + ", ".join(KINDS))
+    return which
+
+
+def _figures(**values: Any) -> dict[str, str]:
+    out = {}
+    for k, v in values.items():
+        if isinstance(v, float):
+            out[k] = f"{v:.6g}"
+        elif isinstance(v, (list, tuple)):
+            out[k] = " ".join(f"{x:.6g}" if isinstance(x, float) else str(x) for x in v)
+        else:
+            out[k] = str(v)
+    return out
+
+
+def _check_folds(deformation: Any, allow: bool) -> None:
+    folds = deformation.folds()
+    if folds and not allow:
+        where = ", ".join(f"s = {a:.4g}..{b:.4g}" for a, b in folds)
+        raise StateError(f"the deformation folds where the cage is larger than the radius of curvature ({where}); "
+                         "edit the session, or pass allow_folds to export anyway")
+
+
+def _skeleton_kwargs(opt: Any) -> dict[str, Any]:
+    """SkeletonOptions -> estimate_deformation keywords, with the defaults of ``unwind skeleton``."""
+    return dict(estimate_twist=not opt.no_twist, n_levels=opt.levels or 100,
+                smoothing_iterations=opt.smoothing_iterations if opt.has_smoothing_iterations else 50,
+                cage_radius=opt.cage_radius or 10.0, tolerance=opt.tolerance or 1.0,
+                snap_tolerance=opt.snap_tolerance or 5.0)
+
+
+def _export_kwargs(opt: Any) -> dict[str, Any]:
+    if len(opt.chunks) not in (0, 3):
+        raise InvalidInputError(f"chunks must be 3 sizes (axis0, axis1, axis2), got {list(opt.chunks)}")
+    return dict(order=opt.order if opt.has_order else 1, spacing=opt.spacing or None, pad=opt.pad,
+                chunks=tuple(opt.chunks) or None)
+
+
+def _save_session(ctx: TaskContext, session: Any, name: str) -> tuple[str, str]:
+    from napari_unwind.session import save_session
+
+    path = save_session(session, ctx.workdir / name, overwrite=False)
+    row = ctx.catalog.store.add_object(ctx.owner, "session", name, ctx.catalog.root.relative(path), {}, ctx.job_id)
+    return row.id, Path(path).read_text()
+
+
+# ------------------------------------------------------------------------------------------------------------------
+def segment(ctx: TaskContext, req: Any) -> TaskGen:
+    from napari_unwind.segmentation import join_tree_iter, save_features_iter
+
+    vrow, volume = ctx.catalog.volume(ctx.owner, req.volume_id)
+    k = req.features or 5
+    t0 = time.perf_counter()
+    tree = yield from join_tree_iter(volume, level=req.level if req.has_level else None,
+                                     smooth=req.smooth if req.has_smooth else 1.0)
+    yield Progress("simplify", 0, 1, f"{k} features")
+    features = tree.simplify(k)
+    yield Progress("simplify", 1, 1)
+    tree_path = tree.to_npz(ctx.workdir / "tree.npz")
+    features_path = yield from save_features_iter(features, ctx.workdir / "features.zarr")
+    root = ctx.catalog.root
+    row = ctx.catalog.store.add_object(
+        ctx.owner, "segmentation", f"{vrow.name} k={k}", root.relative(ctx.workdir),
+        {"volume_id": vrow.id, "k": k, "level": int(features.level), "tree": root.relative(Path(tree_path)),
+         "features": root.relative(Path(features_path))}, ctx.job_id)
+    return pb.JobResult(segmentation_id=row.id, figures=_figures(
+        features=features.k, level=int(features.level), seconds=time.perf_counter() - t0))
+
+
+def select(ctx: TaskContext, req: Any) -> TaskGen:
+    from napari_unwind.segmentation import load_features, refine_mask_iter, select, selected_ids
+
+    seg = ctx.catalog.segmentation(ctx.owner, req.segmentation_id)
+    _, volume = ctx.catalog.volume(ctx.owner, seg.meta["volume_id"])
+    out = ctx.output(req.output_name, "mask.zarr")
+    seeds = convert.points(req.seeds, "seed")
+    features = load_features(ctx.catalog.root.absolute(seg.meta["features"]))
+    ids = selected_ids(features, seeds=seeds if len(seeds) else None, ids=list(req.ids) or None)
+    working = select(features, ids=ids, fill_holes=req.fill_holes)
+    iso = req.isovalue if req.has_isovalue else min(features.stat(i).threshold for i in ids)
+    written = yield from refine_mask_iter(volume, working, features=features, isovalue=iso, output=out)
+    return pb.JobResult(volume_id=ctx.register(written, out.name), figures=_figures(ids=ids, isovalue=float(iso)))
+
+
+def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:
+    from napari_unwind.session import Session, SourceInfo
+    from napari_unwind.skeleton import estimate_deformation_iter
+
+    mrow, mask = ctx.catalog.volume(ctx.owner, req.mask_volume_id)
+    srow, scan = ctx.catalog.volume(ctx.owner, req.volume_id) if req.volume_id else (mrow, mask)
+    if tuple(mask.shape) != tuple(scan.shape):
+        raise InvalidInputError(f"the mask has shape {mask.shape} but the scan has {scan.shape}; the mask must be at "
+                                "the scan's full resolution")
+    endpoints = convert.endpoints(req.ends, req.HasField("ends"))
+    t0 = time.perf_counter()
+    result = yield from estimate_deformation_iter(
+        mask.data, endpoints, spacing=scan.spacing, origin=scan.origin, unit=scan.unit,
+        volume=None if scan is mask else scan.data, **_skeleton_kwargs(req.options))
+    dt = time.perf_counter() - t0
+    yield Progress("checksum", 0, 1, "describing the source")
+    source = SourceInfo.from_path(ctx.catalog.path(srow), volume=scan)
+    session = Session(source=source, deformation=result.deformation, endpoints=result.endpoints,
+                      notes=f"unwind server job {ctx.job_id}: mask {mrow.name}"
+                            + ("; suggested endpoints" if result.suggested else ""))
+    sid, text = _save_session(ctx, session, "session.unwind.json")
+    yield Progress("checksum", 1, 1)
+    d = result.deformation
+    return pb.JobResult(session_id=sid, session_json=text, warnings=list(result.warnings), figures=_figures(
+        length=float(d.length), keyframes=len(d), seconds=dt, suggested=bool(result.suggested)))
+
+
+def straighten(ctx: TaskContext, req: Any) -> TaskGen:
+    from napari_unwind.warp import export_iter
+
+    _, volume = ctx.catalog.volume(ctx.owner, req.volume_id)
+    _, session = ctx.catalog.session(ctx.owner, req.session_id)
+    out = ctx.output(req.options.output_name, "straight.zarr")
+    if tuple(session.source.shape) != tuple(volume.shape):
+        raise InvalidInputError(f"the session was made on a scan of shape {tuple(session.source.shape)} but the "
+                                f"volume has shape {volume.shape}")
+    _check_folds(session.deformation, req.options.allow_folds)
+    t0 = time.perf_counter()
+    written = yield from export_iter(volume, session.deformation, out, session=session.to_dict(),
+                                     scheduler=ctx.scheduler, **_export_kwargs(req.options))
+    return pb.JobResult(volume_id=ctx.register(written, out.name),
+                        figures=_figures(seconds=time.perf_counter() - t0))
+
+
+def bend(ctx: TaskContext, req: Any) -> TaskGen:
+    from napari_unwind.io import write_volume_iter
+    from napari_unwind.warp import bend
+
+    _, straight = ctx.catalog.volume(ctx.owner, req.volume_id)
+    _, session = ctx.catalog.session(ctx.owner, req.session_id)
+    out = ctx.output(req.output_name, "bent.zarr")
+    d = session.deformation
+    data = bend(straight, d, shape=tuple(session.source.shape), order=req.order if req.has_order else 1)
+    written = yield from write_volume_iter(data, out, spacing=d.spacing, origin=d.origin, unit=session.source.unit)
+    return pb.JobResult(volume_id=ctx.register(written, out.name))
+
+
+def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
+    """``unwind run`` as a job: segment (or a mask), select, refine, skeleton, session, straighten."""
+    from napari_unwind.segmentation import load_features, refine_mask_iter, segment_iter, select, selected_ids
+    from napari_unwind.session import Segmentation, Session, SourceInfo
+    from napari_unwind.skeleton import estimate_deformation_iter
+    from napari_unwind.warp import export_iter
+
+    vrow, volume = ctx.catalog.volume(ctx.owner, req.volume_id)
+    out = ctx.output(req.export.output_name, "straight.zarr")
+    seeds = convert.points(req.select, "select point")
+    ways = sum((len(seeds) > 0, bool(req.mask_volume_id), len(req.ids) > 0))
+    if ways != 1:
+        raise InvalidInputError("say which specimen to straighten with exactly one of: select points (the scan is "
+                                "segmented first), ids of a segmentation, or a mask volume")
+    if req.ids and not req.segmentation_id:
+        raise InvalidInputError("feature ids need the segmentation they refer to (segmentation_id)")
+    export_kw = _export_kwargs(req.export)
+    endpoints = convert.endpoints(req.ends, req.HasField("ends"))
+    figures: dict[str, Any] = {}
+    t_all = time.perf_counter()
+    segmentation = None
+    if req.mask_volume_id:
+        _, mask_vol = ctx.catalog.volume(ctx.owner, req.mask_volume_id)
+        if tuple(mask_vol.shape) != tuple(volume.shape):
+            raise InvalidInputError(f"the mask has shape {mask_vol.shape} but the scan has {volume.shape}")
+        mask = mask_vol.data
+    else:
+        if req.ids:
+            seg = ctx.catalog.segmentation(ctx.owner, req.segmentation_id)
+            if seg.meta["volume_id"] != vrow.id:
+                raise InvalidInputError(f"segmentation {seg.id} was made on another volume than {vrow.id}")
+            features = load_features(ctx.catalog.root.absolute(seg.meta["features"]))
+            k = int(seg.meta["k"])
+            ids = selected_ids(features, ids=list(req.ids))
+        else:
+            k = req.features or 5
+            features = yield from segment_iter(volume, features=k, level=req.level if req.has_level else None)
+            ids = selected_ids(features, seeds=seeds)
+        working = select(features, ids=ids, fill_holes=req.fill_holes)
+        iso = req.isovalue if req.has_isovalue else min(features.stat(i).threshold for i in ids)
+        mask = yield from refine_mask_iter(volume, working, features=features, isovalue=iso)
+        segmentation = Segmentation(k=k, level=features.level, selected=tuple(ids),
+                                    seeds=tuple(tuple(p) for p in seeds.tolist()), isovalue=iso,
+                                    fill_holes=req.fill_holes)
+        figures.update(ids=list(ids), isovalue=float(iso))
+    t0 = time.perf_counter()
+    result = yield from estimate_deformation_iter(mask, endpoints, spacing=volume.spacing, origin=volume.origin,
+                                                  unit=volume.unit, volume=volume.data,
+                                                  **_skeleton_kwargs(req.skeleton))
+    figures["skeleton_seconds"] = time.perf_counter() - t0
+    d = result.deformation
+    yield Progress("checksum", 0, 1, "describing the source")
+    source = SourceInfo.from_path(ctx.catalog.path(vrow), volume=volume)
+    yield Progress("checksum", 1, 1)
+    session = Session(source=source, deformation=d, segmentation=segmentation, endpoints=result.endpoints,
+                      notes=f"unwind run (server job {ctx.job_id})"
+                            + ("; suggested endpoints" if result.suggested else ""))
+    stem = out.name.split(".")[0] or "straight"
+    sid, text = _save_session(ctx, session, f"{stem}.unwind.json")
+    _check_folds(d, req.export.allow_folds)
+    t1 = time.perf_counter()
+    written = yield from export_iter(volume, d, out, session=session.to_dict(), scheduler=ctx.scheduler, **export_kw)
+    figures.update(export_seconds=time.perf_counter() - t1, seconds=time.perf_counter() - t_all,
+                   length=float(d.length), keyframes=len(d), unit=d.unit or "",
+                   head=list(np.round(result.endpoints.head, 3)), tail=list(np.round(result.endpoints.tail, 3)))
+    return pb.JobResult(volume_id=ctx.register(written, out.name), session_id=sid, session_json=text,
+                        warnings=list(result.warnings), figures=_figures(**figures))
+
+
+_TASKS = {"segment": segment, "select": select, "estimate_deformation": estimate_deformation,
+          "straighten": straighten, "bend": bend, "pipeline": pipeline}
+
+
+def run_task(ctx: TaskContext, spec: jobs_pb2.SubmitRequest) -> TaskGen:
+    kind = kind_of(spec)
+    return _TASKS[kind](ctx, getattr(spec, kind))
