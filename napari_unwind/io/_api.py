@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import os
+import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -10,13 +12,51 @@ from typing import Any
 import dask.array as da
 import numpy as np
 
-from ..errors import InvalidInputError
+from ..errors import InvalidInputError, OutputError
 from ..progress import Progress, run
-from ._atomic import atomic_output, check_writable
+from ._atomic import atomic_output, check_writable, final_name
 from ._formats import detect_format, output_format, reader_for, writer_for
 from ._volume import Volume
 
-__all__ = ["open_volume", "write_volume", "write_volume_iter", "import_volume", "import_volume_iter", "as_volume"]
+__all__ = ["open_volume", "write_volume", "write_volume_iter", "import_volume", "import_volume_iter", "as_volume",
+           "disk_full_error"]
+
+_FULL = {errno.ENOSPC: "no space left on device", getattr(errno, "EDQUOT", -1): "disk quota exceeded"}
+
+
+def _size(n: float) -> str:
+    for unit in ("bytes", "KiB", "MiB", "GiB"):
+        if n < 1024:
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"
+
+
+def disk_full_error(exc: BaseException, path: str | os.PathLike,
+                    expected_bytes: int | None = None) -> OutputError | None:
+    """One-line :class:`OutputError` when ``exc`` comes from a full disk or quota (ENOSPC, EDQUOT), else None.
+
+    Libraries re-raise the operating system's error wrapped in their own (pydicom, tifffile's writer thread), so
+    the chain of causes is searched. The message names the final output (never a temporary name), the free space
+    in its folder and, when known, the size of the voxels.
+    """
+    cause: BaseException | None = exc
+    for _ in range(20):
+        if cause is None or (isinstance(cause, OSError) and cause.errno in _FULL):
+            break
+        cause = cause.__cause__ or cause.__context__
+    if not isinstance(cause, OSError) or cause.errno not in _FULL:
+        return None
+    path = Path(path)
+    path = path.with_name(final_name(path))
+    try:
+        free = f"{_size(shutil.disk_usage(path.parent).free)} free in {path.parent}"
+    except OSError:
+        free = f"{path.parent} is full"
+    need = f"; the voxels take {expected_bytes:,} bytes ({_size(expected_bytes)}) uncompressed" \
+        if expected_bytes else ""
+    return OutputError(f"cannot write {path}: {_FULL[cause.errno]} ({free}{need}); "
+                       "free some space or write to another disk")
 
 
 def open_volume(path: str | os.PathLike, *, format: str | None = None, **options: Any) -> Volume:
@@ -46,7 +86,8 @@ def open_volume(path: str | os.PathLike, *, format: str | None = None, **options
     InvalidInputError
         The file is recognised but malformed (truncated, inconsistent slices, several DICOM series...).
     """
-    path = Path(path).expanduser()
+    # absolute before any lazy graph is built: dask.distributed workers run in other folders
+    path = Path(path).expanduser().absolute()
     if not path.exists():
         raise FileNotFoundError(f"{path} does not exist")
     fmt = format or detect_format(path)
@@ -75,28 +116,42 @@ def _default_chunks(shape: tuple[int, ...], dtype: np.dtype) -> tuple[int, ...]:
     return tuple(min(int(s), 128) for s in shape)
 
 
-def _reject_nan(block: np.ndarray, block_info: dict | None = None) -> np.ndarray:
-    if np.isnan(block).any():
-        where = ""
-        if block_info and None in block_info:
-            loc = block_info[None]["array-location"]
-            first = np.argwhere(np.isnan(block))[0]
-            where = " at voxel " + str(tuple(int(lo) + int(f) for (lo, _), f in zip(loc, first, strict=True)))
-        raise InvalidInputError(
-            f"the float data contains NaN{where}; replace it with a number first "
-            "(nan_value=... in Python, --nan-value on the command line)"
-        )
-    return block
+_NONFINITE_FIX = ("replace them with a number first: nan_value=V in Python (write_volume, import_volume), or "
+                  "`unwind convert INPUT OUTPUT --nan-value V` on the command line")
+
+
+def _reject_nonfinite(block: np.ndarray, block_info: dict | None = None) -> np.ndarray:
+    bad = ~np.isfinite(block)
+    if not bad.any():
+        return block
+    first = tuple(int(i) for i in np.argwhere(bad)[0])
+    if block_info and None in block_info:
+        first = tuple(int(lo) + f for (lo, _), f in zip(block_info[None]["array-location"], first, strict=True))
+    value = block[tuple(np.argwhere(bad)[0])]
+    kind = "NaN" if np.isnan(value) else ("+inf" if value > 0 else "-inf")
+    counts = [(int(np.isnan(block).sum()), "NaN"), (int(np.isposinf(block).sum()), "+inf"),
+              (int(np.isneginf(block).sum()), "-inf")]
+    summary = ", ".join(f"{n} {name}" for n, name in counts if n)
+    raise InvalidInputError(
+        f"the float data to write hold {kind} at voxel {first} ({summary} in that chunk of "
+        f"{block.size} voxels); {_NONFINITE_FIX}"
+    )
 
 
 def _checked(volume: Volume, nan_value: float | None) -> Volume:
-    """Reject (or replace) NaN chunk by chunk while the data streams through; a no-op for integers."""
+    """Reject (or replace) NaN and infinities chunk by chunk while the data stream through; a no-op for integers."""
     if not np.issubdtype(volume.dtype, np.floating):
         return volume
     if nan_value is not None:
-        data = da.where(da.isnan(volume.data), volume.dtype.type(nan_value), volume.data)
+        try:
+            fill = volume.dtype.type(nan_value)
+        except (TypeError, ValueError):
+            fill = None
+        if fill is None or not np.isfinite(fill):
+            raise InvalidInputError(f"nan_value must be a finite number that {volume.dtype} holds, got {nan_value!r}")
+        data = da.where(da.isfinite(volume.data), volume.data, fill)
     else:
-        data = volume.data.map_blocks(_reject_nan, dtype=volume.dtype)
+        data = volume.data.map_blocks(_reject_nonfinite, dtype=volume.dtype)
     return volume.with_data(data)
 
 
@@ -123,8 +178,14 @@ def write_volume_iter(
         options.setdefault("pattern", pattern)
     volume = _checked(as_volume(data, spacing=spacing, unit=unit, origin=origin), nan_value)
     target = check_writable(path, overwrite=overwrite)
-    with atomic_output(target, overwrite=overwrite) as tmp:
-        yield from writer(volume, tmp, **options)
+    try:
+        with atomic_output(target, overwrite=overwrite) as tmp:  # removes the temporary output on any error
+            yield from writer(volume, tmp, **options)
+    except OSError as exc:
+        full = disk_full_error(exc, target, volume.nbytes)
+        if full is None:
+            raise
+        raise full from None
     return target
 
 
@@ -163,7 +224,8 @@ def write_volume(
     overwrite : bool
         Replace an existing output (only once the new one is complete). Default False: refuse.
     nan_value : float, optional
-        Replace NaN by this value; by default NaN is an error.
+        Replace NaN and infinities by this value; by default they are an error (naming the first, its sign and
+        voxel).
     progress : callable, optional
         Called with each :class:`~napari_unwind.progress.Progress` record.
     **options
@@ -236,7 +298,7 @@ def import_volume(
     overwrite : bool
         Replace an existing ``dst``.
     nan_value : float, optional
-        Replace NaN by this value (default: NaN is an error).
+        Replace NaN and infinities by this value (default: they are an error).
     spacing, unit : optional
         Override the geometry the source file declares (for formats that do not store it, e.g. BMP stacks).
     labels : bool

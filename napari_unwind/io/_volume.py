@@ -75,6 +75,10 @@ class Volume:
         The multiscale pyramid, finest first (``levels[0] is data``). A single level for non-pyramidal files.
     level_spacings : tuple of tuple of 3 float
         The spacing of each pyramid level.
+    level_origins : tuple of tuple of 3 float
+        The physical position of voxel (0, 0, 0) of each pyramid level (a downsampled level's first voxel is the
+        centre of the block it averages, so its origin differs from level 0's). Default: ``origin`` for every
+        level.
     source : str or None
         Where the volume was read from.
     format : str or None
@@ -89,6 +93,7 @@ class Volume:
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
     levels: tuple[da.Array, ...] = ()
     level_spacings: tuple[tuple[float, float, float], ...] = ()
+    level_origins: tuple[tuple[float, float, float], ...] = ()
     source: str | None = None
     format: str | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
@@ -114,8 +119,15 @@ class Volume:
         if not self.levels:
             object.__setattr__(self, "levels", (data,))
             object.__setattr__(self, "level_spacings", (self.spacing,))
+            object.__setattr__(self, "level_origins", (self.origin,))
         elif len(self.level_spacings) != len(self.levels):
             raise InvalidInputError("a Volume needs one spacing per pyramid level")
+        if not self.level_origins:
+            object.__setattr__(self, "level_origins", (self.origin,) * len(self.levels))
+        elif len(self.level_origins) != len(self.levels):
+            raise InvalidInputError("a Volume needs one origin per pyramid level")
+        object.__setattr__(self, "level_origins",
+                           tuple(tuple(float(o) for o in np.broadcast_to(lo, (3,))) for lo in self.level_origins))
 
     # -- conveniences -------------------------------------------------------------------------------------------
     @property
@@ -142,10 +154,29 @@ class Volume:
                 return i
         return len(self.levels) - 1
 
+    def level(self, index: int) -> Volume:
+        """Pyramid level ``index`` as a single-level Volume with that level's own spacing and origin."""
+        if not 0 <= int(index) < len(self.levels):
+            raise InvalidInputError(f"{self.source or 'the volume'} has pyramid levels 0..{len(self.levels) - 1}, "
+                                    f"got level {index}")
+        i = int(index)
+        return replace(self, data=self.levels[i], spacing=self.level_spacings[i], origin=self.level_origins[i],
+                       levels=(), level_spacings=(), level_origins=())
+
     def with_data(self, data: da.Array, **changes: Any) -> Volume:
-        """A copy holding other voxels of the same shape (levels reset to that one array unless given)."""
+        """A copy holding other voxels (levels reset to that one array unless given).
+
+        When ``data`` is one of this volume's own pyramid levels, its spacing and origin are that level's unless
+        given in ``changes``.
+        """
+        for i, lvl in enumerate(self.levels):
+            if i and data is lvl:
+                changes.setdefault("spacing", self.level_spacings[i])
+                changes.setdefault("origin", self.level_origins[i])
+                break
         changes.setdefault("levels", ())
         changes.setdefault("level_spacings", ())
+        changes.setdefault("level_origins", ())
         return replace(self, data=data, **changes)
 
     def __repr__(self) -> str:

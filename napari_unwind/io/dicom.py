@@ -63,8 +63,9 @@ from pydicom.uid import (
 )
 from pydicom.valuerep import format_number_as_ds
 
-from ..errors import InvalidInputError, SeriesSelectionError
+from ..errors import InvalidInputError, OutputError, SeriesSelectionError
 from ..progress import Progress
+from ._atomic import final_name
 from ._volume import Volume
 
 __all__ = ["read_dicom", "write_dicom", "list_series"]
@@ -770,7 +771,13 @@ def write_dicom(
                 data += b"\x00"
             ds.PixelData = data
             ds["PixelData"].VR = "OB" if stored.itemsize == 1 else "OW"
-            ds.save_as(path / f"IM{k + 1:0{width}d}.dcm", enforce_file_format=True)
+            name = f"IM{k + 1:0{width}d}.dcm"
+            try:
+                ds.save_as(path / name, enforce_file_format=True)
+            except OSError as exc:  # pydicom re-raises it with a traceback in the message: keep the cause
+                cause = exc.__cause__ if isinstance(exc.__cause__, OSError) else exc
+                raise OutputError(f"cannot write {path.with_name(final_name(path)) / name}: "
+                                  f"{cause.strerror or cause}") from cause
         yield Progress("write dicom", z1, n0, f"slices {z0 + 1}-{z1} of {n0}")
     if not exact:
         warnings.warn(

@@ -9,11 +9,18 @@ Writing streams slab by slab along axis0 in one pass: every level is built from 
 written chunk-aligned, none is read back. Peak memory is about two slabs of ``chunks[0]`` planes (the one being
 written and the one read ahead) plus the pyramid's pending planes (1/8 + 1/64 + ... of a slab), never the whole
 volume.
+
+Every chunk is written, also those that hold only the fill value (zarr would skip them), and the ``unwind``
+attributes record it (``all_chunks_written: true``). The reader then treats a chunk file missing on disk as damage
+(an error naming the file) instead of reading zeros; stores without that record are read as zarr reads them. A
+chunk that cannot be decoded is an error naming its file, also inside dask tasks on other threads or machines.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
+import os
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -22,10 +29,12 @@ from typing import Any
 import dask.array as da
 import numpy as np
 import zarr
+from dask.base import tokenize
 from zarr.codecs import BloscCodec
 
 from ..errors import InvalidInputError, UnknownFormatError
 from ..progress import Progress
+from ._atomic import final_name
 from ._volume import Volume
 
 __all__ = ["read_ome_zarr", "write_ome_zarr", "pyramid_shapes", "DEFAULT_CHUNKS", "DEFAULT_MAX_SIDE"]
@@ -48,15 +57,143 @@ def _multiscales(attrs: dict[str, Any]) -> tuple[list[dict], str]:
     return [], ""
 
 
-def _scale_translation(transforms: list[dict], ndim: int) -> tuple[list[float], list[float]]:
-    scale = [1.0] * ndim
-    translation = [0.0] * ndim
+def _affine(transforms: Any, ndim: int, where: str) -> tuple[list[float], list[float]]:
+    """(scale, offset) of a list of NGFF coordinate transformations applied in order: x -> x * scale + offset."""
+    scale, offset = [1.0] * ndim, [0.0] * ndim
     for t in transforms or []:
-        if t.get("type") == "scale":
-            scale = [float(v) for v in t["scale"]]
-        elif t.get("type") == "translation":
-            translation = [float(v) for v in t["translation"]]
-    return scale, translation
+        kind = t.get("type")
+        if kind == "identity":
+            continue
+        if kind not in ("scale", "translation") or kind not in t:
+            raise InvalidInputError(
+                f"{where}: unsupported coordinate transformation {t!r}; napari-unwind reads inline 'scale' and "
+                "'translation' transformations"
+            )
+        values = [float(v) for v in t[kind]]
+        if len(values) != ndim or not all(np.isfinite(values)):
+            raise InvalidInputError(f"{where}: the {kind} {t[kind]!r} needs {ndim} finite numbers")
+        if kind == "scale":
+            scale = [s * v for s, v in zip(scale, values, strict=True)]
+            offset = [o * v for o, v in zip(offset, values, strict=True)]
+        else:
+            offset = [o + v for o, v in zip(offset, values, strict=True)]
+    return scale, offset
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    text = text[0] if text else ""
+    text = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+class _ZarrChunks:
+    """A picklable array-like over one array of a local zarr store, read chunk by chunk by dask.
+
+    A chunk that cannot be decoded is an :class:`~napari_unwind.errors.InvalidInputError` naming its file. When
+    the store records that every chunk was written (``complete``: stores this module writes), a chunk missing on
+    disk is an error too, instead of reading as the fill value. Existence is checked only for chunks whose values
+    all equal the fill value, so intact stores pay nothing but one comparison per voxel.
+    """
+
+    def __init__(self, array: zarr.Array, store: str, *, complete: bool):
+        self.array = array
+        self.store = str(store)
+        self.complete = bool(complete)
+        self.shape = tuple(int(n) for n in array.shape)
+        self.ndim = len(self.shape)
+        self.dtype = np.dtype(array.dtype)
+        self.grid = tuple(int(c) for c in (array.shards or array.chunks))
+        self.fill = array.fill_value
+
+    def chunk_file(self, coords: tuple[int, ...]) -> str:
+        """Path of the file holding chunk (or shard) ``coords``."""
+        key = self.array.metadata.encode_chunk_key(tuple(int(c) for c in coords))
+        return os.path.join(self.store, *[p for p in str(self.array.path).split("/") if p], *key.split("/"))
+
+    def _bounds(self, key: Any) -> list[tuple[int, int, int]] | None:
+        """(start, stop, step) per axis of a key of ints and slices; None for anything else."""
+        if not isinstance(key, tuple):
+            key = (key,)
+        key = key + (slice(None),) * (self.ndim - len(key))
+        out = []
+        for k, n in zip(key, self.shape, strict=True):
+            if isinstance(k, slice):
+                out.append(k.indices(n))
+            elif isinstance(k, int | np.integer):
+                i = int(k) % n if n else 0
+                out.append((i, i + 1, 1))
+            else:
+                return None
+        return out
+
+    def _chunks_of(self, bounds: list[tuple[int, int, int]]) -> list[tuple[int, ...]]:
+        ranges = []
+        for (start, stop, _), g in zip(bounds, self.grid, strict=True):
+            if stop <= start:
+                return []
+            ranges.append(range(start // g, (stop - 1) // g + 1))
+        return list(itertools.product(*ranges))
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        try:
+            block = np.asarray(self.array[key])
+        except Exception as exc:  # noqa: BLE001 - codecs raise RuntimeError, ValueError, zstd errors...
+            raise self._corrupt(key, exc) from None
+        if self.complete:
+            self._check_present(key, block)
+        return block
+
+    def _corrupt(self, key: Any, exc: BaseException) -> InvalidInputError:
+        bounds = self._bounds(key)
+        for coords in self._chunks_of(bounds) if bounds is not None else []:
+            region = tuple(slice(c * g, min(n, (c + 1) * g)) for c, g, n in zip(coords, self.grid, self.shape,
+                                                                                   strict=True))
+            try:
+                self.array[region]
+            except Exception as chunk_exc:  # noqa: BLE001
+                return InvalidInputError(
+                    f"{self.chunk_file(coords)}: chunk {'/'.join(map(str, coords))} is corrupt "
+                    f"({_first_line(chunk_exc)}); re-import the scan"
+                )
+        where = os.path.join(self.store, str(self.array.path))
+        return InvalidInputError(f"{where}: a chunk is corrupt ({_first_line(exc)}); re-import the scan")
+
+    def _check_present(self, key: Any, block: np.ndarray) -> None:
+        fill = self.fill
+        if fill is None:
+            return
+        isfill = np.isnan(block) if isinstance(fill, float | np.floating) and np.isnan(fill) else block == fill
+        if not isfill.any():
+            return
+        bounds = self._bounds(key)
+        if bounds is None:
+            return
+        isfill = isfill.reshape([len(range(*b)) for b in bounds])
+        for coords in self._chunks_of(bounds):
+            part = []
+            for (start, stop, step), c, g in zip(bounds, coords, self.grid, strict=True):
+                lo, hi = max(start, c * g), min(stop, (c + 1) * g)
+                part.append(slice(-(-(lo - start) // step), -(-(hi - start) // step)))
+            if isfill[tuple(part)].all() and not os.path.exists(self.chunk_file(coords)):
+                raise InvalidInputError(
+                    f"{self.chunk_file(coords)}: chunk {'/'.join(map(str, coords))} is missing, but {self.store} "
+                    "records that every chunk was written; the copy is incomplete: copy the store again or "
+                    "re-import the scan"
+                )
+
+
+def _lazy(array: zarr.Array, store: Path, *, complete: bool) -> da.Array:
+    """A dask array over ``array`` (one dask chunk per zarr chunk) whose reads name broken chunk files."""
+    wrapped = _ZarrChunks(array, str(store), complete=complete)
+    try:
+        meta_file = os.path.join(wrapped.store, str(array.path), "zarr.json")
+        stamp = os.stat(meta_file if os.path.exists(meta_file) else wrapped.store).st_mtime_ns
+    except OSError:
+        stamp = 0
+    name = "zarr-" + tokenize(wrapped.store, str(array.path), stamp, complete)
+    return da.from_array(wrapped, chunks=array.chunks, name=name, asarray=False, fancy=False,
+                         meta=np.empty((0,) * wrapped.ndim, dtype=wrapped.dtype))
 
 
 def read_ome_zarr(path: Path, *, level: int | None = None) -> Volume:
@@ -67,39 +204,68 @@ def read_ome_zarr(path: Path, *, level: int | None = None) -> Volume:
     path : Path
         The zarr folder (the multiscales group, or one array).
     level : int, optional
-        Return only this pyramid level as the volume (default: full resolution, all levels kept).
+        Return only this pyramid level and the coarser ones (default: full resolution, all levels kept). The
+        volume's spacing and origin are that level's.
+
+    Raises
+    ------
+    InvalidInputError
+        Broken metadata, a level that cannot be opened, non-spatial axes of length > 1. Reading a chunk that
+        cannot be decoded raises it too, naming the chunk's file; so does a missing chunk of a store that records
+        that every chunk was written (the stores :func:`write_ome_zarr` makes).
     """
+    path = Path(path).expanduser().absolute()
     try:
         node = zarr.open(store=str(path), mode="r")
-    except Exception as exc:  # zarr raises several types for a broken store
-        raise InvalidInputError(f"{path} is not a readable zarr store ({exc}); is the copy complete?") from None
-    if isinstance(node, zarr.Array):
-        data = da.from_zarr(node)
         attrs = dict(node.attrs)
-        spacing = attrs.get("unwind", {}).get("spacing", (1.0, 1.0, 1.0))
-        return Volume(data, spacing=spacing, unit=attrs.get("unwind", {}).get("unit"), source=str(path),
-                      format="ome-zarr", metadata={"attrs": attrs})
-    attrs = dict(node.attrs)
-    multiscales, version = _multiscales(attrs)
-    if not multiscales:
-        arrays = sorted(name for name, _ in node.arrays())
-        hint = f" It holds arrays {arrays}; open one of them as {path}/<name>." if arrays else ""
-        raise UnknownFormatError(f"{path} is a zarr group without OME-Zarr 'multiscales' metadata.{hint}")
-    ms = multiscales[0]
+    except Exception as exc:  # noqa: BLE001 - zarr raises several types for a broken store
+        raise InvalidInputError(f"{path} is not a readable zarr store ({_first_line(exc)}); "
+                                "is the copy complete?") from None
+    unwind_attrs = attrs.get("unwind", {})
+    if not isinstance(unwind_attrs, dict):
+        unwind_attrs = {}
+    complete = unwind_attrs.get("all_chunks_written") is True
+    if isinstance(node, zarr.Array):
+        if level not in (None, 0):
+            raise InvalidInputError(f"{path} is a single zarr array without pyramid levels, got level={level}")
+        return Volume(_lazy(node, path, complete=complete), spacing=unwind_attrs.get("spacing", (1.0, 1.0, 1.0)),
+                      unit=unwind_attrs.get("unit"), source=str(path), format="ome-zarr", metadata={"attrs": attrs})
+    try:
+        multiscales, version = _multiscales(attrs)
+        if not multiscales:
+            arrays = sorted(name for name, _ in node.arrays())
+            hint = f" It holds arrays {arrays}; open one of them as {path}/<name>." if arrays else ""
+            raise UnknownFormatError(f"{path} is a zarr group without OME-Zarr 'multiscales' metadata.{hint}")
+        return _read_multiscales(path, node, multiscales[0], version, level, unwind_attrs, complete)
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        if isinstance(exc, InvalidInputError):
+            raise
+        raise InvalidInputError(
+            f"{path}: malformed OME-Zarr 'multiscales' metadata ({_first_line(exc)}); re-import the scan"
+        ) from None
+
+
+def _read_multiscales(path: Path, node: Any, ms: dict, version: str, level: int | None, unwind_attrs: dict,
+                      complete: bool) -> Volume:
     axes = ms.get("axes", [{"name": a} for a in AXES])
     axis_names = [a["name"] if isinstance(a, dict) else str(a) for a in axes]
     space = [i for i, a in enumerate(axes) if not isinstance(a, dict) or a.get("type", "space") == "space"]
     if len(space) != 3:
         raise InvalidInputError(f"{path} has axes {axis_names}; napari-unwind needs exactly 3 spatial axes")
     unit = next((a.get("unit") for a in axes if isinstance(a, dict) and a.get("type", "space") == "space"), None)
-    global_scale, global_translation = _scale_translation(ms.get("coordinateTransformations", []), len(axes))
-    levels, spacings = [], []
-    origin = (0.0, 0.0, 0.0)
-    for i, ds in enumerate(ms["datasets"]):
-        arr = node[ds["path"]]
+    global_transforms = ms.get("coordinateTransformations", [])
+    levels, spacings, origins = [], [], []
+    for ds in ms["datasets"]:
+        try:
+            arr = node[ds["path"]]
+        except Exception as exc:  # noqa: BLE001 - a missing or broken zarr.json of one level
+            raise InvalidInputError(f"{path}/{ds['path']}: cannot open this pyramid level ({_first_line(exc)}); "
+                                    "is the copy complete?") from None
+        if not isinstance(arr, zarr.Array):
+            raise InvalidInputError(f"{path}/{ds['path']} is not an array")
         if arr.ndim != len(axes):
             raise InvalidInputError(f"{path}/{ds['path']} has {arr.ndim} dimensions but {len(axes)} axes")
-        d = da.from_zarr(arr)
+        d = _lazy(arr, path, complete=complete)
         # drop non-spatial axes of length 1 (t, c); refuse real channels or time points
         index = []
         for ax in range(arr.ndim):
@@ -113,24 +279,24 @@ def read_ome_zarr(path: Path, *, level: int | None = None) -> Volume:
                     "export one channel/time point as its own 3D image first"
                 )
         d = d[tuple(index)]
-        scale, translation = _scale_translation(ds.get("coordinateTransformations", []), len(axes))
-        sp = tuple(scale[a] * global_scale[a] for a in space)
-        if i == 0:
-            origin = tuple(translation[a] + global_translation[a] for a in space)
+        # physical = (index * scale + translation) of the dataset, then the multiscale's own transformations
+        scale, offset = _affine(ds.get("coordinateTransformations", []), len(axes), f"{path}/{ds['path']}")
+        g_scale, g_offset = _affine(global_transforms, len(axes), str(path))
         levels.append(d)
-        spacings.append(sp)
+        spacings.append(tuple(scale[a] * g_scale[a] for a in space))
+        origins.append(tuple(offset[a] * g_scale[a] + g_offset[a] for a in space))
     if level is not None:
         if not 0 <= level < len(levels):
             raise InvalidInputError(f"{path} has pyramid levels 0..{len(levels) - 1}, got level={level}")
-        levels, spacings = levels[level:], spacings[level:]
-    unwind_attrs = attrs.get("unwind", {})
+        levels, spacings, origins = levels[level:], spacings[level:], origins[level:]
     return Volume(
         levels[0],
         spacing=spacings[0],
         unit=unit,
-        origin=origin,
+        origin=origins[0],
         levels=tuple(levels),
         level_spacings=tuple(spacings),
+        level_origins=tuple(origins),
         source=str(path),
         format="ome-zarr",
         metadata={"ngff_version": version, "name": ms.get("name"), "unwind": unwind_attrs},
@@ -325,9 +491,10 @@ def write_ome_zarr(
     arrays = []
     for lvl, shp in enumerate(shapes):
         c = _normalise_chunks(chunk_shape, shp)
+        # every chunk is written, even one that is all fill: a chunk missing later is damage, not zeros
         arrays.append(root.create_array(
             str(lvl), shape=shp, chunks=c, dtype=dtype, compressors=codec, fill_value=0,
-            dimension_names=list(AXES),
+            dimension_names=list(AXES), config={"write_empty_chunks": True},
         ))
 
     # One pass over the source: every level is built from the slabs as they stream by (no level is read back).
@@ -350,9 +517,11 @@ def write_ome_zarr(
             yield Progress("write", i + 1, len(starts), f"planes {z0}-{z0 + depth - 1} of {shape[0]}"
                            if z0 + depth <= shape[0] else f"planes {z0}-{shape[0] - 1} of {shape[0]}")
 
-    root.attrs["ome"] = _ngff_attrs(name or Path(volume.source or path).name, volume.unit, spacings,
-                                    volume.origin, labels)
-    unwind_attrs = {"spacing": list(volume.spacing), "unit": volume.unit, "labels": bool(labels)}
+    root.attrs["ome"] = _ngff_attrs(name or (Path(volume.source).name if volume.source else final_name(path)),
+                                    volume.unit, spacings, volume.origin, labels)
+    # all_chunks_written: every chunk of every level is on disk, so the reader treats a missing one as damage
+    unwind_attrs = {"spacing": list(volume.spacing), "unit": volume.unit, "labels": bool(labels),
+                    "all_chunks_written": True}
     if volume.source:
         unwind_attrs["imported_from"] = {"path": volume.source, "format": volume.format}
     unwind_attrs.update(attributes or {})
