@@ -31,7 +31,7 @@ from .errors import (
     status_for,
 )
 from .store import ACTIVE, FINAL, INTERRUPTED_MESSAGE
-from .tasks import KINDS, TaskContext, kind_of, run_task
+from .tasks import KINDS, TaskContext, kind_of, precheck, run_task
 
 __all__ = ["JobManager"]
 
@@ -102,6 +102,7 @@ class JobManager:
         if self._closing:
             raise ShuttingDownError("the server is shutting down; submit again in a moment")
         kind = kind_of(spec)
+        precheck(spec)
         if spec.timeout_seconds < 0:
             from napari_unwind.errors import InvalidInputError
 

@@ -215,7 +215,6 @@ class SegmentationServicer(segmentation_pb2_grpc.SegmentationServiceServicer):
         return self.jobs.submit(current_user(), jobs_pb2.SubmitRequest(segment=request))
 
     def Select(self, request, context):
-        convert.points(request.seeds, "seed")  # NaN is refused now, not when the job runs
         return self.jobs.submit(current_user(), jobs_pb2.SubmitRequest(select=request))
 
     def _info(self, row, features) -> segmentation_pb2.SegmentationInfo:
@@ -260,7 +259,6 @@ class SkeletonServicer(skeleton_pb2_grpc.SkeletonServiceServicer):
         return skeleton_pb2.Ends(head=convert.point_msg(head), tail=convert.point_msg(tail))
 
     def EstimateDeformation(self, request, context):
-        convert.endpoints(request.ends, request.HasField("ends"))
         return self.jobs.submit(current_user(), jobs_pb2.SubmitRequest(estimate_deformation=request))
 
 

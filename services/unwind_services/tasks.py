@@ -25,7 +25,7 @@ from .catalog import Catalog
 from .errors import StateError
 from .paths import check_file_name
 
-__all__ = ["TaskContext", "KINDS", "kind_of", "run_task"]
+__all__ = ["TaskContext", "KINDS", "kind_of", "precheck", "run_task"]
 
 TaskGen = Generator[Progress, None, pb.JobResult]
 
@@ -274,6 +274,23 @@ def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
                    head=list(np.round(result.endpoints.head, 3)), tail=list(np.round(result.endpoints.tail, 3)))
     return pb.JobResult(volume_id=ctx.register(written, out.name), session_id=sid, session_json=text,
                         warnings=list(result.warnings), figures=_figures(**figures))
+
+
+def precheck(spec: jobs_pb2.SubmitRequest) -> None:
+    """Refuse malformed points (NaN, infinity) when the job is submitted, not minutes later when it runs."""
+    req = getattr(spec, kind_of(spec))
+    for field_name, what in (("seeds", "seed"), ("select", "select point")):
+        if hasattr(req, field_name):
+            convert.points(getattr(req, field_name), what)
+    if hasattr(req, "ends") and req.HasField("ends"):
+        convert.endpoints(req.ends, True)
+    if hasattr(req, "options") and hasattr(req.options, "output_name") and req.options.output_name:
+        check_file_name(req.options.output_name, "output_name")
+    for name in ("output_name",):
+        if getattr(req, name, ""):
+            check_file_name(getattr(req, name), name)
+    if hasattr(req, "export") and req.export.output_name:
+        check_file_name(req.export.output_name, "output_name")
 
 
 _TASKS = {"segment": segment, "select": select, "estimate_deformation": estimate_deformation,

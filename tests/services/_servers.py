@@ -1,0 +1,108 @@
+"""Helpers of the services tests: real servers in separate processes on 127.0.0.1, tokens, raw calls."""
+
+from __future__ import annotations
+
+import os
+import re
+import select
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import grpc
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+class ServerProcess:
+    """``python -m napari_unwind._cli_remote serve`` in a child process; restartable on the same port."""
+
+    def __init__(self, data_root: Path, *args: str, port: int = 0, log: Path | None = None):
+        self.data_root, self.args = Path(data_root), [str(a) for a in args]
+        self.log = log or self.data_root.parent / f"{self.data_root.name}-server.log"
+        self.port = port
+        self.proc: subprocess.Popen | None = None
+        self.start()
+
+    @property
+    def address(self) -> str:
+        return f"127.0.0.1:{self.port}"
+
+    def start(self, timeout: float = 90.0) -> None:
+        cmd = [sys.executable, "-m", "napari_unwind._cli_remote", "serve", "--data-root", str(self.data_root),
+               "--port", str(self.port), *self.args]
+        logf = open(self.log, "a")
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=logf, text=True, cwd=ROOT,
+                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        logf.close()
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            ready, _, _ = select.select([self.proc.stdout], [], [], 0.5)
+            if ready:
+                line = self.proc.stdout.readline()
+                m = re.search(r"listening on [^:\s]+:(\d+)", line)
+                if m:
+                    self.port = int(m.group(1))
+                    return
+            if self.proc.poll() is not None:
+                break
+        raise RuntimeError(f"the server did not start: {self.log.read_text()[-3000:]}")
+
+    def kill(self) -> None:
+        """kill -9: no shutdown code runs."""
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(timeout=30)
+
+    def terminate(self, timeout: float = 60.0) -> int:
+        self.proc.send_signal(signal.SIGTERM)
+        return self.proc.wait(timeout=timeout)
+
+    def restart(self) -> None:
+        if self.proc.poll() is None:
+            self.terminate()
+        self.start()
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def healthy(address: str, timeout: float = 5.0) -> bool:
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    with grpc.insecure_channel(address) as ch:
+        r = health_pb2_grpc.HealthStub(ch).Check(health_pb2.HealthCheckRequest(), timeout=timeout)
+        return r.status == health_pb2.HealthCheckResponse.SERVING
+
+
+def raw_unary(address: str, method: str, payload: bytes, metadata=(), timeout: float = 10.0) -> bytes:
+    """Call ``method`` with bytes that need not parse (identity serializers)."""
+    with grpc.insecure_channel(address) as ch:
+        call = ch.unary_unary(method, request_serializer=lambda b: b, response_deserializer=lambda b: b)
+        return call(payload, metadata=metadata, timeout=timeout)
+
+
+def status_of(fn, *args, **kwargs) -> grpc.StatusCode | None:
+    """The status code a raw gRPC call ends with (None when it succeeds)."""
+    try:
+        fn(*args, **kwargs)
+    except grpc.RpcError as exc:
+        return exc.code()
+    return None
+
+
+def wait_for(predicate, timeout: float = 60.0, interval: float = 0.05):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise TimeoutError("condition not met in time")
