@@ -102,7 +102,7 @@ class JobManager:
         if self._closing:
             raise ShuttingDownError("the server is shutting down; submit again in a moment")
         kind = kind_of(spec)
-        precheck(spec)
+        precheck(self.catalog, owner, spec)
         if spec.timeout_seconds < 0:
             from napari_unwind.errors import InvalidInputError
 

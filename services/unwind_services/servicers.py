@@ -275,8 +275,8 @@ class WarpServicer(warp_pb2_grpc.WarpServiceServicer):
     def MapPoints(self, request, context):
         from napari_unwind.warp import map_points
 
-        _, session = self.catalog.session(current_user(), request.session_id)
         pts = convert.points(request.points, "point")
+        _, session = self.catalog.session(current_user(), request.session_id)
         to = "scan" if request.direction == warp_pb2.MAP_DIRECTION_TO_SCAN else "straight"
         mapped = map_points(pts, session.deformation, to=to, spacing=request.spacing or None, pad=request.pad) \
             if len(pts) else np.zeros((0, 3))

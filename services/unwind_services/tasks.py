@@ -276,9 +276,19 @@ def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
                         warnings=list(result.warnings), figures=_figures(**figures))
 
 
-def precheck(spec: jobs_pb2.SubmitRequest) -> None:
-    """Refuse malformed points (NaN, infinity) when the job is submitted, not minutes later when it runs."""
-    req = getattr(spec, kind_of(spec))
+_REFS = (("volume_id", "volume"), ("mask_volume_id", "volume"), ("segmentation_id", "segmentation"),
+         ("session_id", "session"))
+_REQUIRED = {"segment": ("volume_id",), "select": ("segmentation_id",), "estimate_deformation": ("mask_volume_id",),
+             "straighten": ("volume_id", "session_id"), "bend": ("volume_id", "session_id"),
+             "pipeline": ("volume_id",)}
+
+
+def precheck(catalog: Catalog, owner: str, spec: jobs_pb2.SubmitRequest) -> None:
+    """Refuse malformed points (NaN, infinity) and ids the owner does not have when the job is submitted, not
+    minutes later when it runs."""
+    which = kind_of(spec)
+    req = getattr(spec, which)
+    required = _REQUIRED[which]
     for field_name, what in (("seeds", "seed"), ("select", "select point")):
         if hasattr(req, field_name):
             convert.points(getattr(req, field_name), what)
@@ -286,11 +296,13 @@ def precheck(spec: jobs_pb2.SubmitRequest) -> None:
         convert.endpoints(req.ends, True)
     if hasattr(req, "options") and hasattr(req.options, "output_name") and req.options.output_name:
         check_file_name(req.options.output_name, "output_name")
-    for name in ("output_name",):
-        if getattr(req, name, ""):
-            check_file_name(getattr(req, name), name)
+    if getattr(req, "output_name", ""):
+        check_file_name(req.output_name, "output_name")
     if hasattr(req, "export") and req.export.output_name:
         check_file_name(req.export.output_name, "output_name")
+    for field_name, kind in _REFS:
+        if hasattr(req, field_name) and (getattr(req, field_name) or field_name in required):
+            catalog.store.get_object(owner, getattr(req, field_name), kind)
 
 
 _TASKS = {"segment": segment, "select": select, "estimate_deformation": estimate_deformation,
