@@ -10,6 +10,7 @@ import dask.array as da
 import numpy as np
 from dask.base import tokenize
 
+from ..errors import InvalidInputError
 from ._volume import Volume
 
 __all__ = ["SLAB_BYTES", "RawFileArray", "iter_slabs", "slab_depth", "write_slab_depth"]
@@ -52,7 +53,18 @@ class RawFileArray:
         self.offset = int(offset)
 
     def __getitem__(self, key: Any) -> np.ndarray:
-        mm = np.memmap(self.path, dtype=self.stored_dtype, mode="r", offset=self.offset, shape=self.shape)
+        try:
+            mm = np.memmap(self.path, dtype=self.stored_dtype, mode="r", offset=self.offset, shape=self.shape)
+        except (OSError, ValueError) as exc:  # gone, or cut short since it was opened
+            need = self.offset + int(np.prod(self.shape)) * self.stored_dtype.itemsize
+            try:
+                have = f"{os.path.getsize(self.path)} bytes"
+            except OSError:
+                have = "no file"
+            raise InvalidInputError(
+                f"{self.path}: cannot read its voxels ({getattr(exc, 'strerror', None) or exc}; {need} bytes needed, "
+                f"{have} found); the file was moved, truncated or replaced since it was opened"
+            ) from None
         try:
             return np.array(mm[key], dtype=self.dtype)  # copy out (and swap bytes when needed)
         finally:

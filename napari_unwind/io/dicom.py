@@ -157,14 +157,21 @@ def _read_header(path: Path) -> Dataset | None:
                 why = "; ".join(str(w.message) for w in caught[:2]) or "Rows or SeriesInstanceUID missing"
                 raise _Unreadable(f"{path.name} (an incomplete image header: {why})")
         return ds
-    except InvalidDicomError:
-        if path.suffix.lower() not in (".dcm", ".dicom", ".ima", ""):
+    except InvalidDicomError as exc:
+        named = path.suffix.lower() in (".dcm", ".dicom", ".ima")
+        if not named and path.suffix:
             return None
         try:  # DICOM without the 128-byte preamble (old exports)
             ds = pydicom.dcmread(path, stop_before_pixels=True, specific_tags=_HEADER_TAGS, force=True)
-        except Exception:
+        except Exception as forced:  # noqa: BLE001 - pydicom raises many types for garbage
+            if named:  # named as DICOM but unreadable: damaged, not some other file
+                raise _Unreadable(f"{path.name} ({type(forced).__name__}: {forced})") from None
             return None
-        return ds if "SeriesInstanceUID" in ds and "Rows" in ds else None
+        if "SeriesInstanceUID" in ds and "Rows" in ds:
+            return ds
+        if named:
+            raise _Unreadable(f"{path.name} ({exc})") from None
+        return None
     except _Unreadable:
         raise
     except Exception as exc:  # truncated or corrupt file: pydicom raises many types
@@ -244,8 +251,13 @@ def _images_of(path: Path, ds: Dataset) -> list[_Image]:
     return images
 
 
-def _scan_folder(folder: Path) -> dict[str, list[_Image]]:
-    """Images of every series in ``folder`` (not recursive), keyed by SeriesInstanceUID."""
+def _scan_folder(folder: Path, *, strict: bool = True) -> dict[str, list[_Image]]:
+    """Images of every series in ``folder`` (not recursive), keyed by SeriesInstanceUID.
+
+    A file marked or named as DICOM that cannot be read may be a slice of the series (damaged or cut short):
+    reading without it would give a volume with a slice missing, so it is an error (``strict``), or a warning
+    when only listing the series.
+    """
     files = sorted(p for p in folder.iterdir()
                    if p.is_file() and not p.name.startswith(".") and p.name.upper() != "DICOMDIR")
     by_uid: dict[str, list[_Image]] = {}
@@ -262,8 +274,12 @@ def _scan_folder(folder: Path) -> dict[str, list[_Image]]:
             by_uid.setdefault(image.uid, []).append(image)
     if unreadable:
         shown = "; ".join(unreadable[:5]) + (f"; and {len(unreadable) - 5} more" if len(unreadable) > 5 else "")
-        warnings.warn(f"{len(unreadable)} DICOM file(s) in {folder} could not be read and are left out: {shown}",
-                      stacklevel=3)
+        shown = " ".join(shown.split())  # one line
+        if strict:
+            raise InvalidInputError(
+                f"{len(unreadable)} DICOM file(s) in {folder} cannot be read: {shown}; a damaged slice would leave "
+                "a gap in the volume: copy the files again, or move them out of the folder to read the rest")
+        warnings.warn(f"{len(unreadable)} DICOM file(s) in {folder} could not be read: {shown}", stacklevel=3)
     return by_uid
 
 
@@ -291,7 +307,7 @@ def list_series(path: str | os.PathLike) -> list[dict[str, Any]]:
     """
     path = Path(path)
     folder = path if path.is_dir() else path.parent
-    by_uid = _scan_folder(folder)
+    by_uid = _scan_folder(folder, strict=False)
     out = []
     for i, uid in enumerate(_ordered_series(by_uid)):
         first = by_uid[uid][0]

@@ -12,9 +12,11 @@ Reading
 -------
 Lazy: chunks are read on demand through nibabel's array proxy (slabs of whole planes along axis0, i.e. along k, the
 file's slowest axis). ``.nii`` files are memory mapped; a ``.nii.gz`` stream must be decompressed from its start
-for every chunk read (unless ``indexed_gzip`` is installed), so its chunks are made large (512 MiB): typical
-gzipped volumes are a single chunk. ``scl_slope``/``scl_inter`` are applied; the integer type is kept when they
-are 1 and 0, or when both are integers and the scaled range fits an integer type.
+for every chunk read, so its chunks are made large (512 MiB): typical gzipped volumes are a single chunk. The chunk
+holding the last plane reads on to the end of the stream, where gzip checks its CRC: a damaged ``.nii.gz`` is an
+error, never other values. A ``.nii`` shorter than its header announces is refused when opened.
+``scl_slope``/``scl_inter`` are applied; the integer type is kept when they are 1 and 0, or when both are integers
+and the scaled range fits an integer type.
 
 Writing
 -------
@@ -26,8 +28,11 @@ millimetres and nanometres as micrometres, with the spacing converted (same phys
 
 from __future__ import annotations
 
+import contextlib
 import gzip
 import os
+import threading
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -36,6 +41,8 @@ import dask.array as da
 import nibabel as nib
 import numpy as np
 from dask.base import tokenize
+from nibabel.imageglobals import logger as _nibabel_logger
+from nibabel.volumeutils import apply_read_scaling
 
 from ..errors import InvalidInputError
 from ..progress import Progress
@@ -46,6 +53,7 @@ from ._volume import SUPPORTED_DTYPES, Volume, normalise_unit
 __all__ = ["read_nifti", "write_nifti"]
 
 _CHUNK_BYTES = 64 * 2**20
+_QUIET_LOCK = threading.Lock()
 _GZ_CHUNK_BYTES = 512 * 2**20
 # NGFF unit -> (NIfTI xyz unit, factor applied to lengths)
 _WRITE_UNITS = {
@@ -73,23 +81,95 @@ def _scaled_dtype(raw: np.dtype, slope: float, inter: float) -> np.dtype:
     return np.dtype("f8") if raw.itemsize >= 4 and raw.kind != "f" or raw == np.dtype("f8") else np.dtype("f4")
 
 
+@contextlib.contextmanager
+def _quiet_nibabel() -> Iterator[None]:
+    with _QUIET_LOCK:
+        disabled = _nibabel_logger.disabled
+        _nibabel_logger.disabled = True
+        try:
+            yield
+        finally:
+            _nibabel_logger.disabled = disabled
+
+
+def _as_type(block: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    if dtype.kind in "iu" and block.dtype.kind == "f":
+        block = np.rint(block)
+    return block.astype(dtype, copy=False)
+
+
+def _damaged(path: Any, exc: BaseException) -> InvalidInputError:
+    text = (str(exc).strip().splitlines() or [""])[0][:200]
+    return InvalidInputError(f"{path}: cannot read its voxels ({type(exc).__name__}: {text}); the file is truncated "
+                             "or damaged (or was changed since it was opened): copy it again")
+
+
 class _ScaledProxy:
     """nibabel's ArrayProxy, sliced in file order (i, j, k), returning scaled voxels of one fixed type."""
 
-    def __init__(self, proxy: Any, shape: tuple[int, int, int], extra: int, dtype: np.dtype):
+    def __init__(self, proxy: Any, shape: tuple[int, int, int], extra: int, dtype: np.dtype, path: str = ""):
         self.proxy = proxy
         self.shape = shape
         self.ndim = 3
         self.dtype = np.dtype(dtype)
         self.extra = extra  # trailing length-1 axes of the file (t, u...) to index with 0
+        self.path = path
 
     def __getitem__(self, key: Any) -> np.ndarray:
         if not isinstance(key, tuple):
             key = (key,)
-        block = np.asarray(self.proxy[key + (0,) * self.extra])
-        if self.dtype.kind in "iu" and block.dtype.kind == "f":
-            block = np.rint(block)
-        return block.astype(self.dtype, copy=False)
+        try:
+            block = np.asarray(self.proxy[key + (0,) * self.extra])
+        except (OSError, EOFError, ValueError, zlib.error) as exc:
+            raise _damaged(self.path, exc) from None
+        return _as_type(block, self.dtype)
+
+
+class _GzipPlanes:
+    """Voxels of a gzipped NIfTI in array order (k, j, i), decompressed plane range by plane range.
+
+    gzip streams cannot be read at random: each access decompresses from the start up to its last plane. The
+    access that reaches the last plane reads on to the end of the stream, where gzip checks its CRC and length, so
+    flipped or missing bytes are an error, never other voxel values.
+    """
+
+    def __init__(self, path: str, offset: int, file_dtype: np.dtype, shape: tuple[int, int, int], slope: float,
+                 inter: float, dtype: np.dtype):
+        self.path = str(path)
+        self.offset = int(offset)
+        self.file_dtype = np.dtype(file_dtype)
+        self.shape = tuple(int(n) for n in shape)
+        self.ndim = 3
+        self.slope, self.inter = float(slope), float(inter)
+        self.dtype = np.dtype(dtype)
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        if not isinstance(key, tuple):
+            key = (key,)
+        key = key + (slice(None),) * (3 - len(key))
+        k = key[0]
+        single = isinstance(k, int | np.integer)
+        k0, k1, step = (int(k) % self.shape[0], int(k) % self.shape[0] + 1, 1) if single else k.indices(self.shape[0])
+        k1 = max(k0, k1)
+        plane = self.shape[1] * self.shape[2] * self.file_dtype.itemsize
+        want = (k1 - k0) * plane
+        try:
+            with gzip.open(self.path, "rb") as fh:
+                fh.seek(self.offset + k0 * plane)
+                buf = fh.read(want)
+                if len(buf) < want:
+                    raise EOFError(f"the stream ends {want - len(buf)} bytes early")
+                if k1 == self.shape[0]:
+                    while fh.read(2**24):  # on to the end: gzip checks the CRC and length of the whole stream
+                        pass
+        except (OSError, EOFError, ValueError, zlib.error) as exc:
+            raise _damaged(self.path, exc) from None
+        raw = np.frombuffer(buf, dtype=self.file_dtype).reshape((k1 - k0,) + self.shape[1:])[::step]
+        if self.slope != 1 or self.inter != 0:
+            raw = apply_read_scaling(raw, self.slope, self.inter)
+        out = _as_type(raw, self.dtype)
+        out = out[(slice(None),) + tuple(key[1:])]
+        return out[0] if single else out
 
 
 def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
@@ -114,9 +194,10 @@ def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
     InvalidInputError
         Not a NIfTI file, not 3D, or an unsupported voxel type (RGB, complex, 64-bit integers).
     """
-    path = Path(path)
+    path = Path(path).expanduser().absolute()
     try:
-        img = nib.load(str(path))
+        with _quiet_nibabel():  # nibabel logs what it repairs in a broken header: our error says enough
+            img = nib.load(str(path))
     except Exception as exc:  # nibabel raises ImageFileError, OSError, EOFError... for broken files
         raise InvalidInputError(f"{path} is not a readable NIfTI file ({exc}); is the copy complete?") from None
     if not isinstance(img, nib.Nifti1Image | nib.Nifti2Image):
@@ -143,6 +224,13 @@ def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
         )
 
     gz = path.name.lower().endswith(".gz")
+    offset = int(getattr(proxy, "offset", 0))
+    if not gz:
+        need = offset + int(np.prod(full_shape, dtype=np.int64)) * raw.itemsize
+        have = os.path.getsize(path)
+        if have < need:
+            raise InvalidInputError(f"{path} is truncated: its voxels end at byte {need} but the file has {have} "
+                                    "bytes; the copy is incomplete: copy it again")
     if chunks is None:
         plane = shape[0] * shape[1] * dtype.itemsize
         depth = max(1, min(shape[2], (_GZ_CHUNK_BYTES if gz else _CHUNK_BYTES) // max(plane, 1)))
@@ -152,9 +240,16 @@ def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
         file_chunks = c[::-1]
     st = os.stat(path)
     name = "nifti-" + tokenize(str(path), st.st_mtime_ns, st.st_size, str(dtype))
-    wrapped = _ScaledProxy(proxy, shape, len(full_shape) - 3, dtype)
-    data = da.from_array(wrapped, chunks=file_chunks, name=name, meta=np.empty((0, 0, 0), dtype=dtype),
-                         asarray=False).transpose(2, 1, 0)
+    if gz and getattr(proxy, "order", "F") == "F":
+        # our own plane reader: nibabel stops reading before the gzip trailer, so damage would go unnoticed
+        file_dtype = np.dtype(img.get_data_dtype())
+        planes = _GzipPlanes(str(path), offset, file_dtype, shape[::-1], slope, inter, dtype)
+        data = da.from_array(planes, chunks=file_chunks[::-1], name=name, meta=np.empty((0, 0, 0), dtype=dtype),
+                             asarray=False)
+    else:
+        wrapped = _ScaledProxy(proxy, shape, len(full_shape) - 3, dtype, str(path))
+        data = da.from_array(wrapped, chunks=file_chunks, name=name, meta=np.empty((0, 0, 0), dtype=dtype),
+                             asarray=False).transpose(2, 1, 0)
 
     zooms = [float(z) for z in hdr.get_zooms()[:3]]
     zooms = [z if np.isfinite(z) and z > 0 else 1.0 for z in zooms]

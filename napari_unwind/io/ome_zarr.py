@@ -2,8 +2,9 @@
 
 A scan is stored as a multiscale pyramid: level 0 at full resolution, each next level halved along every axis
 (box average for intensities, nearest for labels) until every side is at most ``max_side`` (256). Every level
-is chunked (128^3 by default) and zstd-compressed, and the ``ome`` attributes record axes, units and the scale
-of each level, so napari, Fiji (MoBIE/n5-viewer) and ome-zarr-py read it with the right geometry.
+is chunked (128^3 by default), zstd-compressed and checksummed (the zarr v3 core codec crc32c), and the ``ome``
+attributes record axes, units and the scale of each level, so napari, Fiji (MoBIE/n5-viewer) and ome-zarr-py read
+it with the right geometry.
 
 Writing streams slab by slab along axis0 in one pass: every level is built from the slabs as they go by and
 written chunk-aligned, none is read back. Peak memory is about two slabs of ``chunks[0]`` planes (the one being
@@ -30,7 +31,7 @@ import dask.array as da
 import numpy as np
 import zarr
 from dask.base import tokenize
-from zarr.codecs import BloscCodec
+from zarr.codecs import BloscCodec, Crc32cCodec
 
 from ..errors import InvalidInputError, UnknownFormatError
 from ..progress import Progress
@@ -487,13 +488,14 @@ def write_ome_zarr(
 
     root = zarr.open_group(store=str(path), mode="w", zarr_format=3)
     shuffle = "bitshuffle" if dtype.itemsize == 1 else "shuffle"  # byte shuffle is faster for 16-bit CT here
-    codec = BloscCodec(cname="zstd", clevel=int(compression_level), shuffle=shuffle)
+    # crc32c after compression: a chunk cut short or with flipped bytes is an error, never other values
+    codecs = [BloscCodec(cname="zstd", clevel=int(compression_level), shuffle=shuffle), Crc32cCodec()]
     arrays = []
     for lvl, shp in enumerate(shapes):
         c = _normalise_chunks(chunk_shape, shp)
         # every chunk is written, even one that is all fill: a chunk missing later is damage, not zeros
         arrays.append(root.create_array(
-            str(lvl), shape=shp, chunks=c, dtype=dtype, compressors=codec, fill_value=0,
+            str(lvl), shape=shp, chunks=c, dtype=dtype, compressors=codecs, fill_value=0,
             dimension_names=list(AXES), config={"write_empty_chunks": True},
         ))
 

@@ -22,9 +22,12 @@ calibration; other voxel types, and volumes over 4 GB, become a plain (Big)TIFF 
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import os
 import queue
+import re
 import struct
 import threading
 import warnings
@@ -201,6 +204,80 @@ def tiff_geometry(tif: tifffile.TiffFile, series: int = 0, *, path: Any = "") ->
 
 
 # ------------------------------------------------------------------------------------------------------------------
+# damaged files
+# ------------------------------------------------------------------------------------------------------------------
+_LOG_LOCK = threading.Lock()
+_BAD_OFFSET = re.compile(r"invalid (?:page|IFD) offset (\d+)", re.IGNORECASE)
+
+
+class _Collect(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+@contextlib.contextmanager
+def _tifffile_log() -> Iterator[list[str]]:
+    """Collect what tifffile logs while a file is opened (damage it works around), instead of printing it."""
+    logger = logging.getLogger("tifffile")
+    handler = _Collect()
+    with _LOG_LOCK:
+        propagate = logger.propagate
+        logger.addHandler(handler)
+        logger.propagate = False
+        try:
+            yield handler.messages
+        finally:
+            logger.removeHandler(handler)
+            logger.propagate = propagate
+
+
+def _check_complete(tif: tifffile.TiffFile, s: Any, path: Path, messages: list[str]) -> None:
+    """Refuse a file cut short (or a damaged page list) instead of reading what is left as something else.
+
+    Evidence: voxels that would lie past the end of the file; a page list pointing past the end (tifffile then
+    silently stops, and an ImageJ stack looks like one 2D image); fewer planes than the ImageJ or tifffile
+    metadata announce.
+    """
+    size = os.path.getsize(path)
+    what = None
+    if s.dataoffset is not None:
+        end = int(s.dataoffset) + int(s.nbytes)
+        if end > size:
+            what = f"its voxels end at byte {end}"
+    else:
+        for page in s.pages:
+            if page is None or not getattr(page, "dataoffsets", None):
+                continue
+            end = max(int(o) + int(c) for o, c in zip(page.dataoffsets, page.databytecounts, strict=True))
+            if end > size:
+                what = f"page {page.index} ends at byte {end}"
+                break
+    if what is None:
+        cut = [int(m.group(1)) for m in map(_BAD_OFFSET.search, messages) if m]
+        if any(offset >= size for offset in cut):
+            what = f"its list of pages points to byte {max(cut)}"
+    if what is not None:
+        raise InvalidInputError(f"{path} is truncated: {what} but the file has {size} bytes; the copy is "
+                                "incomplete: copy it again")
+    planes = int(np.prod([n for a, n in zip(s.axes, s.shape, strict=True) if a not in "YXS"], dtype=np.int64))
+    found, announced = planes, None
+    if tif.is_imagej and isinstance((tif.imagej_metadata or {}).get("images"), int):
+        announced, where, what = tif.imagej_metadata["images"], "the ImageJ metadata announce", "planes"
+    elif tif.is_shaped and tif.shaped_metadata and isinstance(tif.shaped_metadata[0], dict):
+        shaped = tif.shaped_metadata[0].get("shape")
+        if isinstance(shaped, list | tuple) and all(isinstance(n, int) for n in shaped):
+            announced, where, what = int(np.prod(shaped, dtype=np.int64)), "the tifffile metadata announce", "values"
+            found = int(np.prod(s.shape, dtype=np.int64))
+    if announced is not None and announced > found and len(tif.series) == 1:
+        raise InvalidInputError(f"{path} is truncated or damaged: {where} {announced} {what} but only {found} "
+                                "were found; copy the file again")
+
+
+# ------------------------------------------------------------------------------------------------------------------
 # lazy page access
 # ------------------------------------------------------------------------------------------------------------------
 def _expand_key(key: Any, ndim: int) -> tuple:
@@ -228,6 +305,16 @@ class _TiffPlanes:
         self.ndim = 3
 
     def __getitem__(self, key: Any) -> np.ndarray:
+        try:
+            return self._read(key)
+        except InvalidInputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - codecs raise their own types (DeflateError, ...) for damaged pages
+            text = (str(exc).strip().splitlines() or [""])[0][:200]
+            raise InvalidInputError(f"{self.path}: cannot decode its pages ({type(exc).__name__}: {text}); the file "
+                                    "is damaged or was changed since it was opened: copy it again") from None
+
+    def _read(self, key: Any) -> np.ndarray:
         key = _expand_key(key, 3)
         with tifffile.TiffFile(self.path) as tif:
             if self.pages is None:
@@ -278,18 +365,23 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
     InvalidInputError
         Not a TIFF, a 2D image without numbered siblings, colour or multi-channel data, 4D data.
     """
-    path = Path(path)
-    try:
-        tif = tifffile.TiffFile(path)
-    except (tifffile.TiffFileError, ValueError, struct.error) as exc:
-        raise InvalidInputError(f"{path} is not a readable TIFF file ({exc}); is the copy complete?") from None
+    path = Path(path).expanduser().absolute()
+    with _tifffile_log() as messages:
+        try:
+            tif = tifffile.TiffFile(path)
+            series_list = tif.series
+        except (tifffile.TiffFileError, ValueError, struct.error, IndexError, KeyError, OverflowError) as exc:
+            if isinstance(exc, InvalidInputError):
+                raise
+            raise InvalidInputError(f"{path} is not a readable TIFF file ({exc}); is the copy complete?") from None
     with tif:
-        if not tif.series:
+        if not series_list:
             raise InvalidInputError(f"{path} holds no image")
-        if not 0 <= series < len(tif.series):
-            raise InvalidInputError(f"{path} holds image series 0..{len(tif.series) - 1}, got series={series}")
-        s = tif.series[series]
+        if not 0 <= series < len(series_list):
+            raise InvalidInputError(f"{path} holds image series 0..{len(series_list) - 1}, got series={series}")
+        s = series_list[series]
         axes, shape = s.axes, tuple(int(n) for n in s.shape)
+        _check_complete(tif, s, path, messages)
         keep = [(a, n) for a, n in zip(axes, shape, strict=True) if n > 1 or a in "YX"]
         kaxes = "".join(a for a, _ in keep)
         kshape = tuple(n for _, n in keep)

@@ -207,8 +207,11 @@ def test_duplicate_positions(tmp_path, vol):
 
 def test_no_dicom_in_folder(tmp_path):
     (tmp_path / "e").mkdir()
-    (tmp_path / "e" / "notes.dcm").write_text("hello")
+    (tmp_path / "e" / "notes.txt").write_text("hello")
     with pytest.raises(InvalidInputError, match="no DICOM images"):
+        read_dicom(tmp_path / "e")
+    (tmp_path / "e" / "notes.dcm").write_text("hello")  # named as DICOM: a damaged slice, not another file
+    with pytest.raises(InvalidInputError, match="cannot be read: notes.dcm"):
         read_dicom(tmp_path / "e")
 
 
@@ -475,10 +478,16 @@ def test_truncated_slice_named_when_read(tmp_path, vol):
         v.data[2].compute()
 
 
-def test_unreadable_file_is_reported(tmp_path, vol):
+@pytest.mark.parametrize("cut", [200, 10, 0])
+def test_unreadable_file_is_an_error(tmp_path, vol, cut):
+    """A damaged file may be a slice of the series: reading without it would leave a gap, so it is an error that
+    names it (listing the series only warns)."""
     make_series(tmp_path / "u", vol, names=[f"IM{k}.dcm" for k in range(vol.shape[0])])
     broken = tmp_path / "u" / "IM9.dcm"
-    broken.write_bytes((tmp_path / "u" / "IM0.dcm").read_bytes()[:200])  # DICM marker, then garbage cut short
-    with pytest.warns(UserWarning, match="1 DICOM file.*IM9.dcm"):
-        v = read_dicom(tmp_path / "u")
-    np.testing.assert_array_equal(v.data.compute(), vol)
+    broken.write_bytes((tmp_path / "u" / "IM0.dcm").read_bytes()[:cut])  # DICM marker (200), then cut short
+    with pytest.raises(InvalidInputError, match="1 DICOM file.*cannot be read: IM9.dcm.*move them out"):
+        read_dicom(tmp_path / "u")
+    with pytest.warns(UserWarning, match="IM9.dcm"):
+        assert len(list_series(tmp_path / "u")) == 1
+    broken.unlink()
+    np.testing.assert_array_equal(read_dicom(tmp_path / "u").data.compute(), vol)
