@@ -611,7 +611,7 @@ class Client:
                         row["output"] = str(self.download(job.result.volume_id, out / f"{name}{suffix}",
                                                           overwrite=True))
                         (out / f"{name}.unwind.json").write_text(job.result.session_json)
-            except UnwindError as exc:
+            except (UnwindError, OSError) as exc:
                 row.update(state=row["state"] or "failed", error=f"{getattr(exc, 'code', 'ERROR')}: {exc}")
             record(row)
 
@@ -632,7 +632,7 @@ class Client:
             for item, fut in [(i, pool.submit(prepare, i)) for i in items]:
                 try:
                     tasks += fut.result()
-                except UnwindError as exc:
+                except (UnwindError, OSError) as exc:
                     record({"name": item.name or Path(item.scan).name, "scan": item.scan, "job": "", "state": "failed",
                             "error": f"{getattr(exc, 'code', 'ERROR')}: {exc}"})
             for f in [pool.submit(one, it, n, s, **sel) for it, n, s, sel in tasks]:
