@@ -3,13 +3,22 @@
 Every subcommand parses its options, calls one core function (driving its progress generator with a bar) and
 prints a short report. A user's mistake prints one clear ``unwind: error: ...`` line and exits 1; a traceback
 means a bug.
+
+Exit status: 0 success; 1 an error, a wrong option included (one line ``unwind: error: ...``); 130 interrupted
+(Ctrl-C, SIGINT); 143 terminated (SIGTERM), 129 hung up (SIGHUP). Interrupted or terminated, no partial output
+is left behind. Before any work, every command refuses an output that is, contains or lies inside one of its
+inputs.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
+import re
+import signal
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -17,14 +26,67 @@ from typing import Any
 
 from .errors import UnwindError
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "parse_size"]
+
+EPILOG = """exit status: 0 success; 1 an error, a wrong option included (one line "unwind: error: ..."); 130
+interrupted (Ctrl-C); 143 terminated (SIGTERM); 129 hung up (SIGHUP). Outputs are written atomically: an
+interrupted run leaves no partial output, an existing output is replaced only with --overwrite, and an output
+that is, contains or lies inside an input is refused."""
 
 
 # ------------------------------------------------------------------------------------------------------------------
 # helpers
 # ------------------------------------------------------------------------------------------------------------------
+def _number(text: str, what: str = "a number") -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def _finite(text: str) -> float:
+    """A finite number (no nan, no inf)."""
+    return _number(text)
+
+
+def _positive(text: str) -> float:
+    """A finite number > 0."""
+    value = _number(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    """A finite number >= 0."""
+    value = _number(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return value
+
+
+def _whole(lo: int, hi: int | None = None) -> Callable[[str], int]:
+    """A type: a whole number in [lo, hi]."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text.strip())
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+        if value < lo or (hi is not None and value > hi):
+            within = f">= {lo}" if hi is None else f"from {lo} to {hi}"
+            raise argparse.ArgumentTypeError(f"expected a whole number {within}, got {text!r}")
+        return value
+
+    parse.__name__ = "whole number"
+    return parse
+
+
 def _triple(text: str) -> tuple[float, float, float]:
-    """Parse ``"a,b,c"`` (or one number for all three axes) into three floats."""
+    """Parse ``"a,b,c"`` (or one number for all three axes) into three finite floats."""
     parts = [p for p in text.replace(" ", "").split(",") if p]
     try:
         values = [float(p) for p in parts]
@@ -34,7 +96,47 @@ def _triple(text: str) -> tuple[float, float, float]:
         values *= 3
     if len(values) != 3:
         raise argparse.ArgumentTypeError(f"expected 1 or 3 comma-separated numbers (axis0,axis1,axis2), got {text!r}")
+    if not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"expected finite numbers (axis0,axis1,axis2), got {text!r}")
     return tuple(values)  # type: ignore[return-value]
+
+
+def _spacing3(text: str) -> tuple[float, float, float]:
+    values = _triple(text)
+    if any(v <= 0 for v in values):
+        raise argparse.ArgumentTypeError(f"voxel spacings must be > 0, got {text!r}")
+    return values
+
+
+_SIZE_UNITS = {"": 1, "b": 1}
+for _i, _p in enumerate("kmgtpe", start=1):
+    _SIZE_UNITS[_p] = _SIZE_UNITS[_p + "ib"] = 1024 ** _i
+    _SIZE_UNITS[_p + "b"] = 1000 ** _i
+_SIZE_RE = re.compile(r"^([0-9]*\.?[0-9]+(?:e[+-]?[0-9]+)?)\s*([a-z]*)$")
+
+
+def parse_size(text: str) -> int | None:
+    """A size in bytes from ``500G``, ``2T``, ``1.5GiB``, ``800MB``, ``1000000``; None for ``none`` (no limit).
+
+    K, M, G, T, P (and KiB, MiB, GiB, TiB, PiB) are powers of 1024; KB, MB, GB, TB, PB powers of 1000 (as GNU
+    ``du`` and ``sort -S`` read them). Case does not matter.
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        Anything else, or a size below one byte.
+    """
+    t = str(text).strip().lower()
+    if t == "none":
+        return None
+    m = _SIZE_RE.match(t)
+    if not m or m.group(2) not in _SIZE_UNITS:
+        raise argparse.ArgumentTypeError(f"expected a size like 500G, 2T, 1.5GiB or a number of bytes (or none for "
+                                         f"no limit), got {text!r}")
+    value = float(m.group(1)) * _SIZE_UNITS[m.group(2)]
+    if not math.isfinite(value) or value < 1:
+        raise argparse.ArgumentTypeError(f"expected a size of at least 1 byte (or none for no limit), got {text!r}")
+    return int(round(value))
 
 
 def _chunks(text: str) -> tuple[int, int, int]:
@@ -78,6 +180,28 @@ def _run_with_bar(gen: Any, quiet: bool) -> Any:
         return run(gen, callback)
     finally:
         close()
+
+
+def _check_io(outputs: Sequence[Any], inputs: Sequence[Any]) -> None:
+    """Refuse, before any work, an output that is, contains or lies inside an input (inputs are never modified)."""
+    from .io._atomic import check_not_input
+
+    check_not_input(outputs, inputs)
+
+
+def _check_output(path: str, overwrite: bool) -> None:
+    """Check up front that an image output can be written (its format from the suffix, its folder, no file there
+    unless overwriting), so that a mistake shows before the work instead of after it."""
+    from .io._atomic import check_writable
+    from .io._formats import output_format
+
+    if output_format(path) != "stack":  # a slice pattern's folder is checked by its writer
+        check_writable(path, overwrite=overwrite)
+
+
+def _max_output(args: argparse.Namespace) -> dict[str, Any]:
+    """``max_output=...`` for the warp functions when ``--max-output`` was given (else the library's default)."""
+    return {"max_output": args.max_output} if hasattr(args, "max_output") else {}
 
 
 def _reader_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -130,6 +254,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_import(args: argparse.Namespace) -> int:
     from .io import import_volume_iter, open_volume
 
+    _check_io([args.output], [args.input])
     src = open_volume(args.input, **_reader_options(args))
     t0 = time.perf_counter()
     result = _run_with_bar(
@@ -148,6 +273,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 def cmd_convert(args: argparse.Namespace) -> int:
     from .io import open_volume, write_volume_iter
 
+    _check_io([args.output], [args.input])
     src = open_volume(args.input, **_reader_options(args))
     if args.level is not None:
         if not 0 <= args.level < len(src.levels):
@@ -167,14 +293,17 @@ def cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_session_for(args: argparse.Namespace, input_path: str | None):
-    """Load ``--session`` and check the scan against its checksum (unless ``--no-verify``)."""
+def _load_session_for(args: argparse.Namespace, input_path: str | None, outputs: Sequence[Any] = (),
+                      inputs: Sequence[Any] = ()):
+    """Load ``--session``, refuse ``outputs`` over an input (``inputs``, the session and the session's source),
+    then check the scan against the session's checksum (unless ``--no-verify``)."""
     from .progress import progress_bar
     from .session import load_session, verify_source
 
     session = load_session(args.session)
     if session.deformation is None:
         raise UnwindError(f"{args.session} holds no deformation yet; run the skeleton solve first (unwind skeleton)")
+    _check_io(outputs, [*inputs, args.session, session.source.path])
     if input_path is not None and not args.no_verify:
         callback, close = progress_bar(args.quiet)
         try:
@@ -202,7 +331,8 @@ def cmd_straighten(args: argparse.Namespace) -> int:
     from .io import open_volume
     from .warp import FoldWarning, export_iter
 
-    session = _load_session_for(args, args.input)
+    _check_output(args.output, args.overwrite)
+    session = _load_session_for(args, args.input, [args.output], [args.input])
     volume = open_volume(args.input, **_reader_options(args))
     deformation = session.deformation
     _check_folds(deformation, args.allow_folds)
@@ -212,7 +342,7 @@ def cmd_straighten(args: argparse.Namespace) -> int:
         written = _run_with_bar(
             export_iter(volume, deformation, args.output, order=args.order, spacing=args.spacing, pad=args.pad,
                         chunks=args.chunks, overwrite=args.overwrite, session=session.to_dict(),
-                        scheduler=args.scheduler),
+                        scheduler=args.scheduler, **_max_output(args)),
             args.quiet,
         )
     if not args.quiet:
@@ -228,11 +358,13 @@ def cmd_bend(args: argparse.Namespace) -> int:
     from .io import open_volume, write_volume_iter
     from .warp import bend
 
-    session = _load_session_for(args, None)
+    _check_output(args.output, args.overwrite)
+    session = _load_session_for(args, None, [args.output], [args.input])
     straight = open_volume(args.input, **_reader_options(args))
     shape = tuple(session.source.shape)
     src = session.source
-    data = bend(straight, session.deformation, shape=shape, order=args.order, chunks=args.chunks)
+    data = bend(straight, session.deformation, shape=shape, order=args.order, chunks=args.chunks,
+                **_max_output(args))
     t0 = time.perf_counter()
     written = _run_with_bar(
         write_volume_iter(data, args.output, spacing=session.deformation.spacing,
@@ -279,7 +411,7 @@ def cmd_map_points(args: argparse.Namespace) -> int:
     from .io._atomic import atomic_output
     from .warp import map_points
 
-    session = _load_session_for(args, None)
+    session = _load_session_for(args, None, [args.output], [args.points])
     pts = _read_points(args)
     mapped = map_points(pts, session.deformation, to=args.to, spacing=args.spacing)
     header = "axis0,axis1,axis2" if args.to == "scan" else "s_index,y_index,x_index"
@@ -301,6 +433,7 @@ def cmd_segment(args: argparse.Namespace) -> int:
     from .segmentation import check_segmentation_output, save_features_iter, segment_iter
 
     check_segmentation_output(args.output, overwrite=args.overwrite)  # before minutes of work, not after
+    _check_io([args.output], [args.input])
     volume = open_volume(args.input, **_reader_options(args))
     t0 = time.perf_counter()
     features = _run_with_bar(segment_iter(volume, features=args.features, level=args.level, smooth=args.smooth),
@@ -325,6 +458,7 @@ def cmd_select(args: argparse.Namespace) -> int:
 
     if not args.at and not args.id:
         raise UnwindError("choose features with --at A0,A1,A2 (a point inside one) or --id N (repeatable)")
+    _check_io([args.output], [args.labels, args.full_resolution])
     features = load_features(args.labels)
     mask = select(features, seeds=args.at, ids=args.id, fill_holes=args.fill_holes)
     if args.full_resolution:
@@ -517,6 +651,7 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
     from .session import Segmentation, Session, save_session
 
     target = _check_session_path(args.output, args.overwrite)
+    _check_io([args.output], [args.mask, args.volume])
     endpoints = _endpoints_from_args(args)
     mask = open_volume(args.mask)
     scan = open_volume(args.volume, **_reader_options(args)) if args.volume else None
@@ -580,8 +715,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     import warnings
 
     from .io import open_volume
-    from .io._atomic import check_writable
-    from .io._formats import output_format
     from .session import Session, save_session
     from .warp import FoldWarning, export_iter
 
@@ -594,10 +727,10 @@ def cmd_run(args: argparse.Namespace) -> int:
                       or args.level is not None):
         raise UnwindError("--features, --level, --isovalue and --fill-holes choose the segmentation; they do not "
                           "apply with --mask")
-    output_format(args.output)
-    check_writable(args.output, overwrite=args.overwrite)
+    _check_output(args.output, args.overwrite)
     session_path = Path(args.session) if args.session else _default_session_path(args.output)
     target = _check_session_path(session_path, args.overwrite)
+    _check_io([args.output, session_path], [args.input, args.mask])
     endpoints = _endpoints_from_args(args)
     say = (lambda *a: None) if args.quiet else print
     t_all = time.perf_counter()
@@ -640,7 +773,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         warnings.simplefilter("ignore", FoldWarning)  # reported above
         written = _run_with_bar(
             export_iter(volume, deformation, args.output, order=args.order, spacing=args.spacing, pad=args.pad,
-                        chunks=args.chunks, overwrite=args.overwrite, session=session.to_dict()),
+                        chunks=args.chunks, overwrite=args.overwrite, session=session.to_dict(),
+                        **_max_output(args)),
             args.quiet,
         )
     if not args.quiet:
@@ -667,10 +801,10 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
 
 
 def _add_output_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--spacing", type=_triple, default=None,
+    p.add_argument("--spacing", type=_spacing3, default=None,
                    help="override the voxel spacing, axis0,axis1,axis2 (or one number); needed for BMP/PNG stacks")
     p.add_argument("--unit", default=None, help="override the length unit (um, mm, ...)")
-    p.add_argument("--nan-value", type=float, default=None,
+    p.add_argument("--nan-value", type=_finite, default=None,
                    help="replace NaN in float data by this value (default: NaN is an error)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
@@ -686,22 +820,40 @@ def _add_skeleton_options(p: argparse.ArgumentParser) -> None:
                    "tail (the first starts at the head, the last ends at the tail)")
     p.add_argument("--no-twist", action="store_true",
                    help="do not estimate the twist (frames by parallel transport)")
-    p.add_argument("--levels", type=int, default=100, help="level sets of the harmonic field (default 100)")
-    p.add_argument("--smoothing-iterations", type=int, default=50, help="curve smoothing iterations (default 50)")
-    p.add_argument("--cage-radius", type=float, default=10.0,
+    p.add_argument("--levels", type=_whole(1), default=100, help="level sets of the harmonic field (default 100)")
+    p.add_argument("--smoothing-iterations", type=_whole(0), default=50, help="curve smoothing iterations (default 50)")
+    p.add_argument("--cage-radius", type=_positive, default=10.0,
                    help="half size (voxels) of the box whose centre and corners the keyframes must reproduce within "
                    "--tolerance (default 10): larger, more keyframes")
-    p.add_argument("--tolerance", type=float, default=1.0,
+    p.add_argument("--tolerance", type=_positive, default=1.0,
                    help="how far (voxels) the keyframed box may stray from the dense curve's (default 1): larger, "
                    "fewer keyframes")
-    p.add_argument("--snap-tolerance", type=float, default=5.0,
+    p.add_argument("--snap-tolerance", type=_non_negative, default=5.0,
                    help="ends outside the mask move onto it when within this many voxels (default 5)")
+
+
+def _add_max_output(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--max-output", type=parse_size, default=argparse.SUPPRESS, metavar="SIZE",
+                   help="refuse to write an output larger than SIZE (before starting): e.g. 500G, 2T, 1.5GiB, "
+                   "800MB or bytes (K M G T: powers of 1024, KB MB GB TB: of 1000); none: no limit (default: "
+                   "napari_unwind.warp.DEFAULT_MAX_OUTPUT)")
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose mistakes are one line and exit status 1, like every other error of ``unwind``."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("epilog", EPILOG)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(1, f"unwind: error: {' '.join(message.split())}; see {self.prog} --help\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="unwind",
         description="Straighten bent and twisted specimens in 3D scans (napari-unwind).",
     )
@@ -718,7 +870,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", help="a scan in any supported format")
     p.add_argument("output", help="the OME-Zarr folder to create (*.zarr)")
     p.add_argument("--chunks", type=_chunks, default=None, help="chunk shape (default 128)")
-    p.add_argument("--max-side", type=int, default=256, help="halve until every side is <= this (default 256)")
+    p.add_argument("--max-side", type=_whole(1), default=256, help="halve until every side is <= this (default 256)")
     p.add_argument("--labels", action="store_true", help="the input holds labels: downsample by nearest")
     _add_input_options(p)
     _add_output_options(p)
@@ -728,7 +880,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", help="a scan in any supported format")
     p.add_argument("output", help="output path: .zarr .tif .nrrd .nhdr .nii(.gz) .dat .dicom, or name_{:04d}.png")
     p.add_argument("--format", default=None, help="force the output format instead of the suffix's")
-    p.add_argument("--level", type=int, default=None, help="write this pyramid level instead of full resolution")
+    p.add_argument("--level", type=_whole(0), default=None,
+                   help="write this pyramid level instead of full resolution")
     p.add_argument("--chunks", type=_chunks, default=None, help="OME-Zarr chunk shape")
     _add_input_options(p)
     _add_output_options(p)
@@ -737,10 +890,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("segment", help="split a scan into its most important bright objects (join tree)")
     p.add_argument("input", help="a scan in any supported format (an imported OME-Zarr pyramid is fastest)")
     p.add_argument("-o", "--output", required=True, help="the label volume to write (*.zarr, working resolution)")
-    p.add_argument("--features", type=int, default=5, help="number of features to keep, 1-100 (default 5)")
-    p.add_argument("--level", type=int, default=None,
+    p.add_argument("--features", type=_whole(1, 100), default=5,
+                   help="number of features to keep, 1-100 (default 5)")
+    p.add_argument("--level", type=_whole(0), default=None,
                    help="pyramid level to work on (default: the finest with every side <= 256)")
-    p.add_argument("--smooth", type=float, default=1.0, help="Gaussian sigma in working voxels (default 1; 0 none)")
+    p.add_argument("--smooth", type=_non_negative, default=1.0,
+                   help="Gaussian sigma in working voxels (default 1; 0 none)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
     _add_input_options(p)
@@ -750,11 +905,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("labels", help="the label volume written by unwind segment")
     p.add_argument("--at", type=_triple, action="append", help="a point inside a feature, A0,A1,A2 in full-resolution "
                    "voxels (repeatable)")
-    p.add_argument("--id", type=int, action="append", help="a feature id (repeatable)")
+    p.add_argument("--id", type=_whole(0), action="append", help="a feature id (repeatable)")
     p.add_argument("-o", "--output", required=True, help="the mask to write (any format; .zarr for large scans)")
     p.add_argument("--full-resolution", metavar="INPUT", default=None,
                    help="refine the mask at full resolution on this scan, chunk by chunk")
-    p.add_argument("--isovalue", type=float, default=None,
+    p.add_argument("--isovalue", type=_finite, default=None,
                    help="full-resolution threshold (default: the selected features' own)")
     p.add_argument("--fill-holes", action="store_true", help="fill cavities of the mask")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
@@ -780,9 +935,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mask", default=None, help="the specimen's mask (same shape as INPUT) instead of segmenting")
     p.add_argument("--select", type=_triple, action="append", metavar="A0,A1,A2",
                    help="a point inside the specimen, full-resolution voxels (repeatable: several features)")
-    p.add_argument("--features", type=int, default=None, help="features the segmentation keeps, 1-100 (default 5)")
-    p.add_argument("--level", type=int, default=None, help="pyramid level to segment (default: every side <= 256)")
-    p.add_argument("--isovalue", type=float, default=None,
+    p.add_argument("--features", type=_whole(1, 100), default=None,
+                   help="features the segmentation keeps, 1-100 (default 5)")
+    p.add_argument("--level", type=_whole(0), default=None,
+                   help="pyramid level to segment (default: every side <= 256)")
+    p.add_argument("--isovalue", type=_finite, default=None,
                    help="full-resolution threshold of the mask (default: the selected features' own)")
     p.add_argument("--fill-holes", action="store_true", help="fill cavities of the mask")
     p.add_argument("--session", default=None,
@@ -790,9 +947,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_skeleton_options(p)
     p.add_argument("--order", type=int, choices=(0, 1, 3), default=1,
                    help="interpolation: 0 nearest (labels), 1 linear (default), 3 cubic")
-    p.add_argument("--pad", type=int, default=0, help="extra slices at both ends (default 0)")
-    p.add_argument("--spacing", type=float, default=None, help="output voxel size (default: finest scan spacing)")
+    p.add_argument("--pad", type=_whole(0), default=0, help="extra slices at both ends (default 0)")
+    p.add_argument("--spacing", type=_positive, default=None, help="output voxel size (default: finest scan spacing)")
     p.add_argument("--chunks", type=_chunks, default=None, help="output chunk shape (default 64 x cross-section)")
+    _add_max_output(p)
     p.add_argument("--allow-folds", action="store_true", help="export even where the deformation folds")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs once the new ones are complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
@@ -805,9 +963,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="output path; the suffix chooses the format")
     p.add_argument("--order", type=int, choices=(0, 1, 3), default=1,
                    help="interpolation: 0 nearest (labels), 1 linear (default), 3 cubic")
-    p.add_argument("--pad", type=int, default=0, help="extra slices at both ends (default 0)")
-    p.add_argument("--spacing", type=float, default=None, help="output voxel size (default: finest scan spacing)")
+    p.add_argument("--pad", type=_whole(0), default=0, help="extra slices at both ends (default 0)")
+    p.add_argument("--spacing", type=_positive, default=None, help="output voxel size (default: finest scan spacing)")
     p.add_argument("--chunks", type=_chunks, default=None, help="output chunk shape (default 64 x cross-section)")
+    _add_max_output(p)
     p.add_argument("--scheduler", default=None,
                    help="dask.distributed scheduler address (tcp://host:8786) to run on a cluster")
     p.add_argument("--allow-folds", action="store_true", help="export even where the deformation folds")
@@ -823,6 +982,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="output path; the suffix chooses the format")
     p.add_argument("--order", type=int, choices=(0, 1, 3), default=1, help="interpolation order (default 1)")
     p.add_argument("--chunks", type=_chunks, default=None, help="output chunk shape")
+    _add_max_output(p)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
     p.set_defaults(func=cmd_bend, no_verify=True)
@@ -834,7 +994,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--session", required=True, help="the session file (*.unwind.json) holding the deformation")
     p.add_argument("--to", choices=("straight", "scan"), default="straight",
                    help="straight: scan voxels -> straight voxels (default); scan: the other way")
-    p.add_argument("--spacing", type=float, default=None, help="straight volume spacing (default: finest scan)")
+    p.add_argument("--spacing", type=_positive, default=None,
+                   help="straight volume spacing (default: finest scan)")
     p.add_argument("-o", "--output", default=None, help="CSV to write (default: print)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("-q", "--quiet", action="store_true", help="no report")
@@ -842,27 +1003,72 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="run the pipeline on the bundled synthetic tank of fish")
     p.add_argument("-o", "--output", default="unwind-demo", help="folder for the demo's files (default unwind-demo)")
-    p.add_argument("--fish", type=int, default=3, help="number of fish in the tank (default 3)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the phantom (default 0)")
+    p.add_argument("--fish", type=_whole(1), default=3, help="number of fish in the tank (default 3)")
+    p.add_argument("--seed", type=_whole(0), default=0, help="random seed of the phantom (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace outputs of an earlier demo run")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
     p.set_defaults(func=cmd_demo)
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised in the main thread: handled like Ctrl-C (outputs being written are removed)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+_SIGNALS = {signal.SIGTERM: "terminated (SIGTERM)"}
+if hasattr(signal, "SIGHUP"):
+    _SIGNALS[signal.SIGHUP] = "hung up (SIGHUP)"
+
+
+def _on_signal(signum: int, frame: Any) -> None:
+    for s in _SIGNALS:  # once is enough: a second signal must not interrupt the cleanup of the first
+        signal.signal(s, signal.SIG_IGN)
+    raise Terminated(signum)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``unwind`` command. Returns the exit status."""
+    """Entry point of the ``unwind`` command. Returns the exit status (see the module's docstring)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
-    func: Callable[[argparse.Namespace], int] = args.func
     try:
-        return func(args)
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version (0), a wrong option (1, one line printed)
+        return exc.code if isinstance(exc.code, int) else 1
+    func: Callable[[argparse.Namespace], int] = args.func
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        previous = {s: signal.signal(s, _on_signal) for s in _SIGNALS}
+    try:
+        status = func(args)
+        sys.stdout.flush()  # a closed pipe shows here, not at exit
+        return status
+    except BrokenPipeError:
+        # the reader of our output went away (unwind info X | head): stop quietly, as cat or grep do
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError):  # stdout is no real file (captured)
+            pass
+        return 0
     except (UnwindError, OSError) as exc:
         print(f"unwind: error: {exc}", file=sys.stderr)
         return 1
+    except MemoryError as exc:
+        print(f"unwind: error: out of memory{': ' + str(exc) if str(exc) else ''}; make the output smaller "
+              "(--spacing, --pad, a pyramid level) or use a machine with more memory", file=sys.stderr)
+        return 1
+    except Terminated as exc:
+        print(f"unwind: {_SIGNALS[exc.signum]}; no partial output was left behind", file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:
         print("unwind: interrupted; no partial output was left behind", file=sys.stderr)
         return 130
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 if __name__ == "__main__":  # pragma: no cover

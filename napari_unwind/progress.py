@@ -7,11 +7,13 @@ the records, the napari widgets in a ``thread_worker``.
 
 from __future__ import annotations
 
+import sys
+import time
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-__all__ = ["Progress", "ProgressGenerator", "run"]
+__all__ = ["Progress", "ProgressGenerator", "progress_bar", "run"]
 
 T = TypeVar("T")
 
@@ -63,13 +65,23 @@ def run(gen: Generator[Progress, Any, T], callback: Callable[[Progress], Any] | 
             callback(p)
 
 
-def progress_bar(quiet: bool = False) -> tuple[Callable[[Progress], None], Callable[[], None]]:
-    """A tqdm progress bar fed by :class:`Progress` records: returns ``(callback, close)``.
+def progress_bar(quiet: bool = False, *, stream: Any = None) -> tuple[Callable[[Progress], None], Callable[[], None]]:
+    """Progress shown on ``stream`` (default ``sys.stderr``), fed by :class:`Progress` records: ``(callback, close)``.
 
-    One bar per stage; a new stage closes the previous bar. With ``quiet`` the callback does nothing.
+    On a terminal, a tqdm bar per stage; a new stage closes the previous bar. Anywhere else (a log file, CI, a
+    service's journal) one line per stage when it ends, with its time: ``write: 100% (12/12) in 3.4 s`` (a stage
+    that did not finish ends with ``, stopped``; one of unknown length gives ``7 steps``). With ``quiet`` the
+    callback does nothing.
     """
     if quiet:
         return (lambda p: None), (lambda: None)
+    stream = sys.stderr if stream is None else stream
+    try:
+        tty = stream.isatty()
+    except (AttributeError, ValueError):
+        tty = False
+    if not tty:
+        return _stage_lines(stream)
     from tqdm.auto import tqdm
 
     state: dict[str, Any] = {"bar": None, "stage": None}
@@ -83,7 +95,8 @@ def progress_bar(quiet: bool = False) -> tuple[Callable[[Progress], None], Calla
         if p.stage != state["stage"]:
             close()
             state["stage"] = p.stage
-            state["bar"] = tqdm(total=p.total or None, desc=p.stage, unit="step", leave=True, dynamic_ncols=True)
+            state["bar"] = tqdm(total=p.total or None, desc=p.stage, unit="step", leave=True, dynamic_ncols=True,
+                                file=stream)
         bar = state["bar"]
         if p.total and bar.total != p.total:
             bar.total = p.total
@@ -91,5 +104,30 @@ def progress_bar(quiet: bool = False) -> tuple[Callable[[Progress], None], Calla
         if p.message:
             bar.set_postfix_str(p.message, refresh=False)
         bar.refresh()
+
+    return callback, close
+
+
+def _stage_lines(stream: Any) -> tuple[Callable[[Progress], None], Callable[[], None]]:
+    """One line per stage, written when the stage ends (the next begins, or ``close``)."""
+    state: dict[str, Any] = {"last": None, "t0": time.perf_counter()}
+
+    def close() -> None:
+        p = state["last"]
+        now = time.perf_counter()
+        if p is not None:
+            state["last"] = None
+            if p.total:
+                line = f"{p.stage}: {100 * p.fraction:.0f}% ({p.done}/{p.total}) in {now - state['t0']:.1f} s"
+                line += "" if p.done >= p.total else ", stopped"
+            else:
+                line = f"{p.stage}: {p.done} steps in {now - state['t0']:.1f} s"
+            print(line, file=stream, flush=True)
+        state["t0"] = now
+
+    def callback(p: Progress) -> None:
+        if state["last"] is not None and p.stage != state["last"].stage:
+            close()  # the stage's time runs from the end of the previous one
+        state["last"] = p
 
     return callback, close
