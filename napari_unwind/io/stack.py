@@ -17,10 +17,12 @@ voxel size to :func:`~napari_unwind.io.import_volume` (``spacing=``, ``unit=``) 
 from __future__ import annotations
 
 import fnmatch
+import io
 import os
 import re
 import string
 import warnings
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -251,6 +253,24 @@ def _grey(rgb: np.ndarray, path: Path) -> np.ndarray:
     return np.ascontiguousarray(r)
 
 
+def _check_png(path: Path, data: memoryview) -> None:
+    """Check the CRC of every PNG chunk: Pillow stops decoding once it has the pixels, so flipped bytes in the
+    image data would otherwise give other values without an error."""
+    pos = 8
+    while pos + 12 <= len(data):
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        end = pos + 8 + length
+        if end + 4 > len(data):
+            return  # cut short: Pillow reports it
+        kind = bytes(data[pos + 4:pos + 8])
+        if zlib.crc32(data[pos + 4:end]) != int.from_bytes(data[end:end + 4], "big"):
+            raise InvalidInputError(f"cannot decode the slice {path}: its {kind.decode('latin-1')!r} chunk fails "
+                                    "its CRC check; the file is damaged: copy it again")
+        if kind == b"IEND":
+            return
+        pos = end + 4
+
+
 def read_slice(path: str | os.PathLike, shape: tuple[int, int] | None = None, dtype: Any = None) -> np.ndarray:
     """Decode one slice as a 2D grey array (RGB slices must be grey: r == g == b).
 
@@ -285,7 +305,11 @@ def read_slice(path: str | os.PathLike, shape: tuple[int, int] | None = None, dt
         else:
             from PIL import Image
 
-            with Image.open(path) as im:
+            source: Any = path
+            if path.suffix.lower() == ".png":
+                source = io.BytesIO(path.read_bytes())
+                _check_png(path, source.getbuffer())
+            with Image.open(source) as im:
                 im.load()
                 mode = im.mode
                 if mode == "P":

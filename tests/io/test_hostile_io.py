@@ -384,3 +384,112 @@ def test_imagej_origin_round_trips_through_fiji_tags_alone(tmp_path):
     v = open_volume(tmp_path / "fiji.tif")
     assert v.metadata["geometry_from"] == "imagej"
     assert v.origin == pytest.approx((6.0, -1.0, 2.5)) and v.spacing == pytest.approx((3.0, 0.5, 0.25))
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# every format we read, truncated and corrupted
+# ------------------------------------------------------------------------------------------------------------------
+# name -> (target, write options, 8-bit data, files to damage, files whose voxels are stored without a checksum:
+# flipped bytes there can only change values)
+FORMATS_READ = {
+    "zarr": ("v.zarr", {"chunks": 8, "max_side": 8}, False,
+             ["v.zarr/zarr.json", "v.zarr/0/zarr.json", "v.zarr/0/c/0/0/0", "v.zarr/1/zarr.json",
+              "v.zarr/1/c/0/0/0"], []),
+    "tiff-imagej": ("v.tif", {}, False, ["v.tif"], ["v.tif"]),
+    "tiff-plain": ("v.tif", {"imagej": False}, False, ["v.tif"], ["v.tif"]),
+    "tiff-zlib": ("v.tif", {"compression": "zlib"}, False, ["v.tif"], []),
+    "nrrd-gzip": ("v.nrrd", {}, False, ["v.nrrd"], []),
+    "nrrd-bzip2": ("v.nrrd", {"encoding": "bzip2"}, False, ["v.nrrd"], []),
+    "nrrd-raw": ("v.nrrd", {"encoding": "raw"}, False, ["v.nrrd"], ["v.nrrd"]),
+    "nhdr": ("v.nhdr", {}, False, ["v.nhdr", "v.raw.gz"], []),
+    "nii": ("v.nii", {}, False, ["v.nii"], ["v.nii"]),
+    "nii.gz": ("v.nii.gz", {}, False, ["v.nii.gz"], []),
+    "raw": ("v.dat", {}, False, ["v.dat", "v.raw"], ["v.raw"]),
+    "dicom": ("v.dicom", {}, False, ["v.dicom/IM00001.dcm", "v.dicom/IM00003.dcm"],
+              ["v.dicom/IM00001.dcm", "v.dicom/IM00003.dcm"]),
+    "png": ("s/v_{:03d}.png", {}, False, ["s/v_002.png"], []),
+    "bmp": ("s/v_{:03d}.bmp", {}, True, ["s/v_002.bmp"], ["s/v_002.bmp"]),
+    "jpg": ("s/v_{:03d}.jpg", {}, True, ["s/v_002.jpg"], ["s/v_002.jpg"]),
+    "tiff-slices": ("s/v_{:03d}.tif", {}, False, ["s/v_002.tif"], ["s/v_002.tif"]),
+}
+DAMAGE = ["half", "ten-bytes", "empty", "flipped", "garbage-header"]
+HOSTILE_CASES = [(fmt, f, how) for fmt, spec in FORMATS_READ.items() for f in spec[3] for how in DAMAGE]
+
+
+def _damage(path, how):
+    b = path.read_bytes()
+    if how == "half":
+        b = b[: len(b) // 2]
+    elif how == "ten-bytes":
+        b = b[:10]
+    elif how == "empty":
+        b = b""
+    elif how == "flipped":
+        m = len(b) // 2
+        b = b[:m] + bytes(x ^ 0xFF for x in b[m:m + 16]) + b[m + 16:]
+    else:  # the first 64 bytes replaced
+        b = (b"\x07GARBAGE\xff\x00" * 8)[: min(64, len(b))] + b[64:]
+    path.write_bytes(b)
+
+
+def _digests(folder):
+    import hashlib
+
+    return {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _read_all(entry):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        v = open_volume(entry)
+        return [np.asarray(level.compute()) for level in v.levels]
+
+
+@pytest.fixture(scope="module")
+def pristine(tmp_path_factory):
+    """One intact file (set) per format, and what it reads as."""
+    root = tmp_path_factory.mktemp("pristine")
+    out = {}
+    for fmt, (target, options, eight_bit, *_) in FORMATS_READ.items():
+        a = _ramp((6, 20, 24), "uint8" if eight_bit else "uint16", seed=3)
+        folder = root / fmt
+        folder.mkdir()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # JPEG is lossy
+            written = write_volume(a, folder / target, spacing=(2, 1, 1), unit="um", **options)
+        entry = written if not target.startswith("s/") else folder / "s"
+        out[fmt] = (folder, entry.relative_to(folder), _read_all(entry))
+        assert all(level.size for level in out[fmt][2])
+    return out
+
+
+@pytest.mark.parametrize("fmt, victim, how", HOSTILE_CASES, ids=[f"{f}-{v}-{h}" for f, v, h in HOSTILE_CASES])
+def test_damaged_files_read_correctly_or_fail_with_one_line_naming_them(tmp_path, pristine, fmt, victim, how):
+    import shutil
+
+    folder, entry, intact = pristine[fmt]
+    case = tmp_path / fmt
+    shutil.copytree(folder, case)
+    damaged = case / victim
+    _damage(damaged, how)
+    before = _digests(case)
+    try:
+        levels = _read_all(case / entry)
+    except (InvalidInputError, UnknownFormatError) as exc:
+        msg = str(exc)
+        assert "\n" not in msg and "Traceback" not in msg, msg
+        assert str(damaged) in msg or str(case / entry) in msg or f"{damaged.name} " in msg, msg
+    else:
+        same = len(levels) == len(intact) and all(np.array_equal(x, y) for x, y in zip(levels, intact))
+        unchecked = how in ("flipped", "garbage-header") and victim in FORMATS_READ[fmt][4]
+        assert same or unchecked, f"{fmt}: {victim} {how} read without error but gives other voxels"
+        if not same:  # bytes of voxels stored without a checksum: only values can change, never the shape
+            assert [x.shape for x in levels] == [y.shape for y in intact]
+    assert _digests(case) == before, "reading changed the input"
+    assert no_leftovers(tmp_path) == []
+
+
+def test_the_hostile_matrix_covers_every_readable_format(pristine):
+    from napari_unwind.io import FORMATS
+
+    assert {open_volume(folder / entry).format for folder, entry, _ in pristine.values()} == set(FORMATS)
