@@ -134,7 +134,7 @@ class JobManager:
         elif job.state == pb.JOB_STATE_RUNNING:
             with self._cond:
                 self._stop.setdefault(job_id, "cancel")
-            deadline = time.monotonic() + 10
+            deadline = time.monotonic() + 2  # usually enough for the next step; the caller may wait for the rest
             while self.store.get_job(owner, job_id).state in ACTIVE and time.monotonic() < deadline:
                 with self._cond:
                     self._cond.wait(timeout=0.1)

@@ -97,11 +97,14 @@ def _skeleton_kwargs(opt: Any) -> dict[str, Any]:
                 snap_tolerance=opt.snap_tolerance or 5.0)
 
 
-def _export_kwargs(opt: Any) -> dict[str, Any]:
+def _export_kwargs(opt: Any, out: Path) -> dict[str, Any]:
     if len(opt.chunks) not in (0, 3):
         raise InvalidInputError(f"chunks must be 3 sizes (axis0, axis1, axis2), got {list(opt.chunks)}")
-    return dict(order=opt.order if opt.has_order else 1, spacing=opt.spacing or None, pad=opt.pad,
-                chunks=tuple(opt.chunks) or None)
+    chunks = tuple(opt.chunks) or None
+    kw = dict(order=opt.order if opt.has_order else 1, spacing=opt.spacing or None, pad=opt.pad, chunks=chunks)
+    if chunks and out.name.lower().endswith(".zarr"):
+        kw["file_chunks"] = chunks  # an OME-Zarr output is chunked as computed
+    return kw
 
 
 def _save_session(ctx: TaskContext, session: Any, name: str) -> tuple[str, str]:
@@ -189,7 +192,7 @@ def straighten(ctx: TaskContext, req: Any) -> TaskGen:
     _check_folds(session.deformation, req.options.allow_folds)
     t0 = time.perf_counter()
     written = yield from export_iter(volume, session.deformation, out, session=session.to_dict(),
-                                     scheduler=ctx.scheduler, **_export_kwargs(req.options))
+                                     scheduler=ctx.scheduler, **_export_kwargs(req.options, out))
     return pb.JobResult(volume_id=ctx.register(written, out.name),
                         figures=_figures(seconds=time.perf_counter() - t0))
 
@@ -223,7 +226,7 @@ def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
                                 "segmented first), ids of a segmentation, or a mask volume")
     if req.ids and not req.segmentation_id:
         raise InvalidInputError("feature ids need the segmentation they refer to (segmentation_id)")
-    export_kw = _export_kwargs(req.export)
+    export_kw = _export_kwargs(req.export, out)
     endpoints = convert.endpoints(req.ends, req.HasField("ends"))
     figures: dict[str, Any] = {}
     t_all = time.perf_counter()
