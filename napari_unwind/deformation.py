@@ -612,17 +612,37 @@ class Deformation:
     # straight output grid
     # ------------------------------------------------------------------------------------------------------------
     def output_shape(self, spacing: float | None = None) -> tuple[int, int, int]:
-        """Shape (Ns, Ny, Nx) of the straight volume at isotropic ``spacing`` (default: finest scan spacing)."""
+        """Shape (Ns, Ny, Nx) of the straight volume at isotropic ``spacing`` (default: finest scan spacing).
+
+        Raises :class:`InvalidInputError` when a side would exceed ``2**62`` voxels (a spacing absurdly small for
+        the deformation's size), so that the shape's product stays a number that can be reported.
+        """
         ds = self._ds(spacing)
         lo, hi = self.s_range
         rx, ry = self.max_half_extent
-        return (int(math.floor((hi - lo) / ds + 1e-9)) + 1, 2 * int(math.ceil(ry / ds - 1e-9)) + 1,
-                2 * int(math.ceil(rx / ds - 1e-9)) + 1)
+        sides = ((hi - lo) / ds, ry / ds, rx / ds)
+        if not all(math.isfinite(v) and v < 2**62 for v in sides):
+            raise InvalidInputError(
+                f"output spacing {ds!r} is absurdly small for this deformation (length {hi - lo:.6g}, cage half "
+                f"extents {rx:.6g} x {ry:.6g} {self.unit or 'units'}): the straight grid would have about "
+                f"{sides[0]:.3g} x {2 * sides[1]:.3g} x {2 * sides[2]:.3g} voxels; choose a spacing near the scan's "
+                f"({min(self.spacing):g})"
+            )
+        return (int(math.floor(sides[0] + 1e-9)) + 1, 2 * int(math.ceil(sides[1] - 1e-9)) + 1,
+                2 * int(math.ceil(sides[2] - 1e-9)) + 1)
 
-    def _ds(self, spacing: float | None) -> float:
-        ds = float(min(self.spacing) if spacing is None else spacing)
-        if not (np.isfinite(ds) and ds > 0):
-            raise InvalidInputError(f"output spacing must be positive, got {spacing!r}")
+    def _ds(self, spacing: Any) -> float:
+        """The output spacing ``ds``: ``spacing`` checked (a finite positive number), default the finest scan's."""
+        if spacing is None:
+            return float(min(self.spacing))
+        try:
+            if isinstance(spacing, (bool, str, bytes)):
+                raise TypeError
+            ds = float(spacing)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"output spacing must be a positive number, got {spacing!r}") from None
+        if not (math.isfinite(ds) and ds > 0):
+            raise InvalidInputError(f"output spacing must be finite and positive, got {spacing!r}")
         return ds
 
     def slice_geometry(self, spacing: float | None = None, *, voxels: bool = True

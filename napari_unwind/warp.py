@@ -51,7 +51,10 @@ from __future__ import annotations
 
 import contextlib
 import math
+import operator
 import os
+import reprlib
+import shutil
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -65,16 +68,19 @@ from numba import njit
 from scipy import ndimage
 
 from .deformation import Deformation
-from .errors import InvalidInputError
-from .io._api import write_volume_iter
+from .errors import InvalidInputError, OutputError
+from .io._api import _size, open_volume, write_volume_iter
 from .io._atomic import atomic_output, check_writable
 from .io._formats import output_format
-from .io._volume import Volume
+from .io._volume import SUPPORTED_DTYPES, Volume, normalise_unit
 from .progress import Progress, run
 
 __all__ = [
+    "DEFAULT_MAX_OUTPUT",
+    "DiskSpaceWarning",
     "FoldWarning",
     "ORDER3_FILTER_MARGIN",
+    "OutsideWarning",
     "bend",
     "export",
     "export_iter",
@@ -93,6 +99,20 @@ DEFAULT_CHUNK_DEPTH = 64
 #: Default chunks hold whole cross-sections up to this side; larger ones are split into near-equal tiles.
 DEFAULT_TILE = 256
 
+#: Default limit of an output's size (bytes, uncompressed): 64 GiB. Larger outputs of :func:`straighten`,
+#: :func:`export`, :func:`bend` and :func:`map_labels` are refused before anything proportional to them is
+#: allocated, unless the call passes a larger ``max_output`` (CLI: ``--max-output``) or ``max_output=None`` (no
+#: limit). It is above the largest scans the project targets (DESIGN.md: 45 GB) and a straightened specimen is
+#: usually smaller than its scan, so an output this large is nearly always a wrong spacing, pad or unit
+#: (the demo fish at ``--spacing 0.01`` would be 120 GiB; with ``--pad 100000000``, 86 GiB).
+DEFAULT_MAX_OUTPUT = 64 * 2**30
+
+#: Largest ``pad`` (output slices at each end) accepted at all, whatever ``max_output``.
+MAX_PAD = 10**9
+
+#: Straightening warns (:class:`OutsideWarning`) when more than this fraction of the output samples outside the scan.
+OUTSIDE_WARN_FRACTION = 0.5
+
 #: Samples this close (voxels) to an edge of the region take the checked path in the kernels.
 _EDGE_EPS = 1e-6
 
@@ -102,6 +122,17 @@ class FoldWarning(UserWarning):
 
     There the straight box maps onto itself twice and the straightened volume repeats (mirrors) tissue.
     """
+
+
+class OutsideWarning(UserWarning):
+    """Most of the straight volume (more than :data:`OUTSIDE_WARN_FRACTION`) samples outside the scan.
+
+    Those voxels get ``fill``. The message gives the fraction.
+    """
+
+
+class DiskSpaceWarning(UserWarning):
+    """A compressed export may not fit the free space at its target (its uncompressed size does not)."""
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -114,9 +145,43 @@ def _check_order(order: Any) -> int:
 
 
 def _check_pad(pad: Any) -> int:
-    if isinstance(pad, bool) or not isinstance(pad, (int, np.integer)) or pad < 0:
+    """``pad``: a whole number of output slices, 0..MAX_PAD (an integral float such as 2.0 is accepted)."""
+    ok = not isinstance(pad, bool) and isinstance(pad, (int, np.integer, float, np.floating))
+    if ok and isinstance(pad, (float, np.floating)):
+        ok = math.isfinite(pad) and float(pad).is_integer()
+    if not ok or pad < 0:
         raise InvalidInputError(f"pad must be a whole number of output slices >= 0, got {pad!r}")
+    if pad > MAX_PAD:
+        raise InvalidInputError(f"pad {pad!r} is absurd: at most {MAX_PAD:,} output slices at each end")
     return int(pad)
+
+
+def _check_max_output(max_output: Any) -> int | None:
+    """``max_output``: None (no limit) or a positive number of bytes."""
+    if max_output is None:
+        return None
+    ok = not isinstance(max_output, bool) and isinstance(max_output, (int, np.integer, float, np.floating))
+    if not ok or not (max_output >= 1 and math.isfinite(max_output)):
+        raise InvalidInputError(f"max_output must be a number of bytes >= 1, or None for no limit, got {max_output!r}")
+    return int(max_output)
+
+
+def _check_output_size(what: str, shape: Sequence[int], dtype: Any, max_output: int | None, hint: str) -> int:
+    """Bytes of an output of ``shape`` and ``dtype``; refuses one larger than ``max_output`` (None: no limit).
+
+    Called before anything proportional to the output (tables, graph, voxels) exists.
+    """
+    shape = tuple(int(n) for n in shape)
+    dtype = np.dtype(dtype)
+    voxels = math.prod(shape)
+    nbytes = voxels * dtype.itemsize
+    if max_output is not None and nbytes > max_output:
+        raise InvalidInputError(
+            f"the {what} would have shape {shape}: {voxels:,} voxels of {dtype}, {nbytes:,} bytes "
+            f"({_size(nbytes)}), more than the limit max_output={max_output:,} bytes ({_size(max_output)}); "
+            f"{hint}, or pass max_output=... (CLI: --max-output) to raise the limit (max_output=None: no limit)"
+        )
+    return nbytes
 
 
 def _check_fill(fill: Any, dtype: np.dtype) -> Any:
@@ -146,29 +211,96 @@ def _close(a: Sequence[float], b: Sequence[float], rel: float = 1e-6) -> bool:
     return bool(np.all(np.abs(a - b) <= rel * np.maximum(np.abs(a), np.abs(b))))
 
 
+#: Powers of ten of the length units :func:`~napari_unwind.io._volume.normalise_unit` knows.
+_UNIT_EXPONENT = {"meter": 0, "centimeter": -2, "millimeter": -3, "micrometer": -6, "nanometer": -9}
+
+
+def _unit_scale(unit: str | None, to: str | None) -> float:
+    """Factor taking lengths in ``unit`` to lengths in ``to`` (1 when either is unknown or they agree)."""
+    unit, to = normalise_unit(unit), normalise_unit(to)
+    if unit is None or to is None or unit == to:
+        return 1.0
+    return 10.0 ** (_UNIT_EXPONENT[unit] - _UNIT_EXPONENT[to])
+
+
+def _fmt_triple(values: Sequence[float]) -> str:
+    return "(" + ", ".join(f"{v:.6g}" for v in values) + ")"
+
+
+def _check_geometry(volume: Volume, deformation: Deformation) -> str | None:
+    """Check a Volume's spacing and origin against the deformation's, converting the unit; returns the unit.
+
+    When both units are known length units the volume's geometry is converted to the deformation's unit first, so
+    a scan in millimetres matches a deformation in micrometres of the same grid; the result is then in the
+    deformation's unit. When one unit is unknown the numbers are compared as they are.
+    """
+    f = _unit_scale(volume.unit, deformation.unit)
+    spacing = tuple(v * f for v in volume.spacing)
+    origin = tuple(v * f for v in volume.origin)
+    sp_ok = _close(spacing, deformation.spacing)
+    scale = max(max(abs(o) for o in origin), max(deformation.spacing))
+    org_ok = all(abs(a - b) <= 1e-6 * scale for a, b in zip(origin, deformation.origin, strict=True))
+    if not (sp_ok and org_ok):
+        v_unit, d_unit = volume.unit or "unit not recorded", deformation.unit or "unit not recorded"
+        converted = (f", i.e. spacing {_fmt_triple(spacing)}, origin {_fmt_triple(origin)} {deformation.unit}"
+                     if f != 1.0 else "")
+        raise InvalidInputError(
+            f"the volume's geometry (spacing {volume.spacing}, origin {volume.origin} {v_unit}{converted}) differs "
+            f"from the deformation's (spacing {deformation.spacing}, origin {deformation.origin} {d_unit}); the "
+            "deformation belongs to another scan or to another pyramid level, or one of the units is wrong"
+        )
+    return deformation.unit or volume.unit
+
+
+def _nested(values: Any, *, keep_int64: bool) -> np.ndarray:
+    """A nested list (or anything without a dtype) as an array.
+
+    Python integers become int64 in numpy, a type a Volume cannot hold: unless ``keep_int64`` (label images),
+    they become int32 when every value fits, else the error says so.
+    """
+    try:
+        arr = np.asarray(values)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(
+            f"the volume must be an array, or a nested list of numbers of shape (N0, N1, N2); this nested list "
+            f"cannot be one ({exc})"
+        ) from None
+    if not keep_int64 and arr.dtype == np.int64:
+        lo, hi = (int(arr.min()), int(arr.max())) if arr.size else (0, 0)
+        if lo < -(2**31) or hi >= 2**31:
+            raise InvalidInputError(
+                f"a nested list of whole numbers becomes int32 (numpy would make int64, which a volume cannot "
+                f"hold), but this one holds values {lo}..{hi}, beyond int32 (-2**31..2**31-1); pass an array of "
+                "float64 instead"
+            )
+        arr = arr.astype(np.int32)
+    return arr
+
+
+def _as_dask(values: Any, *, keep_int64: bool) -> da.Array:
+    """Any array-like (dask, numpy, zarr, nested lists) as a dask array."""
+    if isinstance(values, da.Array):
+        return values
+    if hasattr(values, "shape") and hasattr(values, "dtype") and hasattr(values, "__getitem__"):
+        return da.from_array(values, chunks=tuple(max(1, min(int(s), 128)) for s in values.shape))
+    return da.asarray(_nested(values, keep_int64=keep_int64))
+
+
 def _input_array(volume: Any, deformation: Deformation, *, any_dtype: bool = False
                  ) -> tuple[da.Array, str | None, str | None]:
-    """The scan as a dask array, checked against the deformation's geometry; also its unit and source."""
+    """The scan as a dask array, checked against the deformation's geometry; also its unit and source.
+
+    ``volume`` is a Volume, a path (opened with :func:`~napari_unwind.io.open_volume`), an array or a nested list.
+    Without ``any_dtype`` the voxel type must be one a Volume holds (the straight volume keeps it).
+    """
     if not isinstance(deformation, Deformation):
         raise InvalidInputError(f"deformation must be a napari_unwind.Deformation, got {type(deformation).__name__}")
+    if isinstance(volume, (str, os.PathLike)):
+        volume = open_volume(volume)
     if isinstance(volume, Volume):
-        sp_ok = _close(volume.spacing, deformation.spacing)
-        scale = max(max(abs(o) for o in volume.origin), max(deformation.spacing))
-        org_ok = all(abs(a - b) <= 1e-6 * scale for a, b in zip(volume.origin, deformation.origin, strict=True))
-        if not (sp_ok and org_ok):
-            raise InvalidInputError(
-                f"the volume's geometry (spacing {volume.spacing}, origin {volume.origin}) differs from the "
-                f"deformation's (spacing {deformation.spacing}, origin {deformation.origin}); the deformation "
-                "belongs to another scan or to another pyramid level"
-            )
-        return volume.data, volume.unit, volume.source
-    if isinstance(volume, da.Array):
-        data = volume
-    elif hasattr(volume, "shape") and hasattr(volume, "dtype") and hasattr(volume, "__getitem__"):
-        arr = volume
-        data = da.from_array(arr, chunks=tuple(min(int(s), 128) for s in arr.shape))
-    else:
-        data = da.asarray(np.asarray(volume))
+        unit = _check_geometry(volume, deformation)
+        return volume.data, unit, volume.source
+    data = _as_dask(volume, keep_int64=any_dtype)
     if data.ndim != 3:
         raise InvalidInputError(f"the volume must be 3D (axis0, axis1, axis2), got shape {data.shape}")
     if 0 in data.shape:
@@ -178,6 +310,12 @@ def _input_array(volume: Any, deformation: Deformation, *, any_dtype: bool = Fal
         raise InvalidInputError(f"cannot interpolate voxels of type {dt}; use integers or floats")
     if not (np.issubdtype(dt, np.integer) or np.issubdtype(dt, np.floating) or dt == np.bool_):
         raise InvalidInputError(f"unsupported voxel type {dt}")
+    if not any_dtype and dt not in SUPPORTED_DTYPES:
+        raise InvalidInputError(
+            f"cannot straighten voxels of type {dt}: the straight volume keeps the scan's type, and a volume holds "
+            f"only {', '.join(str(t) for t in SUPPORTED_DTYPES)}; convert first, e.g. volume.astype(np.float32) "
+            "(or np.int32 when the values fit)"
+        )
     return data, deformation.unit, None
 
 
@@ -259,6 +397,48 @@ def _runs(p0: float, p1: float, p2: float, u0: float, u1: float, u2: float, nj: 
     if fa > fb:
         return la, lb, lb + 1, lb
     return la, lb, fa, fb
+
+
+@njit(nogil=True, cache=True)
+def _samples_inside(base, dv, du, ny, nx, n0, n1, n2):
+    """How many samples ``base_k + i dv_k + j du_k`` (all k, i < ny, j < nx) lie in the scan ``[0, n - 1]``.
+
+    To the kernels' tolerance (1e-6 voxel, as in :func:`_runs`). A slice is a parallelogram: when its four
+    corners are inside, all of it is; when they all lie beyond one face, none of it is; only slices across the
+    scan's border are counted row by row, each row's run of inside columns solved as in :func:`_runs`.
+    """
+    eps = 1e-6
+    hi = np.array([n0 - 1.0, n1 - 1.0, n2 - 1.0])
+    total = 0
+    for k in range(base.shape[0]):
+        inside = True
+        missed = False
+        for a in range(3):
+            c00 = base[k, a]
+            c01 = c00 + (nx - 1) * du[k, a]
+            c10 = c00 + (ny - 1) * dv[k, a]
+            c11 = c10 + (nx - 1) * du[k, a]
+            lo_c = min(min(c00, c01), min(c10, c11))
+            hi_c = max(max(c00, c01), max(c10, c11))
+            if lo_c < -eps or hi_c > hi[a] + eps:
+                inside = False
+            if hi_c < -eps or lo_c > hi[a] + eps:
+                missed = True
+        if missed:
+            continue
+        if inside:
+            total += ny * nx
+            continue
+        for i in range(ny):
+            ta, tb = 0.0, nx - 1.0
+            for a in range(3):
+                ta, tb = _restrict(base[k, a] + i * dv[k, a], du[k, a], -eps, hi[a] + eps, ta, tb)
+            if ta <= tb:
+                la = max(0, int(math.ceil(ta)))
+                lb = min(nx - 1, int(math.floor(tb)))
+                if lb >= la:
+                    total += lb - la + 1
+    return total
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -620,13 +800,75 @@ def _output_array(name: str, layer: dict, data: da.Array, chunks: tuple, dtype: 
     return da.Array(graph, name, chunks=chunks, dtype=dtype, meta=np.empty((0, 0, 0), dtype=dtype))
 
 
+def _check_padding(deformation: Deformation, padded: Deformation, pad: int, ds: float,
+                   scan_shape: Sequence[int]) -> None:
+    """Refuse padding that runs absurdly far beyond the scan.
+
+    Past ``R`` = (the farthest scan corner from the curve's end) + (the cage's reach), every padded slice provably
+    samples outside the scan (the padding is straight, along the end normal). A few such slices are harmless, so
+    only padding longer than ``R`` plus the scan's diagonal is refused: it would add that many slices of pure
+    fill (a session's pad of 1e7, or ``pad=100000000``).
+    """
+    sp = np.asarray(padded.spacing)
+    corners = (np.array(np.meshgrid(*[[0, int(n) - 1] for n in scan_shape], indexing="ij")).reshape(3, -1).T
+               * sp + np.asarray(padded.origin))
+    diagonal = float(np.linalg.norm((np.asarray(scan_shape) - 1) * sp))
+    reach = float(np.hypot(*padded.max_half_extent))
+    unit = padded.unit or "units"
+    for end, name, centre in ((0, "head", padded.positions[0]), (1, "tail", padded.positions[-1])):
+        useful = float(np.linalg.norm(corners - centre, axis=1).max()) + reach
+        if padded.pad[end] > useful + diagonal:
+            raise InvalidInputError(
+                f"the padding at the {name} ({padded.pad[end]:.6g} {unit}: pad={pad} slices of {ds:g} plus the "
+                f"deformation's own {deformation.pad[end]:.6g}) is absurd: past {useful:.6g} {unit} from the curve's "
+                f"end every padded slice samples outside the scan (its diagonal is {diagonal:.6g} {unit}); use a "
+                "padding of at most a few slices beyond the scan"
+            )
+
+
+def _check_coverage(deformation: Deformation, ds: float, scan_shape: Sequence[int], what: str
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Refuse a straight grid with no sample inside the scan; warn when most of it is outside.
+
+    Computed from the slice geometry (each output slice is an affine image of the scan), not from the output;
+    returns that geometry ``(base, dv, du)`` in scan voxels for the graph.
+    """
+    _, ny, nx = deformation.output_shape(ds)
+    base, dv, du = deformation.slice_geometry(ds, voxels=True)
+    n0, n1, n2 = (int(n) for n in scan_shape)
+    inside = _samples_inside(base, dv, du, ny, nx, n0, n1, n2)
+    total = len(base) * ny * nx
+    if inside == 0:
+        corners = np.concatenate([base, base + (ny - 1) * dv, base + (nx - 1) * du,
+                                  base + (ny - 1) * dv + (nx - 1) * du])
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        box = ", ".join(f"{a:.6g}..{b:.6g}" for a, b in zip(lo, hi, strict=True))
+        raise InvalidInputError(
+            f"the {what} lies entirely outside the scan: its samples span scan voxels {box} (axis0, axis1, axis2) "
+            f"but the scan spans 0..{n0 - 1}, 0..{n1 - 1}, 0..{n2 - 1}; the deformation belongs to another scan "
+            "(or its spacing, origin or unit are wrong)"
+        )
+    outside = 1.0 - inside / total
+    if outside > OUTSIDE_WARN_FRACTION:
+        warnings.warn(
+            f"{100 * outside:.1f} % of the {what}'s voxels sample outside the scan and get the fill value; check "
+            "that the deformation belongs to this scan, or shrink its cage or padding",
+            OutsideWarning,
+            stacklevel=3,
+        )
+    return base, dv, du
+
+
 def _straighten_array(data: da.Array, deformation: Deformation, ds: float, order: int, chunks: Any,
-                      fill: Any) -> da.Array:
-    """The lazy straight array of ``data`` (any dask array on the deformation's scan grid)."""
+                      fill: Any, geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> da.Array:
+    """The lazy straight array of ``data`` (any dask array on the deformation's scan grid).
+
+    ``geometry``: the deformation's ``slice_geometry(ds, voxels=True)`` when the caller has it already.
+    """
     dtype = np.dtype(data.dtype)
     fill = _check_fill(fill, dtype)
     shape = deformation.output_shape(ds)
-    base, dv, du = deformation.slice_geometry(ds, voxels=True)
+    base, dv, du = deformation.slice_geometry(ds, voxels=True) if geometry is None else geometry
     out_chunks = _normalise_out_chunks(chunks, shape)
     scan_shape = tuple(int(n) for n in data.shape)
     scan_hi = np.asarray(scan_shape)
@@ -666,14 +908,19 @@ def straighten(
     pad: int = 0,
     chunks: Any = None,
     fill: float = 0,
+    max_output: float | None = DEFAULT_MAX_OUTPUT,
 ) -> Volume:
     """Resample a bent scan into the straight box of a deformation, lazily and chunk by chunk.
 
     Parameters
     ----------
-    volume : Volume or array-like, shape (N0, N1, N2)
+    volume : Volume, path or array-like, shape (N0, N1, N2)
         The bent scan. A :class:`~napari_unwind.io.Volume` must have the deformation's spacing and origin
-        (relative 1e-6); a bare array is taken to be on the deformation's grid.
+        (relative 1e-6); when both name a length unit, the volume's geometry is converted to the deformation's
+        unit first (a scan in mm matches a deformation in micrometres of the same grid), and the result is in the
+        deformation's unit; different numbers are refused with both units named. A path (str or path-like) is
+        opened with :func:`~napari_unwind.io.open_volume`. A bare array is taken to be on the deformation's grid;
+        a nested list of whole numbers becomes int32 (numpy's int64 is not a voxel type a Volume holds).
     deformation : Deformation
         The map from the straight box into the scan.
     order : {0, 1, 3}
@@ -687,6 +934,9 @@ def straighten(
         tiles along a side longer than 256 (which bounds the input region each task reads).
     fill : float
         Value of output voxels that sample outside the scan; must fit the voxel type.
+    max_output : float or None
+        Largest output accepted, in bytes (default :data:`DEFAULT_MAX_OUTPUT`, 256 GiB; None: no limit). The size
+        is checked before anything proportional to the output is built.
 
     Returns
     -------
@@ -697,10 +947,18 @@ def straighten(
         deformation that defines the output grid, as a dict), ``"order"``, ``"output_spacing"``, ``"pad"``,
         ``"fill"`` and ``"source"``.
 
+    Raises
+    ------
+    InvalidInputError
+        For malformed options; for an output larger than ``max_output`` (the message gives its shape, voxels and
+        bytes); when no output voxel samples the scan (the message gives both boxes).
+
     Warns
     -----
     FoldWarning
         When the deformation folds (``deformation.folds()`` is not empty).
+    OutsideWarning
+        When more than half of the output's voxels sample outside the scan (computed from the slice geometry).
 
     Notes
     -----
@@ -709,13 +967,17 @@ def straighten(
     """
     order = _check_order(order)
     pad = _check_pad(pad)
+    max_output = _check_max_output(max_output)
     data, unit, source = _input_array(volume, deformation)
     ds = deformation._ds(spacing)
-    if order == 3 and np.dtype(data.dtype) == np.bool_:
-        raise InvalidInputError("order 3 needs numbers, not booleans")
-    _warn_folds(deformation, "straight volume")
     d2 = _padded(deformation, pad, ds)
-    out = _straighten_array(data, d2, ds, order, chunks, fill)
+    _check_output_size("straight volume", d2.output_shape(ds), data.dtype, max_output,
+                       f"check the output spacing ({ds:g}) and the padding (pad {pad} slices; the deformation's own "
+                       f"{deformation.pad[0]:g} / {deformation.pad[1]:g} {deformation.unit or 'units'})")
+    _check_padding(deformation, d2, pad, ds, data.shape)
+    _warn_folds(deformation, "straight volume")
+    geometry = _check_coverage(d2, ds, data.shape, "straight volume")
+    out = _straighten_array(data, d2, ds, order, chunks, fill, geometry)
     ns, ny, nx = out.shape
     origin = (d2.s_range[0], -(ny - 1) / 2 * ds, -(nx - 1) / 2 * ds)
     meta = {
@@ -773,6 +1035,47 @@ def _scheduler(scheduler: str | None) -> Iterator[None]:
             f"scheduler must be None (threads), 'synchronous' or a scheduler address such as "
             f"'tcp://host:8786', got {scheduler!r}"
         )
+
+
+def _compressed(fmt: str, path: str | os.PathLike, write_options: dict[str, Any]) -> bool:
+    """Whether the writer of ``fmt`` compresses (so that the file may be smaller than the voxels)."""
+    if fmt == "ome-zarr":
+        return True
+    if fmt == "nrrd":
+        return str(write_options.get("encoding", "gzip")).lower() != "raw"
+    if fmt == "nifti":
+        return str(path).lower().endswith(".gz")
+    if fmt == "tiff":
+        return str(write_options.get("compression") or "none").lower() != "none"
+    if fmt == "stack":
+        return Path(str(write_options.get("pattern") or path)).suffix.lower() in (".png", ".jpg", ".jpeg")
+    return False  # raw, DICOM
+
+
+def _check_disk(path: str | os.PathLike, straight: Volume, fmt: str, write_options: dict[str, Any]) -> None:
+    """Compare the output's uncompressed size with the free space of the target's folder, before writing.
+
+    Refused (OutputError) for an uncompressed format that cannot fit; a :class:`DiskSpaceWarning` for a
+    compressed one, which may.
+    """
+    folder = Path(path).expanduser().absolute().parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent  # a folder the writer will create: the space is that of its nearest ancestor
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return  # nothing to compare with; a full disk is still reported when writing
+    nbytes = straight.nbytes
+    if nbytes <= free:
+        return
+    what = (f"{path} needs {nbytes:,} bytes ({_size(nbytes)}) for a straight volume of shape {straight.shape} "
+            f"({straight.dtype}, uncompressed) but {folder} has only {free:,} bytes free ({_size(free)})")
+    if _compressed(fmt, path, write_options):
+        warnings.warn(f"{what}; {fmt} is compressed and may fit, but the export may stop with a full disk",
+                      DiskSpaceWarning, stacklevel=4)
+        return
+    raise OutputError(f"{what}; free some space, write to another disk, or choose a compressed format "
+                      "(OME-Zarr, .nii.gz, gzip NRRD)")
 
 
 def _straight_map(straight: Volume, d: Deformation, ds: float) -> dict[str, np.ndarray]:
@@ -854,13 +1157,16 @@ def export_iter(
     overwrite: bool = False,
     session: Any = None,
     scheduler: str | None = None,
+    max_output: float | None = DEFAULT_MAX_OUTPUT,
     **write_options: Any,
 ) -> Iterator[Progress]:
     """Generator form of :func:`export`: yields :class:`~napari_unwind.progress.Progress`, returns the path."""
-    straight = straighten(volume, deformation, order=order, spacing=spacing, pad=pad, chunks=chunks, fill=fill)
+    fmt = output_format(path, write_options.get("format"))
+    straight = straighten(volume, deformation, order=order, spacing=spacing, pad=pad, chunks=chunks, fill=fill,
+                          max_output=max_output)
     d2 = Deformation.from_dict(straight.metadata["deformation"])
     ds = straight.metadata["output_spacing"]
-    fmt = output_format(path, write_options.get("format"))
+    _check_disk(path, straight, fmt, write_options)
     with _scheduler(scheduler):
         if fmt != "ome-zarr":
             if "file_chunks" in write_options:
@@ -906,6 +1212,7 @@ def export(
     session: Any = None,
     scheduler: str | None = None,
     progress: Callable[[Progress], Any] | None = None,
+    max_output: float | None = DEFAULT_MAX_OUTPUT,
     **write_options: Any,
 ) -> Path:
     """Straighten ``volume`` and write the result, chunk by chunk, in the format ``path`` names.
@@ -929,6 +1236,12 @@ def export(
         client is connected for the duration of the export and closed afterwards).
     progress : callable, optional
         Called with each progress record.
+    max_output : float or None
+        Largest output accepted, in bytes (default :data:`DEFAULT_MAX_OUTPUT`, 256 GiB; None: no limit), as for
+        :func:`straighten`. Besides, the output's uncompressed size is compared with the free space of the target's
+        folder before anything is written: an uncompressed format that cannot fit is refused
+        (:class:`~napari_unwind.errors.OutputError`); for a compressed one (OME-Zarr, gzip NRRD, ``.nii.gz``,
+        compressed TIFF, PNG/JPEG slices) a :class:`DiskSpaceWarning` is issued and the export goes ahead.
     **write_options
         Passed to the writer (``chunks=``... note: ``chunks`` above are the dask chunks of the computation;
         pass the file's chunking as ``file_chunks`` for OME-Zarr, which is renamed to the writer's ``chunks``).
@@ -939,7 +1252,8 @@ def export(
         The written path.
     """
     return run(export_iter(volume, deformation, path, order=order, spacing=spacing, pad=pad, chunks=chunks,
-                           fill=fill, overwrite=overwrite, session=session, scheduler=scheduler, **write_options),
+                           fill=fill, overwrite=overwrite, session=session, scheduler=scheduler,
+                           max_output=max_output, **write_options),
                progress)
 
 
@@ -1207,28 +1521,47 @@ def _recorded_pad(straight: Any) -> int:
     return int(pad) if isinstance(pad, (int, float)) and pad >= 0 and float(pad).is_integer() else 0
 
 
+def _check_shape(shape: Any) -> tuple[int, int, int]:
+    """The bent output's shape: 3 whole numbers >= 1."""
+    def whole(n: Any) -> int:
+        if isinstance(n, (float, np.floating)) and float(n).is_integer():
+            return int(n)
+        return operator.index(n)  # TypeError for anything else
+
+    try:
+        values = tuple(whole(n) for n in shape)
+    except TypeError:
+        raise InvalidInputError(f"shape must be 3 positive integers, got {shape!r}") from None
+    if len(values) != 3 or min(values) < 1:
+        raise InvalidInputError(f"shape must be 3 positive integers, got {shape!r}")
+    return values  # type: ignore[return-value]
+
+
 def bend(
     straight: Any,
     deformation: Deformation,
     *,
-    shape: Sequence[int],
+    shape: Sequence[int] | None = None,
     order: int = 1,
     fill: float = 0,
     spacing: float | None = None,
     pad: int | None = None,
     chunks: Any = None,
+    max_output: float | None = DEFAULT_MAX_OUTPUT,
 ) -> da.Array:
     """Put a straight specimen back into the bent pose of ``deformation`` (the inverse of :func:`straighten`).
 
     Parameters
     ----------
-    straight : Volume or array-like, shape (Ns, Ny, Nx)
+    straight : Volume, path or array-like, shape (Ns, Ny, Nx)
         A volume on the straight grid of ``deformation`` at spacing ``ds`` (axis0 = s, axis1 = y, axis2 = x),
-        e.g. the output of :func:`straighten` or a straight model to pose.
+        e.g. the output of :func:`straighten` or a straight model to pose. A path is opened with
+        :func:`~napari_unwind.io.open_volume`; a Volume's spacing is converted to the deformation's unit when
+        both are known length units.
     deformation : Deformation
         The pose to bend into.
     shape : tuple of 3 int
-        Shape of the bent output (the scan's grid: the deformation's spacing and origin).
+        Shape of the bent output (the scan's grid: the deformation's spacing and origin). Required.
     order : {0, 1, 3}
         Interpolation order in the straight volume.
     fill : float
@@ -1240,6 +1573,8 @@ def bend(
         metadata records (the output of :func:`straighten`, or an OME-Zarr export read back), else 0.
     chunks : int or tuple, optional
         Chunks of the output (default 64^3).
+    max_output : float or None
+        Largest output accepted, in bytes (default :data:`DEFAULT_MAX_OUTPUT`; None: no limit).
 
     Returns
     -------
@@ -1249,30 +1584,36 @@ def bend(
         reading anything.
     """
     order = _check_order(order)
+    max_output = _check_max_output(max_output)
+    if not isinstance(deformation, Deformation):
+        raise InvalidInputError(f"deformation must be a napari_unwind.Deformation, got {type(deformation).__name__}")
+    if isinstance(straight, (str, os.PathLike)):
+        straight = open_volume(straight)
     auto_pad = pad is None
     if auto_pad:
         pad = _recorded_pad(straight)
     pad = _check_pad(pad)
-    if not isinstance(deformation, Deformation):
-        raise InvalidInputError(f"deformation must be a napari_unwind.Deformation, got {type(deformation).__name__}")
-    try:
-        shape = tuple(int(n) for n in shape)
-    except TypeError:
-        raise InvalidInputError(f"shape must be 3 positive integers, got {shape!r}") from None
-    if len(shape) != 3 or min(shape) < 1:
-        raise InvalidInputError(f"shape must be 3 positive integers, got {shape!r}")
     if isinstance(straight, Volume):
         sp = straight.spacing
         if not np.allclose(sp, sp[0], rtol=1e-6):
             raise InvalidInputError(f"a straight volume has isotropic spacing; this one has {sp}")
-        ds = float(sp[0]) if spacing is None else deformation._ds(spacing)
+        ds = float(sp[0]) * _unit_scale(straight.unit, deformation.unit) if spacing is None \
+            else deformation._ds(spacing)
         data = straight.data
     else:
         ds = deformation._ds(spacing)
-        data = straight if isinstance(straight, da.Array) else da.asarray(np.asarray(straight))
+        data = _as_dask(straight, keep_int64=True)
     if data.ndim != 3:
-        raise InvalidInputError(f"the straight volume must be 3D, got shape {data.shape}")
+        raise InvalidInputError(f"the straight volume must be 3D (s, y, x), got shape {data.shape}")
+    if shape is None:
+        raise InvalidInputError("bend needs the bent output's shape=(N0, N1, N2): the shape of the scan the "
+                                "deformation belongs to (a session's source.shape)")
+    shape = _check_shape(shape)
     dtype = np.dtype(data.dtype)
+    if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating) or dtype == np.bool_):
+        raise InvalidInputError(f"cannot bend voxels of type {dtype}; use integers or floats")
+    _check_output_size("bent volume", shape, dtype, max_output,
+                       "check shape= (the shape of the scan the deformation belongs to)")
     fill = _check_fill(fill, dtype)
     d2 = _padded(deformation, pad, ds)
     expected = d2.output_shape(ds)
@@ -1322,6 +1663,22 @@ def bend(
 # ------------------------------------------------------------------------------------------------------------------
 # points, labels, meshes
 # ------------------------------------------------------------------------------------------------------------------
+def _points(values: Any, what: str) -> np.ndarray:
+    """``values`` as finite float points of shape (N, 3); the error shows what was received."""
+    try:
+        if isinstance(values, (str, bytes)):
+            raise ValueError
+        pts = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{what} must be numbers of shape (N, 3), got {reprlib.repr(values)}") from None
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InvalidInputError(f"{what} must have shape (N, 3), got shape {pts.shape}: {reprlib.repr(values)}")
+    if not np.isfinite(pts).all():
+        row = int(np.argmax(~np.isfinite(pts).all(axis=1)))
+        raise InvalidInputError(f"{what} must be finite numbers; row {row} is {reprlib.repr(values[row])}")
+    return pts
+
+
 def map_points(
     points: Any,
     deformation: Deformation,
@@ -1359,11 +1716,7 @@ def map_points(
         raise InvalidInputError(f"deformation must be a napari_unwind.Deformation, got {type(deformation).__name__}")
     if to not in ("straight", "scan"):
         raise InvalidInputError(f"to must be 'straight' or 'scan', got {to!r}")
-    pts = np.asarray(points, dtype=float)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InvalidInputError(f"points must have shape (N, 3), got {pts.shape}")
-    if not np.isfinite(pts).all():
-        raise InvalidInputError("points must be finite")
+    pts = _points(points, "points")
     pad = _check_pad(pad)
     ds = deformation._ds(spacing)
     d = _padded(deformation, pad, ds)
@@ -1409,6 +1762,7 @@ def map_labels(
     spacing: float | None = None,
     pad: int = 0,
     chunks: Any = None,
+    max_output: float | None = DEFAULT_MAX_OUTPUT,
 ) -> da.Array:
     """Carry a label image between the scan and the straight volume (nearest neighbour, fill 0, dtype kept).
 
@@ -1420,8 +1774,8 @@ def map_labels(
     to : {"straight", "scan"}
     shape : tuple of 3 int
         Shape of the scan (needed for ``to="scan"``).
-    spacing, pad, chunks
-        As for :func:`straighten` / :func:`bend`.
+    spacing, pad, chunks, max_output
+        As for :func:`straighten` / :func:`bend` (a straight grid with no sample in the scan is refused).
 
     Returns
     -------
@@ -1429,18 +1783,22 @@ def map_labels(
         Lazy labels on the target grid; any integer or boolean type is kept (also int64 and uint64).
     """
     if to == "straight":
-        if isinstance(labels, Volume):
-            data, _, _ = _input_array(labels, deformation)
-        else:
-            data, _, _ = _input_array(labels, deformation, any_dtype=True)
         pad = _check_pad(pad)
+        max_output = _check_max_output(max_output)
+        data, _, _ = _input_array(labels, deformation, any_dtype=True)
         ds = deformation._ds(spacing)
+        d2 = _padded(deformation, pad, ds)
+        _check_output_size("straight labels", d2.output_shape(ds), data.dtype, max_output,
+                           f"check the output spacing ({ds:g}) and pad ({pad})")
+        _check_padding(deformation, d2, pad, ds, data.shape)
         _warn_folds(deformation, "straight labels")
-        return _straighten_array(data, _padded(deformation, pad, ds), ds, 0, chunks, 0)
+        geometry = _check_coverage(d2, ds, data.shape, "straight labels")
+        return _straighten_array(data, d2, ds, 0, chunks, 0, geometry)
     if to == "scan":
         if shape is None:
             raise InvalidInputError("map_labels(..., to='scan') needs the scan's shape=")
-        return bend(labels, deformation, shape=shape, order=0, fill=0, spacing=spacing, pad=pad, chunks=chunks)
+        return bend(labels, deformation, shape=shape, order=0, fill=0, spacing=spacing, pad=pad, chunks=chunks,
+                    max_output=max_output)
     raise InvalidInputError(f"to must be 'straight' or 'scan', got {to!r}")
 
 
@@ -1471,10 +1829,15 @@ def map_mesh(
     faces : ndarray, shape (M, K)
         Unchanged.
     """
-    f = np.asarray(faces)
+    try:
+        f = np.asarray(faces)
+    except (TypeError, ValueError):
+        f = np.asarray([], dtype=object)
     if f.ndim != 2 or (f.size and not np.issubdtype(f.dtype, np.integer)):
-        raise InvalidInputError(f"faces must be an integer array of shape (M, K), got {f.dtype} {f.shape}")
-    v = np.asarray(vertices, dtype=float)
+        raise InvalidInputError(
+            f"faces must be whole numbers of shape (M, K) (vertex indices), got {reprlib.repr(faces)}"
+        )
+    v = _points(vertices, "vertices")
     if f.size and (f.min() < 0 or f.max() >= len(v)):
         raise InvalidInputError(f"faces refer to vertices outside 0..{len(v) - 1}")
     return map_points(v, deformation, to=to, spacing=spacing, pad=pad), f

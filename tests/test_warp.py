@@ -25,6 +25,7 @@ from napari_unwind.io import Volume, open_volume
 from napari_unwind.warp import (
     ORDER3_FILTER_MARGIN,
     FoldWarning,
+    OutsideWarning,
     bend,
     export,
     export_iter,
@@ -174,7 +175,9 @@ def test_fill_outside_the_scan_and_chunks_that_miss_it():
     pos = np.array([[5.0, 10.0, 10.0], [45.0, 10.0, 10.0]])
     frames = np.repeat(np.array([[[0.0, 1, 0], [0, 0, 1], [1, 0, 0]]]), 2, axis=0)
     d = Deformation.from_keyframes(pos, frames, (3.0, 3.0))
-    out = straighten(vol, d, fill=9, chunks=(4, 7, 7)).data.compute()
+    with pytest.warns(OutsideWarning, match=r"63\.4 % of") as rec:  # 26 of the 41 slices sample nothing
+        out = straighten(vol, d, fill=9, chunks=(4, 7, 7)).data.compute()
+    assert [type(w.message).__name__ for w in rec] == ["OutsideWarning"]
     assert out.shape == (41, 7, 7)
     np.testing.assert_array_equal(out[:15], 500)  # s = 0..14 -> axis0 = 5..19 inside
     np.testing.assert_array_equal(out[15:], 9)
