@@ -7,13 +7,22 @@ from napari_unwind.deformation import Deformation, Keyframe, parallel_transport_
 from napari_unwind.errors import InvalidInputError
 
 
-def circle_deformation(radius=50.0, n_keys=200, arc=np.pi, cage=5.0):
-    """Keyframes densely on a circle in the (axis1, axis2) plane, frames: n tangent, v towards axis0."""
+def circle_deformation(radius=50.0, n_keys=200, arc=np.pi, cage=5.0, bend_in="u"):
+    """Keyframes densely on a circle in the (axis1, axis2) plane, frames: n tangent.
+
+    ``bend_in="u"``: v = axis0 (normal to the circle's plane), so the curve bends in the plane of u and n;
+    ``bend_in="v"``: u = axis0, so it bends in the plane of v and n.
+    """
     t = np.linspace(0, arc, n_keys)
     pos = np.stack([np.zeros_like(t), radius * np.sin(t), radius * (1 - np.cos(t))], axis=1)
     n = np.stack([np.zeros_like(t), np.cos(t), np.sin(t)], axis=1)
-    v = np.tile([1.0, 0.0, 0.0], (n_keys, 1))
-    u = np.cross(v, n)
+    axis0 = np.tile([1.0, 0.0, 0.0], (n_keys, 1))
+    if bend_in == "u":
+        v = axis0
+        u = np.cross(v, n)
+    else:
+        u = axis0
+        v = np.cross(n, u)  # u x v = u x (n x u) = n
     return Deformation.from_keyframes(pos, np.stack([u, v, n], axis=1), cage), t
 
 
@@ -113,6 +122,35 @@ def test_folds_where_the_cage_exceeds_the_radius_of_curvature(cage, folds):
     # the smallest Jacobian is 1 - cage/R on a circle (analytic)
     j = d.jacobian_min(np.linspace(1, d.length - 1, 50))
     np.testing.assert_allclose(j, 1 - cage, atol=2e-3)
+
+
+@pytest.mark.parametrize("bend_in", ["u", "v"])
+@pytest.mark.parametrize("cage", [(1.2, 0.1), (0.1, 1.2), (0.9, 0.3), (0.3, 0.9)])
+def test_folds_with_asymmetric_cages_follow_the_extent_along_the_bend(cage, bend_in):
+    """On a circle of radius R, det J = 1 - x/R with x the offset along the bend direction (towards the centre):
+    the smallest Jacobian over the cage is 1 - r/R, r the half-extent along the bend (rx when the curve bends in
+    the plane of u, ry in the plane of v); it folds exactly when r > R. The other half-extent does not matter."""
+    radius = 20.0
+    he = (cage[0] * radius, cage[1] * radius)
+    d, _ = circle_deformation(radius=radius, n_keys=300, cage=he, arc=np.pi / 2, bend_in=bend_in)
+    along = cage[0] if bend_in == "u" else cage[1]
+    j = d.jacobian_min(np.linspace(1, d.length - 1, 50))
+    np.testing.assert_allclose(j, 1 - along, atol=2e-3)
+    found = d.folds()
+    assert bool(found) == (along > 1)
+    if found:
+        lo, hi = found[0]
+        assert lo <= 1.0 and hi >= d.length - 1.0  # the whole arc folds
+    # the analytic Jacobian at the cage's corners, by finite differences of the forward map
+    s = d.length / 2
+    h = 1e-5
+    corners = [(sx * he[0], sy * he[1]) for sx in (-1, 1) for sy in (-1, 1)]
+    dets = []
+    for x, y in corners:
+        p = np.array([[x, y, s]])
+        jac = np.stack([(d.forward(p + h * e) - d.forward(p - h * e))[0] / (2 * h) for e in np.eye(3)], axis=1)
+        dets.append(np.linalg.det(jac))
+    assert min(dets) == pytest.approx(1 - along, abs=2e-3)
 
 
 def test_straight_parts_never_fold():

@@ -183,6 +183,43 @@ def test_fill_outside_the_scan_and_chunks_that_miss_it():
     np.testing.assert_array_equal(out[15:], 9)
 
 
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_order1_samples_on_the_scan_faces_match_scipy(axis):
+    """The kernel's checked path (samples within 1e-6 voxel of a face of the scan, where the bounds-free run
+    cannot go) interpolating random data, against scipy over the whole volume.
+
+    A straight rod along ``axis`` from coordinate 0 to n - 1: its first and last slices lie exactly in the two
+    faces of the scan normal to ``axis``, so every sample of theirs takes the checked path, with the two other
+    fractions non-zero (u, v oblique) and, on the far face, the upper neighbour clamped. The cage is wider than
+    the scan, so every slice also straddles the border.
+    """
+    shape = (12, 14, 16)
+    vol = np.random.default_rng(axis).random(shape)
+    b, c = [x for x in range(3) if x != axis]
+    th = 0.3
+    n = np.eye(3)[axis]
+    u = np.cos(th) * np.eye(3)[b] + np.sin(th) * np.eye(3)[c]
+    frame = np.stack([u, np.cross(n, u), n])
+    pos = np.zeros((2, 3))
+    pos[:, b], pos[:, c] = 6.3, 7.6
+    pos[1, axis] = shape[axis] - 1
+    d = Deformation.from_keyframes(pos, np.stack([frame, frame]), (9.0, 8.0))
+    coords = reference_coords(d, 1.0)
+    assert (coords[axis][0] == 0).all() and (coords[axis][-1] == shape[axis] - 1).all()
+    inside = np.ones(coords.shape[1:], bool)
+    near_face = np.zeros(coords.shape[1:], bool)
+    for ax in range(3):
+        inside &= (coords[ax] >= 0) & (coords[ax] <= shape[ax] - 1)
+        near_face |= (np.abs(coords[ax]) < 1e-6) | (np.abs(coords[ax] - (shape[ax] - 1)) < 1e-6)
+    assert (inside & near_face).sum() > 150 and 0.2 < inside.mean() < 0.9
+    ref = ndi.map_coordinates(vol, coords, order=1, mode="constant", cval=-1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", OutsideWarning)
+        got = straighten(vol, d, fill=-1.0, chunks=(5, 6, 7)).data.compute()
+    np.testing.assert_allclose(got[inside & near_face], ref[inside & near_face], atol=1e-12, rtol=0)
+    np.testing.assert_allclose(got, ref, atol=1e-12, rtol=0)
+
+
 def test_cylinder_error_falls_as_keyframes_are_added():
     """The paper's synthetic experiment: keyframes on the true centreline of the sine-wave cylinder."""
     p = cylinder_phantom()
