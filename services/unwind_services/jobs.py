@@ -1,26 +1,39 @@
-"""The job runner: a pool of worker threads driving task generators, with cancel, timeouts, watch and drain.
+"""The job runner: worker processes driving task generators, with cancel, timeouts, watch and drain.
 
-A job's generator is advanced one step at a time; between two steps the runner checks for a cancel request, a
+Jobs run in a pool of ``workers`` processes (spawned once, their imports warmed), so the core's long computations
+never hold the server's GIL: health checks and other calls stay fast under load. The SQLite store (WAL) is the
+only channel between the server and its workers: a worker marks its job running, appends progress records,
+polls the job's stop flag between two steps, and records the result or the error.
+
+A job's generator is advanced one step at a time; between two steps the worker checks for a cancel request, a
 timeout or a shutdown. Stopping closes the generator, so the core's ``atomic_output`` removes its temporary
-output: a cancelled or interrupted job never leaves a result that looks whole.
+output: a cancelled or interrupted job never leaves a result that looks whole. Workers die with the server
+(``PR_SET_PDEATHSIG``); after a ``kill -9`` the next start marks their jobs interrupted.
 """
 
 from __future__ import annotations
 
+import ctypes
 import logging
+import multiprocessing
 import shutil
+import signal
 import threading
 import time
 import traceback
 import uuid
+import warnings
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
 
+from napari_unwind.errors import InvalidInputError
 from napari_unwind.io._atomic import TMP_MARK, remove_path
 
 from ._proto.unwind.v1 import common_pb2 as pb
 from ._proto.unwind.v1 import jobs_pb2
-from .catalog import Catalog
+from .catalog import Catalog, Limits
 from .errors import (
     INTERNAL_MESSAGE,
     CancelledError,
@@ -30,7 +43,8 @@ from .errors import (
     StateError,
     status_for,
 )
-from .store import ACTIVE, FINAL, INTERRUPTED_MESSAGE
+from .paths import DataRoot
+from .store import ACTIVE, FINAL, INTERRUPTED_MESSAGE, Store
 from .tasks import KINDS, TaskContext, kind_of, precheck, run_task
 
 __all__ = ["JobManager"]
@@ -38,14 +52,7 @@ __all__ = ["JobManager"]
 log = logging.getLogger("unwind_services.jobs")
 
 _PROGRESS_INTERVAL = 0.1  # seconds between two stored records of the same stage
-
-
-class _Stop(Exception):
-    """Internal: why a running job stops between two steps."""
-
-    def __init__(self, why: str):
-        super().__init__(why)
-        self.why = why
+_WATCH_POLL = 0.2  # seconds between two looks at the store while watching
 
 
 class JobManager:
@@ -55,21 +62,27 @@ class JobManager:
         self.catalog = catalog
         self.store = catalog.store
         self.scheduler = scheduler
-        self._pool = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="unwind-job")
-        self._stop: dict[str, str] = {}  # job id -> "cancel" | "interrupt"
+        self.workers = max(1, int(workers))
+        self._pool: ProcessPoolExecutor | None = None
+        self._futures: dict[str, Future] = {}
         self._cond = threading.Condition()
-        self._running: set[str] = set()
         self._closing = False
 
     # -- life cycle ------------------------------------------------------------------------------------------------
     def start(self) -> None:
-        """Recover after a restart: running jobs become interrupted, leftovers go, queued jobs run again."""
+        """Recover after a restart (running jobs become interrupted, leftovers go), start the workers, requeue."""
         interrupted = self.store.mark_interrupted()
         for job_id in interrupted:
             log.warning("job %s was running when the server stopped: marked interrupted", job_id)
         self._sweep_leftovers()
+        self._pool = self._new_pool()
         for job_id in self.store.queued_ids():
-            self._pool.submit(self._run, job_id)
+            self._dispatch(job_id)
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(
+            max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init,
+            initargs=(str(self.catalog.root.root), self.catalog.limits, self.scheduler))
 
     def _sweep_leftovers(self) -> None:
         """Temporary outputs of atomic writes that a killed server left behind."""
@@ -77,21 +90,47 @@ class JobManager:
         for p in list(users.rglob(f"*{TMP_MARK}")):
             log.warning("removing the partial output %s", p)
             remove_path(p)
-        tmp = self.catalog.root.tmp
-        for p in tmp.iterdir():
+        for p in self.catalog.root.tmp.iterdir():
             remove_path(p)
+
+    def _dispatch(self, job_id: str) -> None:
+        try:
+            fut = self._pool.submit(_worker_run, job_id)
+        except BrokenProcessPool:  # a worker was killed: its jobs are marked interrupted; start fresh workers
+            log.error("a job worker died; starting new workers")
+            self._pool = self._new_pool()
+            fut = self._pool.submit(_worker_run, job_id)
+        with self._cond:
+            self._futures[job_id] = fut
+        fut.add_done_callback(lambda f, j=job_id: self._done(j, f))
+
+    def _done(self, job_id: str, fut: Future) -> None:
+        with self._cond:
+            self._futures.pop(job_id, None)
+            self._cond.notify_all()
+        if not fut.cancelled() and fut.exception() is not None:  # the worker process died (not a job error)
+            log.error("the worker running job %s died: %s", job_id, fut.exception())
+            self.store.finish(job_id, pb.JOB_STATE_FAILED, code="UNAVAILABLE", message=INTERRUPTED_MESSAGE,
+                              interrupted=True)
 
     def shutdown(self, drain_seconds: float = 0.0) -> None:
         """Accept no new jobs; let running ones finish for ``drain_seconds``, then interrupt them."""
-        with self._cond:
-            self._closing = True
-            deadline = time.monotonic() + max(0.0, drain_seconds)
-            while self._running and time.monotonic() < deadline:
-                self._cond.wait(timeout=min(0.2, max(0.0, deadline - time.monotonic())))
-            for job_id in self._running:
-                self._stop[job_id] = "interrupt"
-            self._cond.notify_all()
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._closing = True
+        deadline = time.monotonic() + max(0.0, drain_seconds)
+        for job_id in self.store.queued_ids():  # queued jobs stay queued: they run after the restart
+            fut = self._futures.get(job_id)
+            if fut is not None:
+                fut.cancel()
+        while self._running_ids() and time.monotonic() < deadline:
+            with self._cond:
+                self._cond.wait(timeout=0.2)
+        for job_id in self._running_ids():
+            self.store.request_stop(job_id, "interrupt")
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def _running_ids(self) -> list[str]:
+        return [j for j in list(self._futures) if self.store.job_row(j)["state"] == pb.JOB_STATE_RUNNING]
 
     @property
     def closing(self) -> bool:
@@ -104,8 +143,6 @@ class JobManager:
         kind = kind_of(spec)
         precheck(self.catalog, owner, spec)
         if spec.timeout_seconds < 0:
-            from napari_unwind.errors import InvalidInputError
-
             raise InvalidInputError(f"timeout_seconds must be >= 0 (0: no limit), got {spec.timeout_seconds}")
         limit = self.catalog.limits.max_jobs_per_user
         if limit and self.store.count_active(owner) >= limit:
@@ -116,7 +153,7 @@ class JobManager:
         job, new = self.store.add_job(owner, KINDS[kind], spec.name or kind, spec,
                                       self.catalog.root.relative(workdir), job_id)
         if new:
-            self._pool.submit(self._run, job.id)
+            self._dispatch(job.id)
         return job
 
     def resubmit(self, owner: str, job_id: str) -> pb.Job:
@@ -131,18 +168,15 @@ class JobManager:
         job = self.store.get_job(owner, job_id)
         if job.state == pb.JOB_STATE_QUEUED:
             self.store.finish(job_id, pb.JOB_STATE_CANCELLED, code="CANCELLED", message="cancelled before it started")
-        elif job.state == pb.JOB_STATE_RUNNING:
-            with self._cond:
-                self._stop.setdefault(job_id, "cancel")
+        if self.store.get_job(owner, job_id).state == pb.JOB_STATE_RUNNING:
+            self.store.request_stop(job_id, "cancel")
             deadline = time.monotonic() + 2  # usually enough for the next step; the caller may wait for the rest
             while self.store.get_job(owner, job_id).state in ACTIVE and time.monotonic() < deadline:
-                with self._cond:
-                    self._cond.wait(timeout=0.1)
-        self._notify()
+                time.sleep(0.05)
         return self.store.get_job(owner, job_id)
 
     def watch(self, owner: str, job_id: str, after_seq: int, is_active=lambda: True) -> Iterator[jobs_pb2.JobEvent]:
-        """Progress records after ``after_seq`` as they come, then the final job."""
+        """The job now, its progress records after ``after_seq`` as they come, then the final job."""
         job = self.store.get_job(owner, job_id)
         yield jobs_pb2.JobEvent(job=job)
         seq = after_seq
@@ -161,77 +195,102 @@ class JobManager:
                 # the stream ends with the server; the client reconnects and resumes after `seq`
                 raise ShuttingDownError("the server is shutting down; watch again after it restarts")
             with self._cond:
-                self._cond.wait(timeout=0.5)
+                self._cond.wait(timeout=_WATCH_POLL)
 
-    def _notify(self) -> None:
-        with self._cond:
-            self._cond.notify_all()
 
-    # -- the worker ------------------------------------------------------------------------------------------------
-    def _run(self, job_id: str) -> None:
-        if self._closing or not self.store.set_running(job_id):
-            return
-        row = self.store.job_row(job_id)
-        owner, timeout = row["owner"], float(row["timeout"])
-        workdir = self.catalog.root.absolute(row["workdir"])
-        with self._cond:
-            self._running.add(job_id)
-        self._notify()
-        gen = None
-        try:
-            workdir.mkdir(parents=True, exist_ok=True)
-            spec = self.store.spec(job_id)
-            ctx = TaskContext(self.catalog, owner, job_id, workdir, self.scheduler)
-            gen = run_task(ctx, spec)
-            t0 = time.monotonic()
-            last = ("", 0.0)
-            while True:
-                why = self._stop.get(job_id)
-                if why:
-                    raise _Stop(why)
-                if timeout and time.monotonic() - t0 > timeout:
-                    raise DeadlineError(f"the job ran longer than its timeout of {timeout:g} s and was stopped")
-                try:
-                    p = next(gen)
-                except StopIteration as stop:
-                    result = stop.value
-                    break
-                now = time.monotonic()
-                if p.stage != last[0] or now - last[1] >= _PROGRESS_INTERVAL or (p.total and p.done >= p.total):
-                    self.store.add_progress(job_id, p.stage, p.done, p.total, p.message)
-                    last = (p.stage, now)
-                    self._notify()
-            self.store.finish(job_id, pb.JOB_STATE_SUCCEEDED, result=result)
-        except _Stop as stop:
-            if gen is not None:
-                gen.close()  # GeneratorExit inside the core: atomic_output removes the temporary output
-            if stop.why == "interrupt":
-                self.store.finish(job_id, pb.JOB_STATE_FAILED, code="UNAVAILABLE", message=INTERRUPTED_MESSAGE,
-                                  interrupted=True)
-            else:
-                self.store.finish(job_id, pb.JOB_STATE_CANCELLED, code="CANCELLED", message="cancelled by its owner")
-        except BaseException as exc:  # noqa: BLE001 - every failure is recorded; bugs are logged with a traceback
-            if gen is not None:
-                gen.close()
-            code, message = status_for(exc)
-            if message is None:
-                ref = uuid.uuid4().hex[:8]
-                log.error("job %s failed (reference %s):\n%s", job_id, ref, traceback.format_exc())
-                message = INTERNAL_MESSAGE.format(ref=ref)
-            state = pb.JOB_STATE_CANCELLED if isinstance(exc, CancelledError) else pb.JOB_STATE_FAILED
-            self.store.finish(job_id, state, code=code.name, message=self.catalog.root.scrub(message))
-            if not isinstance(exc, Exception):
-                raise
-        finally:
-            with self._cond:
-                self._running.discard(job_id)
-                self._stop.pop(job_id, None)
-                self._cond.notify_all()
-            job = self.store.job_row(job_id)
-            if job["state"] != pb.JOB_STATE_SUCCEEDED and workdir.exists() and not self.store.has_objects(job_id):
-                shutil.rmtree(workdir, ignore_errors=True)  # nothing of a failed job is kept (a saved session is)
+# ------------------------------------------------------------------------------------------------------------------
+# the worker processes
+# ------------------------------------------------------------------------------------------------------------------
+class _Stop(Exception):
+    """Internal: why a running job stops between two steps."""
 
-    @staticmethod
-    def state_name(state: int) -> str:
-        return pb.JobState.Name(state)
+    def __init__(self, why: str):
+        super().__init__(why)
+        self.why = why
 
+
+_WORKER: dict = {}
+
+
+def _worker_init(root: str, limits: Limits, scheduler: str | None) -> None:
+    """Once per worker process: die with the server, leave SIGTERM/SIGINT to it, open the store, warm imports."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # pragma: no cover - not Linux
+        pass
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the server decides: drain, then interrupt
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    warnings.filterwarnings("ignore", category=UserWarning, module="napari_unwind.warp")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    data_root = DataRoot(root)
+    _WORKER["catalog"] = Catalog(Store(data_root.database), data_root, limits)
+    _WORKER["scheduler"] = scheduler
+    import napari_unwind.segmentation  # noqa: F401 - numba kernels and the mesher load now, not in the first job
+    import napari_unwind.skeleton  # noqa: F401
+    import napari_unwind.warp  # noqa: F401
+
+
+def _worker_run(job_id: str) -> None:
+    run_job(_WORKER["catalog"], job_id, _WORKER["scheduler"])
+
+
+def run_job(catalog: Catalog, job_id: str, scheduler: str | None = None) -> None:
+    """Run one queued job to its end, recording everything in the store (used by the worker processes)."""
+    store = catalog.store
+    if not store.set_running(job_id):
+        return  # cancelled while queued
+    row = store.job_row(job_id)
+    owner, timeout = row["owner"], float(row["timeout"])
+    workdir = catalog.root.absolute(row["workdir"])
+    gen = None
+    try:
+        workdir.mkdir(parents=True, exist_ok=True)
+        ctx = TaskContext(catalog, owner, job_id, workdir, scheduler)
+        gen = run_task(ctx, store.spec(job_id))
+        t0 = time.monotonic()
+        last = ("", 0.0)
+        while True:
+            why = store.stop_requested(job_id)
+            if why:
+                raise _Stop(why)
+            if timeout and time.monotonic() - t0 > timeout:
+                raise DeadlineError(f"the job ran longer than its timeout of {timeout:g} s and was stopped")
+            try:
+                p = next(gen)
+            except StopIteration as stop:
+                result = stop.value
+                break
+            now = time.monotonic()
+            if p.stage != last[0] or now - last[1] >= _PROGRESS_INTERVAL or (p.total and p.done >= p.total):
+                store.add_progress(job_id, p.stage, p.done, p.total, p.message)
+                last = (p.stage, now)
+        store.finish(job_id, pb.JOB_STATE_SUCCEEDED, result=result)
+    except _Stop as stop:
+        if gen is not None:
+            gen.close()  # GeneratorExit inside the core: atomic_output removes the temporary output
+        if stop.why == "interrupt":
+            store.finish(job_id, pb.JOB_STATE_FAILED, code="UNAVAILABLE", message=INTERRUPTED_MESSAGE,
+                         interrupted=True)
+        else:
+            store.finish(job_id, pb.JOB_STATE_CANCELLED, code="CANCELLED", message="cancelled by its owner")
+    except BaseException as exc:  # noqa: BLE001 - every failure is recorded; bugs are logged with a traceback
+        if gen is not None:
+            gen.close()
+        code, message = status_for(exc)
+        if message is None:
+            ref = uuid.uuid4().hex[:8]
+            log.error("job %s failed (reference %s):\n%s", job_id, ref, traceback.format_exc())
+            message = INTERNAL_MESSAGE.format(ref=ref)
+        state = pb.JOB_STATE_CANCELLED if isinstance(exc, CancelledError) else pb.JOB_STATE_FAILED
+        store.finish(job_id, state, code=code.name, message=catalog.root.scrub(message))
+        if not isinstance(exc, Exception):
+            raise
+    finally:
+        if store.job_row(job_id)["state"] != pb.JOB_STATE_SUCCEEDED and workdir.exists() \
+                and not store.has_objects(job_id):
+            shutil.rmtree(workdir, ignore_errors=True)  # nothing of a failed job is kept (a saved session is)
+
+
+def job_workdir(root: Path, owner: str, job_id: str) -> Path:
+    """Where a job writes (for admins and tests)."""
+    return Path(root) / DataRoot.PRIVATE / "users" / owner / job_id

@@ -38,7 +38,8 @@ CREATE TABLE IF NOT EXISTS jobs (
     spec BLOB NOT NULL, request_id TEXT NOT NULL DEFAULT '', timeout REAL NOT NULL DEFAULT 0,
     created REAL NOT NULL, started REAL NOT NULL DEFAULT 0, finished REAL NOT NULL DEFAULT 0,
     error_code TEXT NOT NULL DEFAULT '', error_message TEXT NOT NULL DEFAULT '', interrupted INTEGER NOT NULL DEFAULT 0,
-    result BLOB, last_seq INTEGER NOT NULL DEFAULT 0, workdir TEXT NOT NULL DEFAULT '');
+    result BLOB, last_seq INTEGER NOT NULL DEFAULT 0, workdir TEXT NOT NULL DEFAULT '',
+    stop TEXT NOT NULL DEFAULT '');
 CREATE INDEX IF NOT EXISTS jobs_owner ON jobs(owner, created);
 CREATE UNIQUE INDEX IF NOT EXISTS jobs_request ON jobs(owner, request_id) WHERE request_id != '';
 CREATE TABLE IF NOT EXISTS progress (
@@ -189,6 +190,14 @@ class Store:
                 sql += " AND state IN (?,?)"
                 args += ACTIVE
             return db.execute(sql, args).rowcount == 1
+
+    def request_stop(self, job_id: str, why: str) -> None:
+        """Ask the worker running a job to stop between two steps (``"cancel"`` or ``"interrupt"``)."""
+        with self._tx() as db:
+            db.execute("UPDATE jobs SET stop=? WHERE id=? AND stop=''", (why, job_id))
+
+    def stop_requested(self, job_id: str) -> str:
+        return self._query("SELECT stop FROM jobs WHERE id=?", (job_id,))[0][0]
 
     def mark_interrupted(self) -> list[str]:
         """At start-up: every job left RUNNING by a stopped server becomes FAILED, interrupted. Returns their ids."""
