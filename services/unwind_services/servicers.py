@@ -7,6 +7,7 @@ import tarfile
 import tempfile
 import uuid
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -142,11 +143,20 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             header.file_name = f"{row.name.split('.')[0]}.raw"
             yield volume_pb2.DownloadResponse(header=header)
             step = max(1, int(level.chunks[0][0]))
-            for i in range(0, level.shape[0], step):
-                block = np.ascontiguousarray(level[i:i + step].compute(), dtype=dtype)
-                mv = memoryview(block).cast("B")
-                for a in range(0, len(mv), DOWNLOAD_CHUNK):
-                    yield volume_pb2.DownloadResponse(chunk=bytes(mv[a:a + DOWNLOAD_CHUNK]))
+            starts = list(range(0, level.shape[0], step))
+
+            def read(i: int) -> np.ndarray:
+                return np.ascontiguousarray(level[i:i + step].compute(), dtype=dtype)
+
+            with ThreadPoolExecutor(max_workers=1) as reader:  # read the next slab while this one is sent
+                pending = reader.submit(read, starts[0])
+                for n in range(len(starts)):
+                    block = pending.result()
+                    if n + 1 < len(starts):
+                        pending = reader.submit(read, starts[n + 1])
+                    mv = memoryview(block).cast("B")
+                    for a in range(0, len(mv), DOWNLOAD_CHUNK):
+                        yield volume_pb2.DownloadResponse(chunk=bytes(mv[a:a + DOWNLOAD_CHUNK]))
             return
         suffix = fmt if fmt.startswith(".") else "." + fmt
         stem = row.name.split(".")[0] or "volume"
