@@ -548,7 +548,7 @@ def read_dicom(path: Path, *, series: str | int | None = None) -> Volume:
         No DICOM images, slices of different sizes or orientations, duplicate positions, colour images,
         compression no installed plugin decodes.
     """
-    path = Path(path)
+    path = Path(path).expanduser().absolute()  # workers of a cluster run in other folders
     if path.is_dir():
         folder = path
     else:

@@ -269,7 +269,7 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
     InvalidInputError
         Not an NRRD header, unsupported type or encoding, not 3D, missing data file, truncated data.
     """
-    path = Path(path)
+    path = Path(path).expanduser().absolute()  # workers of a cluster run in other folders
     try:
         with open(path, "rb") as fh:
             header = nrrd.read_header(fh)

@@ -234,7 +234,7 @@ def read_raw(path: Path, *, chunk_planes: int | None = None) -> Volume:
         No header, a malformed header, a missing or truncated raw file. A raw file larger than the header
         implies is read with a warning (the extra bytes are ignored).
     """
-    path = Path(path)
+    path = Path(path).expanduser().absolute()  # workers of a cluster run in other folders
     dat = path if path.suffix.lower() == ".dat" else _find_header(path)
     header = read_dat_header(dat)
     raw: Path = header["raw"]

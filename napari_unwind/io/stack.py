@@ -438,7 +438,7 @@ def read_stack(path: Path, *, pattern: str | None = None) -> Volume:
     SeriesSelectionError
         The folder holds several equally large stacks; ``.series`` maps their globs to a description.
     """
-    path = Path(path)
+    path = Path(path).expanduser().absolute()  # workers of a cluster run in other folders
     files, glob = _select(path, pattern)
     if len(files) == 1 and path.is_dir() and _group_key(files[0].name) is None:
         from .tiff import read_tiff

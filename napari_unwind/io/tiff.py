@@ -23,11 +23,13 @@ calibration; other voxel types, and volumes over 4 GB, become a plain (Big)TIFF 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
 import queue
 import re
+import shutil
 import struct
 import threading
 import warnings
@@ -518,6 +520,7 @@ def _write_pages(path: Path, volume: Volume, *, bigtiff: bool, imagej: bool,
     n = volume.shape[0]
     depth = slab_depth(volume.shape[1:], volume.dtype)
     total = -(-n // depth)
+    plane_bytes = volume.shape[1] * volume.shape[2] * volume.dtype.itemsize
     feed: queue.Queue = queue.Queue(maxsize=1)
     failure: list[BaseException] = []
 
@@ -535,7 +538,7 @@ def _write_pages(path: Path, volume: Volume, *, bigtiff: bool, imagej: bool,
             with tifffile.TiffWriter(path, bigtiff=bigtiff, imagej=imagej) as tw:
                 tw.write(pages(), shape=volume.shape, dtype=volume.dtype, **options)
         except BaseException as exc:  # noqa: BLE001 - re-raised in the generator's thread
-            failure.append(exc)
+            failure.append(_short_write(exc, path, plane_bytes))
 
     def put(item: Any) -> bool:
         while not failure and worker.is_alive():
@@ -570,8 +573,24 @@ def _write_pages(path: Path, volume: Volume, *, bigtiff: bool, imagej: bool,
     if failure:
         exc = failure[0]
         if isinstance(exc, OSError):
-            raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from exc
+            raise OutputError(f"cannot write {path.with_name(final_name(path))}: {exc.strerror or exc}") from exc
         raise exc
+
+
+def _short_write(exc: BaseException, path: Path, plane_bytes: int) -> BaseException:
+    """numpy reports a write cut short by a full disk without its errno ("N requested and M written"): when the
+    disk has no room left for a plane, say ENOSPC, so the caller reports a full disk."""
+    if not isinstance(exc, OSError) or exc.errno is not None or "requested and" not in str(exc):
+        return exc
+    try:
+        free = shutil.disk_usage(path.parent).free
+    except OSError:
+        return exc
+    if free >= plane_bytes + 2**16:
+        return exc
+    full = OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({exc})")
+    full.__cause__ = exc
+    return full
 
 
 def write_tiff(
