@@ -30,6 +30,17 @@ chunk sizes, not on the scan (default chunks tile cross-sections wider than 256 
 Bending back inverts the map voxel by voxel with a compiled version of :meth:`Deformation.inverse` (same seeds,
 Newton steps and inside rule; agreement to 1e-9 is tested), skipping blocks and voxels beyond the cage's reach.
 
+Inputs, units and limits
+------------------------
+The scan may be a :class:`~napari_unwind.io.Volume`, a path (opened with :func:`~napari_unwind.io.open_volume`),
+an array or a nested list (whole numbers become int32). A Volume in another length unit than the deformation
+(mm against micrometres...) is converted to the deformation's unit before its geometry is compared; the output,
+``spacing=`` and the padding are in the deformation's unit. Before anything proportional to the output exists
+(slice tables, graph, voxels) the output's size is checked against ``max_output`` (default
+:data:`DEFAULT_MAX_OUTPUT`, 64 GiB), padding that runs far beyond the scan is refused, a straight grid with no
+sample in the scan is refused and one mostly outside warns (:class:`OutsideWarning`), both computed from the slice
+geometry; :func:`export` also compares the size with the free space at its target.
+
 Sampling semantics (the reference the tests compare against)
 ------------------------------------------------------------
 The result equals ``scipy.ndimage.map_coordinates(volume, coords, order=order, mode="constant", cval=fill)``
