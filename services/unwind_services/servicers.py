@@ -32,7 +32,7 @@ from ._proto.unwind.v1 import (
 from .catalog import Catalog
 from .errors import LimitError
 from .interceptor import current_user
-from .jobs import JobManager
+from .jobs import JobManager, import_staged
 from .paths import check_file_name
 
 __all__ = ["VolumeServicer", "SegmentationServicer", "SkeletonServicer", "WarpServicer", "JobServicer", "SERVICES"]
@@ -48,12 +48,10 @@ def _limit(value: int, default: int = 100, most: int = 1000) -> int:
 
 
 class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
-    def __init__(self, catalog: Catalog):
-        self.catalog = catalog
+    def __init__(self, catalog: Catalog, jobs: JobManager):
+        self.catalog, self.jobs = catalog, jobs
 
     def Upload(self, request_iterator, context):
-        from napari_unwind.io import as_volume, import_volume
-
         owner, limits, root = current_user(), self.catalog.limits, self.catalog.root
         first = next(request_iterator, None)
         if first is None or first.WhichOneof("part") != "header":
@@ -89,12 +87,10 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             if received != expected:
                 raise InvalidInputError(f"the header promises {expected} bytes (shape {list(h.shape)}, {dtype.name}) "
                                         f"but the chunks held {received}")
-            data = np.memmap(staging, dtype=dtype.newbyteorder("<"), mode="r", shape=tuple(h.shape))
-            volume = as_volume(data, spacing=tuple(h.spacing) or None, unit=h.unit or None,
-                               origin=tuple(h.origin) or None)
             dst.parent.mkdir(parents=True, exist_ok=True)
-            import_volume(volume, dst, labels=h.labels)
-            del data, volume
+            self.jobs.call_in_worker(import_staged, str(staging), tuple(h.shape), dtype.newbyteorder("<").str,
+                                     tuple(h.spacing) or None, h.unit or None, tuple(h.origin) or None, h.labels,
+                                     str(dst))
         finally:
             remove_path(staging)
         row, vol = self.catalog.add_volume(owner, dst, name, "upload", object_id=vid)
@@ -295,7 +291,7 @@ class WarpServicer(warp_pb2_grpc.WarpServiceServicer):
 
 #: service name (for --service) -> (full proto name, servicer factory taking (catalog, jobs))
 SERVICES = {
-    "volume": ("unwind.v1.VolumeService", lambda c, j: VolumeServicer(c),
+    "volume": ("unwind.v1.VolumeService", lambda c, j: VolumeServicer(c, j),
                volume_pb2_grpc.add_VolumeServiceServicer_to_server),
     "segmentation": ("unwind.v1.SegmentationService", lambda c, j: SegmentationServicer(j),
                      segmentation_pb2_grpc.add_SegmentationServiceServicer_to_server),

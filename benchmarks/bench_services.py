@@ -1,0 +1,274 @@
+"""The gRPC services under load, and their transfer rates against raw gRPC streaming of the same bytes.
+
+    .venv/bin/python -m benchmarks.bench_services                    # the recorded run
+    .venv/bin/python -m benchmarks.bench_services --clients 4 --mib 64   # a quick look
+
+Everything runs in one invocation, each server in its own process on 127.0.0.1:
+
+1. Transfer: a ``--mib`` MiB uint16 volume (smooth + noise) uploaded with ``Client.upload`` (the server imports it
+   into an OME-Zarr pyramid) and downloaded with ``Client.open`` (raw bytes of level 0, read from the zarr),
+   against a bare gRPC server that only receives / sends the same number of bytes in the same 2 MiB messages
+   (identity serializers, no protobuf, no disk). The import's share of the upload is measured apart (the same
+   ``import_volume`` in this process) to give the transfer-only rate.
+2. Load: ``--clients`` concurrent clients, each uploading its own small scan (a 2-fish tank phantom, 100 x 65 x 65)
+   and running the whole pipeline (segment, select, skeleton, straighten) as a job it watches; meanwhile a prober
+   calls the health service every 20 ms. Reports pipeline latency p50/p99, throughput, and health p50/p99/max.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import select
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks._util import table
+
+CHUNK = 2 * 1024 * 1024
+MiB = 1024 * 1024
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# the raw baseline: a gRPC server that only moves bytes
+# ------------------------------------------------------------------------------------------------------------------
+def raw_server(port: int) -> None:
+    import grpc
+
+    def sink(request_iterator, context):
+        n = 0
+        for msg in request_iterator:
+            n += len(msg)
+        return n.to_bytes(8, "little")
+
+    def source(request, context):
+        total = int.from_bytes(request, "little")
+        block = np.random.default_rng(0).integers(0, 256, CHUNK, dtype=np.uint8).tobytes()
+        sent = 0
+        while sent < total:
+            k = min(CHUNK, total - sent)
+            yield block if k == CHUNK else block[:k]
+            sent += k
+
+    ident = lambda b: b  # noqa: E731
+    handler = grpc.method_handlers_generic_handler("raw.Bytes", {
+        "Sink": grpc.stream_unary_rpc_method_handler(sink, request_deserializer=ident, response_serializer=ident),
+        "Source": grpc.unary_stream_rpc_method_handler(source, request_deserializer=ident, response_serializer=ident),
+    })
+    from concurrent.futures import ThreadPoolExecutor as Pool
+
+    opts = [("grpc.max_receive_message_length", 64 * MiB), ("grpc.max_send_message_length", 64 * MiB)]
+    server = grpc.server(Pool(8), options=opts)
+    server.add_generic_rpc_handlers((handler,))
+    bound = server.add_insecure_port(f"127.0.0.1:{port}")
+    server.start()
+    print(f"listening on 127.0.0.1:{bound}", flush=True)
+    signal.signal(signal.SIGTERM, lambda *a: server.stop(0))
+    server.wait_for_termination()
+
+
+def _start(cmd: list[str], timeout: float = 120) -> tuple[subprocess.Popen, str]:
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if select.select([proc.stdout], [], [], 0.5)[0]:
+            m = re.search(r"listening on (\S+)", proc.stdout.readline())
+            if m:
+                return proc, m.group(1)
+        if proc.poll() is not None:
+            break
+    raise RuntimeError(f"{cmd} did not start")
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+
+
+def _raw_rates(address: str, nbytes: int, repeats: int) -> tuple[float, float]:
+    import grpc
+
+    opts = [("grpc.max_receive_message_length", 64 * MiB), ("grpc.max_send_message_length", 64 * MiB)]
+    block = np.random.default_rng(1).integers(0, 256, CHUNK, dtype=np.uint8).tobytes()
+    up, down = [], []
+    with grpc.insecure_channel(address, opts) as ch:
+        sink = ch.stream_unary("/raw.Bytes/Sink", request_serializer=lambda b: b, response_deserializer=lambda b: b)
+        source = ch.unary_stream("/raw.Bytes/Source", request_serializer=lambda b: b,
+                                 response_deserializer=lambda b: b)
+
+        def messages():
+            sent = 0
+            while sent < nbytes:
+                k = min(CHUNK, nbytes - sent)
+                yield bytes(block[:k])  # a fresh bytes object per message, as the client builds them
+                sent += k
+
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            assert int.from_bytes(sink(messages(), timeout=600), "little") == nbytes
+            up.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            got = bytearray(nbytes)
+            pos = 0
+            for c in source(nbytes.to_bytes(8, "little"), timeout=600):
+                got[pos:pos + len(c)] = c
+                pos += len(c)
+            assert pos == nbytes
+            down.append(time.perf_counter() - t0)
+    return nbytes / MiB / min(up), nbytes / MiB / min(down)
+
+
+def transfer(address: str, raw_address: str, mib: int, repeats: int, tmp: Path) -> list[list[str]]:
+    from napari_unwind.client import Client
+    from napari_unwind.io import as_volume, import_volume
+
+    side = int(round((mib * MiB / 2) ** (1 / 3)))
+    z = int(mib * MiB / 2 / side / side)
+    rng = np.random.default_rng(0)
+    smooth = np.linspace(0, 3000, side, dtype=np.float32)[None, None, :] + np.linspace(0, 3000, side)[None, :, None]
+    vol = (np.broadcast_to(smooth, (z, side, side)) + rng.normal(0, 30, (z, side, side))).astype(np.uint16)
+    nbytes = vol.nbytes
+    raw_up, raw_down = _raw_rates(raw_address, nbytes, repeats)
+    up, down, imp = [], [], []
+    with Client(address, progress=False, timeout=600) as c:
+        for i in range(repeats):
+            t0 = time.perf_counter()
+            vid = c.upload(vol, name=f"bench{i}").volume_id
+            up.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            back = c.open(vid)
+            down.append(time.perf_counter() - t0)
+            assert back.data.shape == vol.shape and np.array_equal(back.data.compute()[::97], vol[::97])
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        import_volume(as_volume(vol), tmp / f"import{i}.zarr")
+        imp.append(time.perf_counter() - t0)
+    size = nbytes / MiB
+    up_s, down_s, imp_s = min(up), min(down), min(imp)
+    transfer_only = size / max(1e-9, up_s - imp_s)
+    rows = [["stream", "ours MiB/s", "raw gRPC MiB/s", "ratio"],
+            ["upload (with OME-Zarr import)", f"{size / up_s:.0f}", f"{raw_up:.0f}", f"{size / up_s / raw_up:.2f}"],
+            ["upload, transfer only (import apart)", f"{transfer_only:.0f}", f"{raw_up:.0f}",
+             f"{transfer_only / raw_up:.2f}"],
+            ["download raw level 0 (zarr read)", f"{size / down_s:.0f}", f"{raw_down:.0f}",
+             f"{size / down_s / raw_down:.2f}"]]
+    print(f"volume {vol.shape} uint16, {size:.0f} MiB; best of {repeats}; import alone {imp_s:.2f} s "
+          f"({size / imp_s:.0f} MiB/s)")
+    return rows
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# load
+# ------------------------------------------------------------------------------------------------------------------
+def _pct(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values), q)) if values else float("nan")
+
+
+def load(address: str, clients: int) -> tuple[list[list[str]], dict]:
+    import grpc
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    from napari_unwind.client import Client
+    from napari_unwind.datasets import tank_phantom
+
+    t = tank_phantom(n_fish=2, seed=1, length=90)
+    fish = t.fish[0]
+    click = fish.centerline[len(fish.centerline) // 2]
+    health: list[float] = []
+    failures: list[str] = []
+    stop = threading.Event()
+
+    def probe() -> None:
+        with grpc.insecure_channel(address) as ch:
+            stub = health_pb2_grpc.HealthStub(ch)
+            while not stop.is_set():
+                t0 = time.perf_counter()
+                try:
+                    r = stub.Check(health_pb2.HealthCheckRequest(), timeout=5)
+                    assert r.status == health_pb2.HealthCheckResponse.SERVING
+                    health.append(time.perf_counter() - t0)
+                except Exception as exc:  # noqa: BLE001 - counted as a failure
+                    failures.append(f"health: {exc}")
+                time.sleep(0.02)
+
+    def one(i: int) -> float:
+        with Client(address, progress=False, timeout=120) as c:
+            t0 = time.perf_counter()
+            vid = c.upload(t.volume, spacing=t.spacing, unit=t.unit, name=f"tank{i}").volume_id
+            job = c.pipeline(vid, select=[click], output_name=f"fish{i}.zarr")
+            assert job.result.volume_id
+            return time.perf_counter() - t0
+
+    prober = threading.Thread(target=probe, daemon=True)
+    prober.start()
+    time.sleep(1.0)
+    t_all = time.perf_counter()
+    latencies: list[float] = []
+    with ThreadPoolExecutor(max_workers=clients) as pool:
+        for f in [pool.submit(one, i) for i in range(clients)]:
+            try:
+                latencies.append(f.result())
+            except Exception as exc:  # noqa: BLE001
+                failures.append(f"pipeline: {exc}")
+    wall = time.perf_counter() - t_all
+    stop.set()
+    prober.join()
+    rows = [["measure", "value"],
+            ["clients (each: upload + segment + select + skeleton + straighten)", str(clients)],
+            ["pipelines succeeded", f"{len(latencies)} of {clients}"],
+            ["pipeline latency p50 / p99 (s)", f"{_pct(latencies, 50):.1f} / {_pct(latencies, 99):.1f}"],
+            ["throughput (pipelines / min)", f"{len(latencies) / wall * 60:.1f}"],
+            ["wall time (s)", f"{wall:.1f}"],
+            ["health checks during load", str(len(health))],
+            ["health p50 / p99 / max (ms)", f"{_pct(health, 50) * 1e3:.1f} / {_pct(health, 99) * 1e3:.1f} / "
+                                            f"{max(health) * 1e3:.1f}"]]
+    return rows, {"failures": failures}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--clients", type=int, default=16)
+    p.add_argument("--mib", type=int, default=256, help="size of the transfer volume (MiB)")
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--workers", type=int, default=2, help="server job workers")
+    p.add_argument("--raw-server", type=int, default=None, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.raw_server is not None:
+        raw_server(args.raw_server)
+        return 0
+    tmp = Path(tempfile.mkdtemp(prefix="bench-services-"))
+    server = raw = None
+    try:
+        server, address = _start([sys.executable, "-m", "napari_unwind._cli_remote", "serve", "--data-root",
+                                  str(tmp / "data"), "--port", "0", "--workers", str(args.workers),
+                                  "--max-jobs-per-user", "0", "--log-level", "warning"])
+        raw, raw_address = _start([sys.executable, "-m", "benchmarks.bench_services", "--raw-server", "0"])
+        print(f"## Transfer ({args.mib} MiB)\n")
+        print(table(transfer(address, raw_address, args.mib, args.repeats, tmp)))
+        print(f"\n## Load ({args.clients} clients)\n")
+        rows, extra = load(address, args.clients)
+        print(table(rows))
+        if extra["failures"]:
+            print("\nfailures:\n" + "\n".join(extra["failures"][:20]))
+        return 1 if extra["failures"] else 0
+    finally:
+        for proc in (server, raw):
+            if proc is not None:
+                _stop(proc)
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
