@@ -91,6 +91,9 @@ def open_volume(path: str | os.PathLike, *, format: str | None = None, **options
     if not path.exists():
         raise FileNotFoundError(f"{path} does not exist")
     fmt = format or detect_format(path)
+    if path.is_dir() and fmt in ("tiff", "nrrd", "nifti", "raw"):
+        raise InvalidInputError(f"{path} is a folder, but the {fmt} reader opens one file: point at the file, or "
+                                "let the format be detected")
     return reader_for(fmt)(path, **options)
 
 

@@ -319,13 +319,13 @@ def list_series(path: str | os.PathLike) -> list[dict[str, Any]]:
 def _choose_series(by_uid: dict[str, list[_Image]], series: Any, folder: Path) -> str:
     order = _ordered_series(by_uid)
     table = {uid: _describe(uid, by_uid[uid]) for uid in order}
-    listing = "\n".join(f"  [{i}] {table[uid]}" for i, uid in enumerate(order))
+    listing = "; ".join(f"[{i}] {table[uid]}" for i, uid in enumerate(order))  # one line, as every error
     how = ("choose one with series=<UID, SeriesNumber or 0-based index> (command line: --series ...); "
            "a number is taken as a SeriesNumber when one series has it, else as an index")
     if series is None:
         if len(order) == 1:
             return order[0]
-        raise SeriesSelectionError(f"{folder} holds {len(order)} DICOM series; {how}:\n{listing}", table)
+        raise SeriesSelectionError(f"{folder} holds {len(order)} DICOM series; {how}: {listing}", table)
     if isinstance(series, bool):
         raise InvalidInputError(f"series must be a UID, a SeriesNumber or an index, got {series!r}")
     if isinstance(series, str):
@@ -336,7 +336,7 @@ def _choose_series(by_uid: dict[str, list[_Image]], series: Any, folder: Path) -
             series = int(key)
         except ValueError:
             raise SeriesSelectionError(
-                f"no series with UID {key!r} in {folder}; {how}:\n{listing}", table) from None
+                f"no series with UID {key!r} in {folder}; {how}: {listing}", table) from None
     if isinstance(series, int | np.integer):
         value = int(series)
         numbered = [uid for uid in order if by_uid[uid][0].number == value]
@@ -344,12 +344,12 @@ def _choose_series(by_uid: dict[str, list[_Image]], series: Any, folder: Path) -
             return numbered[0]
         if len(numbered) > 1:
             raise SeriesSelectionError(
-                f"{len(numbered)} series in {folder} have SeriesNumber {value}; choose by UID or index:\n{listing}",
+                f"{len(numbered)} series in {folder} have SeriesNumber {value}; choose by UID or index: {listing}",
                 table)
         if 0 <= value < len(order):
             return order[value]
         raise SeriesSelectionError(
-            f"no series with SeriesNumber or index {value} in {folder}; {how}:\n{listing}", table)
+            f"no series with SeriesNumber or index {value} in {folder}; {how}: {listing}", table)
     raise InvalidInputError(f"series must be a UID (str), a SeriesNumber or an index (int), got {series!r}")
 
 

@@ -202,9 +202,9 @@ def _find_header(raw: Path) -> Path:
             continue
     raise InvalidInputError(
         f"no .dat header found for {raw}: raw voxels need one to give their size and type. "
-        f"Write {raw.with_suffix('.dat').name} next to it with, e.g.:\n"
-        f"  RawFile: {raw.name}\n  Resolution: <X> <Y> <Z>\n  Format: UCHAR|USHORT|SHORT|FLOAT\n"
-        "  SliceThickness: <sx> <sy> <sz>\n  Unit: mm"
+        f"Write {raw.with_suffix('.dat').name} next to it with the lines 'RawFile: {raw.name}', "
+        "'Resolution: <X> <Y> <Z>', 'Format: UCHAR|USHORT|SHORT|FLOAT', 'SliceThickness: <sx> <sy> <sz>' and "
+        "'Unit: mm'"
     )
 
 

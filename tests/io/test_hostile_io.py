@@ -511,3 +511,29 @@ def test_readers_called_directly_make_relative_paths_absolute(tmp_path, monkeypa
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)  # as a worker started in another folder would be
     np.testing.assert_array_equal(v.data.compute(scheduler="synchronous"), a)
+
+
+@pytest.fixture(scope="module")
+def mixed_inputs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("mixed")
+    a = _ramp((4, 6, 5), "uint16")
+    entries = [write_volume(a, root / name) for name in ("v.zarr", "v.tif", "v.nrrd", "v.nii", "v.dat", "v.dicom")]
+    (root / "notes.txt").write_text("not a scan\n" * 20)
+    (root / "empty").mkdir()
+    return a, entries + [root / "notes.txt", root / "empty"]
+
+
+@pytest.mark.parametrize("fmt", ["ome-zarr", "tiff", "stack", "dicom", "nrrd", "nifti", "raw"])
+def test_a_forced_format_on_the_wrong_input_is_one_line(mixed_inputs, fmt):
+    """Every reader on every kind of input (``--input-format``): the data, or one line naming the input."""
+    a, entries = mixed_inputs
+    for entry in entries:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                got = open_volume(entry, format=fmt).data.compute()
+        except (InvalidInputError, UnknownFormatError) as exc:
+            msg = str(exc)
+            assert "\n" not in msg and str(entry) in msg, (fmt, entry, msg)
+        else:
+            np.testing.assert_array_equal(got, a, err_msg=f"{fmt} {entry}")
