@@ -238,6 +238,10 @@ def run_remote(args: argparse.Namespace) -> int:
     if not args.mask and not args.select:
         raise UnwindError("say which specimen to straighten: --select A0,A1,A2 (a point inside it, full-resolution "
                           "voxels; the scan is segmented first) or --mask MASK (a mask from unwind select)")
+    if args.mask and (args.features is not None or args.fill_holes or args.isovalue is not None
+                      or args.level is not None):
+        raise UnwindError("--features, --level, --isovalue and --fill-holes choose the segmentation; they do not "
+                          "apply with --mask")
     output_format(args.output)
     check_writable(args.output, overwrite=args.overwrite)
     session_path = Path(args.session) if args.session else _default_session_path(args.output)
@@ -245,7 +249,7 @@ def run_remote(args: argparse.Namespace) -> int:
     endpoints = _endpoints_from_args(args)
     say = (lambda *a: None) if args.quiet else print
     t0 = time.perf_counter()
-    volume = open_volume(args.input, **_reader_options(args))
+    volume = open_volume(args.input, **_reader_options(args, args.input))
     with _client(args) as client:
         say(f"uploading {args.input} to {client.address}")
         vid = client.upload(volume, name=Path(str(args.input).rstrip("/")).name.split(".")[0] or "scan").volume_id

@@ -95,3 +95,16 @@ def test_the_remote_commands_parse_and_report_errors_in_one_line(make_server, tm
         assert remote_main(argv) == 1
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("unwind: error: ") and words in err[0], err
+
+
+def test_run_on_a_server_checks_its_options_before_any_upload(tmp_path, capsys):
+    from napari_unwind.io import write_volume
+
+    scan = write_volume(__import__("numpy").zeros((4, 4, 4), "uint8"), tmp_path / "scan.tif")
+    for extra, words in (([], "--select"), (["--mask", str(scan), "--select", "1,2,3"], "not both"),
+                         (["--mask", str(scan), "--features", "3"], "do not apply with --mask")):
+        capsys.readouterr()
+        code = remote_main(["run", str(scan), "-o", str(tmp_path / "x.nrrd"), "--server", "127.0.0.1:9", *extra])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 1 and len(err) == 1 and words in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scan.tif"]
