@@ -76,8 +76,8 @@ def raw_server(port: int) -> None:
     server.wait_for_termination()
 
 
-def _start(cmd: list[str], timeout: float = 120) -> tuple[subprocess.Popen, str]:
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+def _start(cmd: list[str], timeout: float = 120, stderr=subprocess.DEVNULL) -> tuple[subprocess.Popen, str]:
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=stderr, text=True)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if select.select([proc.stdout], [], [], 0.5)[0]:
@@ -243,6 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mib", type=int, default=256, help="size of the transfer volume (MiB)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--workers", type=int, default=2, help="server job workers")
+    p.add_argument("--log-level", default="warning", help="the server's log level (info: upload timings)")
     p.add_argument("--raw-server", type=int, default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.raw_server is not None:
@@ -253,10 +254,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         server, address = _start([sys.executable, "-m", "napari_unwind._cli_remote", "serve", "--data-root",
                                   str(tmp / "data"), "--port", "0", "--workers", str(args.workers),
-                                  "--max-jobs-per-user", "0", "--log-level", "warning"])
+                                  "--max-jobs-per-user", "0", "--log-level", args.log_level],
+                                 stderr=None if args.log_level == "info" else subprocess.DEVNULL)
         raw, raw_address = _start([sys.executable, "-m", "benchmarks.bench_services", "--raw-server", "0"])
         print(f"## Transfer ({args.mib} MiB)\n")
         print(table(transfer(address, raw_address, args.mib, args.repeats, tmp)))
+        if not args.clients:
+            return 0
         print(f"\n## Load ({args.clients} clients)\n")
         rows, extra = load(address, args.clients)
         print(table(rows))

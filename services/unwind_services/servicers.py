@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import logging
 import shutil
 import tarfile
 import tempfile
+import time
 import uuid
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -34,6 +36,8 @@ from .errors import LimitError
 from .interceptor import current_user
 from .jobs import JobManager, import_staged
 from .paths import check_file_name
+
+log = logging.getLogger("unwind_services")
 
 __all__ = ["VolumeServicer", "SegmentationServicer", "SkeletonServicer", "WarpServicer", "JobServicer", "SERVICES"]
 
@@ -74,7 +78,7 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
         staging = root.tmp / f"{vid}.raw"
         dst = root.user_dir(owner) / "volumes" / f"{vid}.zarr"
         try:
-            received = 0
+            received, t0 = 0, time.perf_counter()
             with open(staging, "wb") as f:
                 for msg in request_iterator:
                     if msg.WhichOneof("part") != "chunk":
@@ -87,10 +91,13 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             if received != expected:
                 raise InvalidInputError(f"the header promises {expected} bytes (shape {list(h.shape)}, {dtype.name}) "
                                         f"but the chunks held {received}")
+            t1 = time.perf_counter()
             dst.parent.mkdir(parents=True, exist_ok=True)
             self.jobs.call_in_worker(import_staged, str(staging), tuple(h.shape), dtype.newbyteorder("<").str,
                                      tuple(h.spacing) or None, h.unit or None, tuple(h.origin) or None, h.labels,
                                      str(dst))
+            log.info("upload %s of %s: %.1f MiB received in %.2f s, imported in %.2f s", vid, owner, expected / 2**20,
+                     t1 - t0, time.perf_counter() - t1)
         finally:
             remove_path(staging)
         row, vol = self.catalog.add_volume(owner, dst, name, "upload", object_id=vid)
