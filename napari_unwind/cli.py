@@ -13,6 +13,7 @@ inputs.
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import os
 import re
@@ -20,6 +21,7 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -87,7 +89,7 @@ def _whole(lo: int, hi: int | None = None) -> Callable[[str], int]:
 
 def _triple(text: str) -> tuple[float, float, float]:
     """Parse ``"a,b,c"`` (or one number for all three axes) into three finite floats."""
-    parts = [p for p in text.replace(" ", "").split(",") if p]
+    parts = text.replace(" ", "").split(",")
     try:
         values = [float(p) for p in parts]
     except ValueError:
@@ -99,6 +101,16 @@ def _triple(text: str) -> tuple[float, float, float]:
     if not all(math.isfinite(v) for v in values):
         raise argparse.ArgumentTypeError(f"expected finite numbers (axis0,axis1,axis2), got {text!r}")
     return tuple(values)  # type: ignore[return-value]
+
+
+_ADDRESS = re.compile(r"^([a-z][a-z0-9+.-]*://)?(\[[0-9a-f:.]+\]|[a-z0-9._-]+)(:[0-9]{1,5})?$", re.IGNORECASE)
+
+
+def _address(text: str) -> str:
+    """A dask.distributed scheduler address: ``[protocol://]host[:port]``."""
+    if not _ADDRESS.match(text.strip()):
+        raise argparse.ArgumentTypeError(f"expected a scheduler address like tcp://host:8786, got {text!r}")
+    return text.strip()
 
 
 def _spacing3(text: str) -> tuple[float, float, float]:
@@ -204,12 +216,18 @@ def _max_output(args: argparse.Namespace) -> dict[str, Any]:
     return {"max_output": args.max_output} if hasattr(args, "max_output") else {}
 
 
-def _reader_options(args: argparse.Namespace) -> dict[str, Any]:
+def _reader_options(args: argparse.Namespace, path: Any) -> dict[str, Any]:
+    """``--series`` and ``--input-format`` as options of ``open_volume(path, ...)``."""
     opts: dict[str, Any] = {}
-    if getattr(args, "series", None) is not None:
-        opts["series"] = args.series
     if getattr(args, "input_format", None):
         opts["format"] = args.input_format
+    if getattr(args, "series", None) is not None:
+        from .io import detect_format
+
+        fmt = opts.get("format") or detect_format(path)
+        if fmt != "dicom":
+            raise UnwindError(f"--series chooses a series of a DICOM folder; {path} is {fmt}: leave out --series")
+        opts["series"] = args.series
     return opts
 
 
@@ -246,7 +264,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     from .io import open_volume
 
     path = Path(args.path)
-    volume = open_volume(path, **_reader_options(args))
+    volume = open_volume(path, **_reader_options(args, path))
     print(describe(volume, path))
     return 0
 
@@ -255,7 +273,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     from .io import import_volume_iter, open_volume
 
     _check_io([args.output], [args.input])
-    src = open_volume(args.input, **_reader_options(args))
+    src = open_volume(args.input, **_reader_options(args, args.input))
     t0 = time.perf_counter()
     result = _run_with_bar(
         import_volume_iter(src, args.output, chunks=args.chunks, max_side=args.max_side, overwrite=args.overwrite,
@@ -274,7 +292,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     from .io import open_volume, write_volume_iter
 
     _check_io([args.output], [args.input])
-    src = open_volume(args.input, **_reader_options(args))
+    src = open_volume(args.input, **_reader_options(args, args.input))
     if args.level is not None:
         if not 0 <= args.level < len(src.levels):
             raise UnwindError(f"{args.input} has pyramid levels 0..{len(src.levels) - 1}, got --level {args.level}")
@@ -326,14 +344,13 @@ def _check_folds(deformation, allow: bool) -> None:
 
 
 def cmd_straighten(args: argparse.Namespace) -> int:
-    import warnings
 
     from .io import open_volume
     from .warp import FoldWarning, export_iter
 
     _check_output(args.output, args.overwrite)
     session = _load_session_for(args, args.input, [args.output], [args.input])
-    volume = open_volume(args.input, **_reader_options(args))
+    volume = open_volume(args.input, **_reader_options(args, args.input))
     deformation = session.deformation
     _check_folds(deformation, args.allow_folds)
     t0 = time.perf_counter()
@@ -360,7 +377,7 @@ def cmd_bend(args: argparse.Namespace) -> int:
 
     _check_output(args.output, args.overwrite)
     session = _load_session_for(args, None, [args.output], [args.input])
-    straight = open_volume(args.input, **_reader_options(args))
+    straight = open_volume(args.input, **_reader_options(args, args.input))
     shape = tuple(session.source.shape)
     src = session.source
     data = bend(straight, session.deformation, shape=shape, order=args.order, chunks=args.chunks,
@@ -434,7 +451,7 @@ def cmd_segment(args: argparse.Namespace) -> int:
 
     check_segmentation_output(args.output, overwrite=args.overwrite)  # before minutes of work, not after
     _check_io([args.output], [args.input])
-    volume = open_volume(args.input, **_reader_options(args))
+    volume = open_volume(args.input, **_reader_options(args, args.input))
     t0 = time.perf_counter()
     features = _run_with_bar(segment_iter(volume, features=args.features, level=args.level, smooth=args.smooth),
                              args.quiet)
@@ -462,7 +479,7 @@ def cmd_select(args: argparse.Namespace) -> int:
     features = load_features(args.labels)
     mask = select(features, seeds=args.at, ids=args.id, fill_holes=args.fill_holes)
     if args.full_resolution:
-        volume = open_volume(args.full_resolution, **_reader_options(args))
+        volume = open_volume(args.full_resolution, **_reader_options(args, args.full_resolution))
         written = _run_with_bar(
             refine_mask_iter(volume, mask, features=features, isovalue=args.isovalue, output=args.output,
                              overwrite=args.overwrite),
@@ -574,7 +591,6 @@ def _mask_geometry(mask: Any, scan: Any, mask_path: Any) -> tuple[tuple, tuple, 
 def _estimate(mask_data: Any, endpoints: Any, *, spacing: Sequence[float], origin: Sequence[float],
               unit: str | None, volume: Any, args: argparse.Namespace) -> tuple[Any, list[str]]:
     """Run the skeleton solve with a progress bar; returns the SkeletonResult and its warnings (one line each)."""
-    import warnings
 
     from .skeleton import estimate_deformation_iter
 
@@ -632,7 +648,7 @@ def _say_endpoints(result: Any, say: Callable[..., Any]) -> None:
 
 def _warn_lines(messages: Sequence[str]) -> None:
     for m in messages:
-        print(f"unwind: warning: {m}", file=sys.stderr)
+        print(f"unwind: warning: {_one_line(m)}", file=sys.stderr)
 
 
 def _source_info(path: str | os.PathLike, volume: Any, quiet: bool):
@@ -654,7 +670,7 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
     _check_io([args.output], [args.mask, args.volume])
     endpoints = _endpoints_from_args(args)
     mask = open_volume(args.mask)
-    scan = open_volume(args.volume, **_reader_options(args)) if args.volume else None
+    scan = open_volume(args.volume, **_reader_options(args, args.volume)) if args.volume else None
     spacing, origin, unit, notes = _mask_geometry(mask, scan, args.mask)
     say = (lambda *a: None) if args.quiet else print
     t0 = time.perf_counter()
@@ -712,7 +728,6 @@ def _segment_select(volume: Any, args: argparse.Namespace) -> tuple[Any, Any, st
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    import warnings
 
     from .io import open_volume
     from .session import Session, save_session
@@ -735,7 +750,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     say = (lambda *a: None) if args.quiet else print
     t_all = time.perf_counter()
 
-    volume = open_volume(args.input, **_reader_options(args))
+    volume = open_volume(args.input, **_reader_options(args, args.input))
     notes: list[str] = []
     if args.mask:
         mask_vol = open_volume(args.mask)
@@ -820,8 +835,10 @@ def _add_skeleton_options(p: argparse.ArgumentParser) -> None:
                    "tail (the first starts at the head, the last ends at the tail)")
     p.add_argument("--no-twist", action="store_true",
                    help="do not estimate the twist (frames by parallel transport)")
-    p.add_argument("--levels", type=_whole(1), default=100, help="level sets of the harmonic field (default 100)")
-    p.add_argument("--smoothing-iterations", type=_whole(0), default=50, help="curve smoothing iterations (default 50)")
+    p.add_argument("--levels", type=_whole(2, 10000), default=100,
+                   help="level sets of the harmonic field, 2-10000 (default 100)")
+    p.add_argument("--smoothing-iterations", type=_whole(0, 100000), default=50,
+                   help="curve smoothing iterations, 0-100000 (default 50)")
     p.add_argument("--cage-radius", type=_positive, default=10.0,
                    help="half size (voxels) of the box whose centre and corners the keyframes must reproduce within "
                    "--tolerance (default 10): larger, more keyframes")
@@ -967,7 +984,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spacing", type=_positive, default=None, help="output voxel size (default: finest scan spacing)")
     p.add_argument("--chunks", type=_chunks, default=None, help="output chunk shape (default 64 x cross-section)")
     _add_max_output(p)
-    p.add_argument("--scheduler", default=None,
+    p.add_argument("--scheduler", type=_address, default=None,
                    help="dask.distributed scheduler address (tcp://host:8786) to run on a cluster")
     p.add_argument("--allow-folds", action="store_true", help="export even where the deformation folds")
     p.add_argument("--no-verify", action="store_true", help="skip checking the scan against the session's checksum")
@@ -1030,6 +1047,17 @@ def _on_signal(signum: int, frame: Any) -> None:
     raise Terminated(signum)
 
 
+def _show_warning(message: Any, category: Any, filename: str, lineno: int, file: Any = None,
+                  line: Any = None) -> None:
+    """A library's warning as the command line says it: one ``unwind: warning: ...`` line."""
+    print(f"unwind: warning: {_one_line(str(message))}", file=sys.stderr)
+
+
+def _one_line(message: str) -> str:
+    """A message on one line (its lines joined), as every error of the command line is."""
+    return " ".join(line.strip() for line in message.splitlines() if line.strip())
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``unwind`` command. Returns the exit status (see the module's docstring)."""
     parser = build_parser()
@@ -1042,7 +1070,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         previous = {s: signal.signal(s, _on_signal) for s in _SIGNALS}
     try:
-        status = func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            status = func(args)
         sys.stdout.flush()  # a closed pipe shows here, not at exit
         return status
     except BrokenPipeError:
@@ -1054,16 +1084,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             pass
         return 0
     except (UnwindError, OSError) as exc:
-        print(f"unwind: error: {exc}", file=sys.stderr)
+        print(f"unwind: error: {_one_line(str(exc))}", file=sys.stderr)
         return 1
     except MemoryError as exc:
-        print(f"unwind: error: out of memory{': ' + str(exc) if str(exc) else ''}; make the output smaller "
+        print(f"unwind: error: out of memory{': ' + _one_line(str(exc)) if str(exc) else ''}; make the output smaller "
               "(--spacing, --pad, a pyramid level) or use a machine with more memory", file=sys.stderr)
         return 1
-    except Terminated as exc:
-        print(f"unwind: {_SIGNALS[exc.signum]}; no partial output was left behind", file=sys.stderr)
-        return 128 + exc.signum
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
+        # work abandoned on purpose: complaints at exit about zarr's coroutines left pending are not news
+        logging.getLogger("asyncio").setLevel(logging.CRITICAL)
+        warnings.filterwarnings("ignore", message="coroutine .* was never awaited", category=RuntimeWarning)
+        if isinstance(exc, Terminated):
+            print(f"unwind: {_SIGNALS[exc.signum]}; no partial output was left behind", file=sys.stderr)
+            return 128 + exc.signum
         print("unwind: interrupted; no partial output was left behind", file=sys.stderr)
         return 130
     finally:

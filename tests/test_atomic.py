@@ -1,12 +1,16 @@
 import os
+import subprocess
+import sys
+import threading
+import time
 
 import numpy as np
 import pytest
 
 from conftest import no_leftovers
 from napari_unwind.errors import OutputError
-from napari_unwind.io import open_volume, write_volume
-from napari_unwind.io._atomic import atomic_output
+from napari_unwind.io import _atomic, open_volume, write_volume
+from napari_unwind.io._atomic import atomic_output, final_name
 
 
 def test_success_renames_into_place(tmp_path):
@@ -85,3 +89,147 @@ def test_error_midway_through_a_chunked_write_leaves_nothing(tmp_path):
     out = write_volume(data, tmp_path / "a.zarr", chunks=8, nan_value=0.0)
     back = open_volume(out).data.compute()
     assert back[-1, 0, 0] == 0 and np.isfinite(back).all()
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# two writers of one new path: the second fails with "already exists" (issue 9)
+# ------------------------------------------------------------------------------------------------------------------
+def _race(target, kind):
+    """Two threads write ``target`` without overwrite, both past the up-front check before either renames."""
+    barrier = threading.Barrier(2)
+    results = {}
+
+    def writer(name):
+        try:
+            with atomic_output(target, overwrite=False) as tmp:
+                if kind == "folder":
+                    tmp.mkdir()
+                    (tmp / "who").write_text(name)
+                else:
+                    tmp.write_text(name)
+                barrier.wait(timeout=10)
+                if name == "second":
+                    time.sleep(0.2)  # let the first rename first
+            results[name] = "ok"
+        except OutputError as exc:
+            results[name] = str(exc)
+
+    threads = [threading.Thread(target=writer, args=(n,)) for n in ("first", "second")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=20)
+    return results
+
+
+@pytest.mark.parametrize("kind", ["file", "folder"])
+@pytest.mark.parametrize("portable", [False, True], ids=["renameat2", "portable"])
+def test_the_second_of_two_writers_fails(tmp_path, monkeypatch, kind, portable):
+    if portable:
+        monkeypatch.setattr(_atomic, "_renameat2_fn", None)
+    target = tmp_path / ("out.zarr" if kind == "folder" else "out.csv")
+    results = _race(target, kind)
+    assert results["first"] == "ok"
+    assert "already exists" in results["second"] and str(target) in results["second"]
+    written = (target / "who") if kind == "folder" else target
+    assert written.read_text() == "first"
+    assert no_leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("portable", [False, True], ids=["renameat2", "portable"])
+def test_an_empty_folder_made_meanwhile_is_not_replaced(tmp_path, monkeypatch, portable):
+    # rename() replaces an empty folder: without overwrite, that must not happen either
+    if portable:
+        monkeypatch.setattr(_atomic, "_renameat2_fn", None)
+    target = tmp_path / "out.zarr"
+    with pytest.raises(OutputError, match="already exists"):
+        with atomic_output(target, overwrite=False) as tmp:
+            tmp.mkdir()
+            (tmp / "data").write_text("x")
+            target.mkdir()  # someone else's, after our check
+    assert target.is_dir() and list(target.iterdir()) == []
+    assert no_leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("portable", [False, True], ids=["renameat2", "portable"])
+def test_overwrite_replaces_folders_and_files_either_way(tmp_path, monkeypatch, portable):
+    if portable:
+        monkeypatch.setattr(_atomic, "_renameat2_fn", None)
+    target = tmp_path / "out"
+    target.write_text("a file")
+    with atomic_output(target, overwrite=True) as tmp:  # a folder over a file
+        tmp.mkdir()
+        (tmp / "x").write_text("folder")
+    assert (target / "x").read_text() == "folder"
+    with atomic_output(target, overwrite=True) as tmp:  # a file over a folder
+        tmp.write_text("file again")
+    assert target.read_text() == "file again"
+    assert no_leftovers(tmp_path) == []
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# temporary outputs of killed processes are removed by the next writer, and only those (issue 9)
+# ------------------------------------------------------------------------------------------------------------------
+def _dead_pid():
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+def _tmp_name(target, pid, start, host, old=False):
+    return target.with_name(f".{target.name}.0123abcd.p{pid}.s{start}.h{host}{'.old' if old else ''}{_atomic.TMP_MARK}")
+
+
+def test_temp_names_record_the_writer(tmp_path):
+    target = tmp_path / "fish.zarr"
+    with atomic_output(target) as tmp:
+        m = _atomic._TMP_RE.match(tmp.name)
+        assert m and m.group("name") == "fish.zarr" and int(m.group("pid")) == os.getpid()
+        assert m.group("host") == _atomic._host_tag() and final_name(tmp) == "fish.zarr"
+        tmp.write_text("x")
+
+
+def test_stale_temps_of_dead_writers_are_removed(tmp_path):
+    target = tmp_path / "fish.zarr"
+    host = _atomic._host_tag()
+    me, my_start = os.getpid(), _atomic._start_time(os.getpid())
+    dead = _dead_pid()
+    stale_dir = _tmp_name(target, dead, 12345, host)
+    stale_dir.mkdir()
+    (stale_dir / "chunk").write_bytes(b"x" * 100)
+    reused = _tmp_name(target, me, my_start + 1, host)  # our pid, but another process's start: it is gone
+    reused.write_text("old")
+    keep = {
+        "live": _tmp_name(target, me, my_start, host),  # a writer that is running (this one)
+        "other host": _tmp_name(target, dead, 12345, "ffffffff" if host != "ffffffff" else "eeeeeeee"),
+        "older version": target.with_name(f".{target.name}.0123abcd{_atomic.TMP_MARK}"),
+        "other target": _tmp_name(tmp_path / "fish.zarr2", dead, 12345, host),
+        "other target 2": _tmp_name(tmp_path / "ish.zarr", dead, 12345, host),
+        "not ours": tmp_path / f".fish.zarr.p{dead}.unwind-tmp",
+    }
+    for p in keep.values():
+        p.write_text("keep")
+    with atomic_output(target) as tmp:
+        tmp.mkdir()
+    assert not stale_dir.exists() and not reused.exists()
+    assert all(p.exists() for p in keep.values())
+
+
+def test_a_moved_aside_output_is_kept_while_the_target_is_missing(tmp_path):
+    # a writer killed between moving the old output aside and renaming the new one: the aside is the only copy
+    target = tmp_path / "fish.zarr"
+    aside = _tmp_name(target, _dead_pid(), 1, _atomic._host_tag(), old=True)
+    aside.write_text("the only copy")
+    assert _atomic.remove_stale_temps(target) == []
+    target.write_text("new")
+    assert _atomic.remove_stale_temps(target) == [aside] and not aside.exists()
+
+
+def test_a_stale_temp_of_a_temp_is_removed(tmp_path):
+    # a writer that writes its temporary output atomically too: .(.fish.zarr.<id>.unwind-tmp).<id>.unwind-tmp
+    target = tmp_path / "fish.zarr"
+    outer = _tmp_name(target, _dead_pid(), 1, _atomic._host_tag())
+    inner = _tmp_name(outer, _dead_pid(), 2, _atomic._host_tag())
+    inner.mkdir()
+    assert final_name(final_name(inner)) == "fish.zarr"
+    assert _atomic.remove_stale_temps(target) == [inner] and not inner.exists()

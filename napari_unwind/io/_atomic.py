@@ -100,25 +100,26 @@ def temp_path(path: str | os.PathLike, *, old: bool = False) -> Path:
 def remove_stale_temps(path: str | os.PathLike) -> list[Path]:
     """Remove the temporary outputs of ``path`` left by processes of this host that are gone (killed).
 
-    Only siblings named exactly as :func:`temp_path` names them for ``path`` are considered. A live process's
-    temporary output, another host's and one of an older version (no owner recorded) are left alone; so is a
-    previous output moved aside while being replaced (``.old``) when the target itself is missing (it is then
-    the only copy). Returns the paths removed.
+    Only siblings named as :func:`temp_path` names them for ``path`` are considered (or for such a temporary
+    output itself: a writer may write its output atomically too). A live process's temporary output, another
+    host's and one of an older version (no owner recorded) are left alone; so is a previous output moved aside
+    while being replaced (``.old``) when the target itself is missing (it is then the only copy). Returns the
+    paths removed.
     """
     path = Path(path)
-    prefix = f".{path.name}."
-    removed = []
+    removed: list[Path] = []
     try:
-        entries = list(os.scandir(path.parent))
+        entries = [e for e in os.scandir(path.parent) if e.name.endswith(TMP_MARK) and path.name in e.name]
     except OSError:
         return removed
     for entry in entries:
-        if not (entry.name.startswith(prefix) and entry.name.endswith(TMP_MARK)):
-            continue
         m = _TMP_RE.match(entry.name)
-        if not m or m.group("name") != path.name or m.group("pid") is None:
+        if not m or m.group("pid") is None:
             continue
-        if m.group("old") and not os.path.lexists(path):
+        name = m.group("name")
+        while name != path.name and (inner := _TMP_RE.match(name)):
+            name = inner.group("name")
+        if name != path.name or (m.group("old") and not os.path.lexists(path)):
             continue
         if _owner_alive(int(m.group("pid")), int(m.group("start")), m.group("host")):
             continue

@@ -10,7 +10,7 @@ import os
 import time
 
 import pytest
-from cli_support import demo_copy, demo_outputs, leftovers, one_error_line, run, run_main, run_many, tree_hash
+from cli_support import demo_copy, demo_outputs, leftovers, one_error_line, run_main, run_many, tree_hash
 
 from napari_unwind.errors import OutputError
 
@@ -84,25 +84,27 @@ def test_the_issue_commands_as_a_user_runs_them(demo, tmp_path):
         assert leftovers(h.dir) == [], name
 
 
-def test_links_are_resolved(here, tmp_path):
+def test_links_are_resolved(here, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(here.dir)
     # the folder under another name: alias/tank.zarr is tank.zarr
     os.symlink(here.dir, tmp_path / "alias")
     before = tree_hash(here.dir)
-    code, _, err = run("convert", "tank.zarr", tmp_path / "alias" / "tank.zarr", "--overwrite", cwd=here.dir)
+    code, _, err = run_main(["convert", "tank.zarr", tmp_path / "alias" / "tank.zarr", "--overwrite"], capsys)
     assert code == 1 and one_error_line(err) and "alias/tank.zarr" in err and "is the input tank.zarr" in err, err
     # an input given through a link
     os.symlink(here.tank, tmp_path / "link.zarr")
-    code, _, err = run("segment", tmp_path / "link.zarr", "-o", "tank.zarr", "--overwrite", cwd=here.dir)
+    code, _, err = run_main(["segment", tmp_path / "link.zarr", "-o", "tank.zarr", "--overwrite"], capsys)
     assert code == 1 and one_error_line(err) and "link.zarr" in err, err
     assert tree_hash(here.dir) == before and leftovers(tmp_path) == []
 
 
-def test_a_companion_file_of_the_output_is_an_input(here, tmp_path):
-    # fish.dat is written with fish.raw beside it: a .raw input is replaced by the pair
-    code, _, err = run("convert", "tank.zarr", "fish.raw", cwd=here.dir)
+def test_a_companion_file_of_the_output_is_an_input(here, capsys, monkeypatch):
+    # fish.dat is written with fish.raw beside it: a .raw input would be replaced by the pair
+    monkeypatch.chdir(here.dir)
+    code, _, err = run_main(["convert", "tank.zarr", "fish.raw", "-q"], capsys)
     assert code == 0, err
     before = tree_hash(here.dir / "fish.raw")
-    code, _, err = run("convert", "fish.raw", "fish.dat", "--overwrite", cwd=here.dir)
+    code, _, err = run_main(["convert", "fish.raw", "fish.dat", "--overwrite"], capsys)
     assert code == 1 and one_error_line(err) and "fish.raw" in err, err
     assert tree_hash(here.dir / "fish.raw") == before
 

@@ -184,3 +184,16 @@ def test_other_os_errors_stay_errors(capsys, tmp_path):
     """Only a closed pipe is quiet: every other OSError is still one error line."""
     code, _, err = run_main(["info", tmp_path / "missing.zarr"], capsys)
     assert code == 1 and "does not exist" in err and one_error_line(err)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# a library's warning is one line too
+# ------------------------------------------------------------------------------------------------------------------
+def test_a_library_warning_is_one_warning_line(tmp_path, capsys):
+    # a numbered stack with a slice missing: the reader warns that distances along axis 0 are wrong there
+    write_volume(np.arange(6 * 8 * 8, dtype=np.uint8).reshape(6, 8, 8), tmp_path / "s" / "z_{:03d}.png")
+    (tmp_path / "s" / "z_003.png").unlink()
+    code, out, err = run_main(["info", tmp_path / "s"], capsys)
+    assert code == 0 and "shape:" in out
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("unwind: warning: ") and "missing" in lines[0], err

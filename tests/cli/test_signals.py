@@ -1,0 +1,70 @@
+"""SIGTERM is handled like Ctrl-C; what SIGKILL leaves behind is removed by the next run (issue 9).
+
+The export is slowed by a fine output spacing; the signal is sent once the temporary output exists, i.e. in the
+middle of writing.
+"""
+
+import signal
+import subprocess
+import time
+
+import pytest
+from cli_support import UNWIND, demo_outputs, error_lines, leftovers
+
+from napari_unwind.io import open_volume
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    return demo_outputs(tmp_path_factory)
+
+
+def _start_export(demo, out):
+    return subprocess.Popen([str(UNWIND), "straighten", str(demo.tank), "--session", str(demo.session), "-o",
+                             str(out), "--spacing", "0.25", "--no-verify", "-q"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for_temp(proc, folder, timeout=60):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if leftovers(folder):
+            return
+        if proc.poll() is not None:
+            pytest.fail(f"the export ended before it was signalled: {proc.communicate()}")
+        time.sleep(0.02)
+    proc.kill()
+    pytest.fail("no temporary output appeared")
+
+
+def test_signals_mid_export(demo, tmp_path):
+    """SIGTERM and SIGINT: nothing left, one line, 143 and 130. SIGKILL: the next run removes what is left.
+
+    The three exports run at once (the interpreter's start is paid once in wall time).
+    """
+    folders = {name: tmp_path / name for name in ("term", "int", "kill")}
+    procs = {}
+    for name, folder in folders.items():
+        folder.mkdir()
+        procs[name] = _start_export(demo, folder / "straight.zarr")
+    for name, sig in (("term", signal.SIGTERM), ("int", signal.SIGINT), ("kill", signal.SIGKILL)):
+        _wait_for_temp(procs[name], folders[name])
+        procs[name].send_signal(sig)
+    errs = {name: p.communicate(timeout=60)[1] for name, p in procs.items()}
+    time.sleep(0.5)  # nothing reappears once the processes have gone
+    for name, status, says in (("term", 143, "terminated (SIGTERM)"), ("int", 130, "interrupted")):
+        assert procs[name].returncode == status, errs[name]
+        assert error_lines(errs[name]) == [f"unwind: {says}; no partial output was left behind"], errs[name]
+        assert leftovers(folders[name]) == [] and not (folders[name] / "straight.zarr").exists()
+    # SIGKILL cannot be handled: its temporary output stays, named after the dead process...
+    kill = procs["kill"]
+    assert kill.returncode == -signal.SIGKILL
+    stale = [p for p in leftovers(folders["kill"]) if p.parent == folders["kill"]]
+    assert stale and all(f".p{kill.pid}." in p.name for p in stale)
+    # ...and the next run to the same output removes it
+    out = folders["kill"] / "straight.zarr"
+    r = subprocess.run([str(UNWIND), "straighten", str(demo.tank), "--session", str(demo.session), "-o", str(out),
+                        "--no-verify", "-q"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert leftovers(folders["kill"]) == []
+    assert open_volume(out).shape[0] > 100
