@@ -48,11 +48,17 @@ def test_an_export_survives_kill_9_of_a_worker(cluster):
         vid = c.upload(t.volume, spacing=t.spacing, unit=t.unit, name="tank").volume_id
         mid = c.upload(fish.mask.astype(np.uint8), spacing=t.spacing, unit=t.unit, name="mask").volume_id
         sk = c.skeleton(mid, volume_id=vid, head=fish.head, tail=fish.tail)
-        job = c.straighten(vid, sk.result.session_id, wait=False, spacing=0.5, chunks=(8, 512, 512),
+        job = c.straighten(vid, sk.result.session_id, wait=False, spacing=0.5, chunks=(2, 512, 512),
                            output_name="fish0.zarr")
-        wait_for(lambda: c.job(job.id).progress.seq > 0, timeout=120)
-        worker = int(Path(root / ".local-run" / "worker-1.pid").read_text())
-        os.kill(worker, signal.SIGKILL)
+        # kill worker-1 while it holds tasks of this export
+        from distributed import Client as DaskClient
+
+        sched = (root / ".local-run" / "scheduler.address").read_text().strip()
+        with DaskClient(sched, timeout=30) as dc:
+            addr = next(a for a, w in dc.scheduler_info()["workers"].items() if w["name"] == "worker-1")
+            wait_for(lambda: dc.processing().get(addr), timeout=120, interval=0.01)
+            os.kill(int(Path(root / ".local-run" / "worker-1.pid").read_text()), signal.SIGKILL)
+            wait_for(lambda: addr not in dc.scheduler_info()["workers"], timeout=60)
         done = c.wait(job.id, timeout=300)
         assert done.state == pb.JOB_STATE_SUCCEEDED
         # the work went on on the other worker: the output is whole and what the core computes here
