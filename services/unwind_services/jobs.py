@@ -16,6 +16,7 @@ from __future__ import annotations
 import ctypes
 import logging
 import multiprocessing
+import os
 import shutil
 import signal
 import threading
@@ -227,6 +228,16 @@ def _worker_init(root: str, limits: Limits, scheduler: str | None) -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # pragma: no cover - not Linux
         pass
+    # PR_SET_PDEATHSIG follows the thread that spawned this process, which may end before the server does:
+    # also leave as soon as the server is gone
+    parent = os.getppid()
+
+    def orphan_watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=orphan_watch, name="unwind-orphan-watch", daemon=True).start()
     signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the server decides: drain, then interrupt
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     warnings.filterwarnings("ignore", category=UserWarning, module="napari_unwind.warp")
