@@ -344,7 +344,6 @@ def _check_folds(deformation, allow: bool) -> None:
 
 
 def cmd_straighten(args: argparse.Namespace) -> int:
-
     from .io import open_volume
     from .warp import FoldWarning, export_iter
 
@@ -591,7 +590,6 @@ def _mask_geometry(mask: Any, scan: Any, mask_path: Any) -> tuple[tuple, tuple, 
 def _estimate(mask_data: Any, endpoints: Any, *, spacing: Sequence[float], origin: Sequence[float],
               unit: str | None, volume: Any, args: argparse.Namespace) -> tuple[Any, list[str]]:
     """Run the skeleton solve with a progress bar; returns the SkeletonResult and its warnings (one line each)."""
-
     from .skeleton import estimate_deformation_iter
 
     with warnings.catch_warnings(record=True) as caught:
@@ -728,7 +726,6 @@ def _segment_select(volume: Any, args: argparse.Namespace) -> tuple[Any, Any, st
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-
     from .io import open_volume
     from .session import Session, save_session
     from .warp import FoldWarning, export_iter

@@ -233,3 +233,30 @@ def test_a_stale_temp_of_a_temp_is_removed(tmp_path):
     inner.mkdir()
     assert final_name(final_name(inner)) == "fish.zarr"
     assert _atomic.remove_stale_temps(target) == [inner] and not inner.exists()
+
+
+def test_special_files_and_nameless_paths_are_no_outputs(tmp_path):
+    # renaming over /dev/null (as root) would replace the device: a FIFO stands in for it here
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    with pytest.raises(OutputError, match="device, pipe or socket"):
+        with atomic_output(fifo, overwrite=True) as tmp:
+            tmp.write_text("x")
+    assert fifo.is_fifo()
+    for bad in ("/", tmp_path / "sub" / ".."):
+        with pytest.raises(OutputError, match="name the file or folder"):
+            with atomic_output(bad, overwrite=True) as tmp:
+                tmp.write_text("x")
+    assert no_leftovers(tmp_path) == []
+
+
+def test_the_current_folder_is_no_output(tmp_path, monkeypatch):
+    # "unwind convert scan.zarr . --format ome-zarr --overwrite" would replace the folder one stands in
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "keep").write_text("mine")
+    monkeypatch.chdir(tmp_path / "sub")
+    for bad in (".", tmp_path, tmp_path / "sub"):
+        with pytest.raises(OutputError, match="current folder"):
+            with atomic_output(bad, overwrite=True) as tmp:
+                tmp.mkdir()
+    assert (tmp_path / "sub" / "keep").read_text() == "mine"

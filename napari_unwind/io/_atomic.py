@@ -235,10 +235,23 @@ def check_writable(path: str | os.PathLike, *, overwrite: bool = True) -> Path:
     Raises
     ------
     OutputError
-        When the parent folder does not exist or is not writable, or when ``path`` exists and ``overwrite``
-        is False.
+        When the parent folder does not exist or is not writable, when ``path`` exists and ``overwrite``
+        is False, when ``path`` names no file (``/``, ``..``), is the current folder or holds it, or is a
+        device, pipe or socket (``/dev/null``: renaming over it would replace the device).
     """
     path = Path(path).expanduser().absolute()
+    if path.name in ("", ".", ".."):
+        raise OutputError(f"cannot write {path}: name the file or folder to create, e.g. {path / 'out.zarr'}")
+    try:
+        here = Path.cwd().resolve()
+    except OSError:  # the current folder was removed
+        here = None
+    if here is not None and path.resolve() in (here, *here.parents):
+        raise OutputError(f"cannot write {path}: it is the current folder or holds it; name a new file or folder "
+                          "inside it, e.g. out.zarr")
+    if path.exists() and not (path.is_file() or path.is_dir()):
+        raise OutputError(f"cannot write {path}: it is a device, pipe or socket, not a file or folder; choose "
+                          "another output path")
     parent = path.parent
     if not parent.is_dir():
         raise OutputError(f"cannot write {path}: the folder {parent} does not exist; create it first")

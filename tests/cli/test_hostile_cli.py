@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import random
 import shutil
 import signal
@@ -47,9 +48,10 @@ SIZES = ["0", "-1G", "lots", "1K", "1", "nan", "inf", "1e400", "2T", "none", "5X
 #: paths given where an input is expected (placeholders resolved per case)
 BAD_INPUTS = ["@missing.zarr", "@missing.tif", "@emptydir", "@folder.tif", "@file.zarr", "@empty.nrrd", "@notes.txt",
               "@session_as_scan", "@binary.nii", "@dev_null", "@emptystr", "@slash"]
-#: paths given where an output is expected
-BAD_OUTPUTS = ["@under_a_file", "@missing_folder", "@exists_no_overwrite", "@bad_suffix", "@no_suffix", "@proc",
-               "@dot", "@emptystr", "@long_name", "@readonly_dir", "@is_shared_input", "@dev_null"]
+#: paths given where an output is expected ("@special" is a FIFO of the case's own: as root, a broken check would
+#: rename over /dev/null itself; "@is_input" is the command's first input)
+BAD_OUTPUTS = ["@under_a_file", "@missing_folder", "@exists", "@bad_suffix", "@no_suffix", "@proc", "@dot",
+               "@emptystr", "@long_name", "@readonly_dir", "@is_input", "@special", "@slash", "@dotdot"]
 
 
 @dataclass
@@ -345,10 +347,11 @@ def _resolve(token: str, shared: dict, case_dir: Path) -> str:
         "notes.txt": d / "notes.txt", "session_as_scan": d / "fish_1.unwind.json", "binary.nii": d / "binary.nii",
         "dev_null": "/dev/null", "emptystr": "", "slash": "/",
         "under_a_file": d / "blocker" / "out.zarr", "missing_folder": case_dir / "no" / "such" / "out.zarr",
-        "exists_no_overwrite": d / "exists.zarr", "bad_suffix": case_dir / "out" / "result.xyz",
+        "exists": case_dir / "out" / "exists.zarr", "special": case_dir / "out" / "fifo",
+        "dotdot": case_dir / "out" / "..", "bad_suffix": case_dir / "out" / "result.xyz",
         "no_suffix": case_dir / "out" / "result", "proc": "/proc/version", "dot": ".",
         "long_name": case_dir / "out" / ("x" * 300 + ".zarr"), "readonly_dir": "/sys/out.zarr",
-        "is_shared_input": d / "tank.zarr", "damaged": case_dir / "in" / "damaged",
+        "damaged": case_dir / "in" / "damaged",
     }
     return str(table[name])
 
@@ -363,7 +366,12 @@ def _prepare(case: Case, shared: dict, case_dir: Path) -> tuple[list[str], list[
     session = case_dir / "in" / "fish_1.unwind.json"
     session.write_bytes(_fuzz_session(text, case.session_fuzz, rng) if case.session_fuzz else text.encode())
     own.append(session)
-    argv = [_resolve(t, shared, case_dir) for t in case.argv]
+    shutil.copytree(shared["dir"] / "exists.zarr", case_dir / "out" / "exists.zarr")
+    os.mkfifo(case_dir / "out" / "fifo")
+    argv = [_resolve(t, shared, case_dir) for t in case.argv if t != "@is_input"]
+    if "@is_input" in case.argv:  # the output is the command's first existing input
+        first = next((a for a in argv[1:] if a and Path(a).exists()), str(session))
+        argv = [first if t == "@is_input" else _resolve(t, shared, case_dir) for t in case.argv]
     if case.damage:
         fmt, kind = case.damage
         src = shared["dir"] / FORMATS[fmt]
@@ -381,7 +389,7 @@ def _flag(argv, name):
     return argv[argv.index(name) + 1] if name in argv[:-1] else None
 
 
-def _check_success(case: Case, argv: list[str], out: str, shared: dict) -> None:
+def _check_success(case: Case, argv: list[str], out: str, err: str, shared: dict) -> None:
     """An exit 0: the output reads back (and equals its source where the case allows)."""
     from napari_unwind.io import open_volume
     from napari_unwind.session import load_session
@@ -411,10 +419,15 @@ def _check_success(case: Case, argv: list[str], out: str, shared: dict) -> None:
     vol = open_volume(output, **({"format": _flag(argv, "--format")} if _flag(argv, "--format") else {}))
     assert all(n > 0 for n in vol.shape)
     if cmd in ("import", "convert"):
-        src = open_volume(argv[1])
-        level = _flag(argv, "--level")
-        if case.damage and case.damage[1] in LOSSY or level not in (None, "0"):
+        if _flag(argv, "--level") not in (None, "0"):
             return
+        if case.damage and case.damage[1] in LOSSY:
+            # data lost: a whole copy of the scan as it was, or a warning saying so
+            if any(line.startswith("unwind: warning: ") for line in err.splitlines()):
+                return
+            src = open_volume(shared["dir"] / FORMATS[case.damage[0]])
+        else:
+            src = open_volume(argv[1])
         expect = np.asarray(src.data)
         nan_value = _flag(argv, "--nan-value")
         if nan_value is not None:
@@ -449,7 +462,7 @@ def _check_case(case: Case, code: int, out: str, err: str, argv: list, shared: d
         assert one_error_line(err), err
     else:
         assert not error_lines(err), err  # only progress and warning lines
-        _check_success(case, argv, out, shared)
+        _check_success(case, argv, out, err, shared)
     assert tree_hash(shared["dir"]) == shared["hash"], "a shared input changed"
     assert tree_hash(*own) == before, "the case's own input changed"
     assert leftovers(shared["dir"], case_dir) == []

@@ -72,11 +72,6 @@ def test_a_closed_pipe_ends_quietly(demo):
     assert p.returncode == 0 and p.stderr == "", p.stderr
 
 
-def test_head_reads_one_line(demo):
-    p = subprocess.run(f"'{UNWIND}' info '{demo.tank}' | head -n 1", shell=True, capture_output=True, text=True)
-    assert p.returncode == 0 and p.stdout.startswith("path:") and p.stderr == ""
-
-
 # ------------------------------------------------------------------------------------------------------------------
 # progress written to a log: one line per stage, with its time
 # ------------------------------------------------------------------------------------------------------------------
