@@ -137,3 +137,17 @@ def test_the_jacobian_is_one_in_the_padding_even_where_the_cage_folds():
     jm = d.jacobian_min(np.array([-3.0, -1e-6, 0.0, 0.5 * length, length, length + 1e-6, length + 3.0]))
     np.testing.assert_array_equal(jm[[0, 1, 5, 6]], 1.0)
     np.testing.assert_allclose(jm[[2, 3, 4]], -1.0, atol=0.02)
+
+
+def test_tilt_about_v_and_resize_every_keyframe():
+    # Frame rows u = axis1, v = axis2, n = axis0. A quarter turn about v (axis2, right-handed) takes axis0 to axis1
+    # and axis1 to -axis0: u -> -axis0, n -> axis1, v unchanged. resize_keyframe(None, ...) sets every keyframe,
+    # resize_keyframe(i, ...) only keyframe i.
+    # Kills: tilt about v done about n or about u; resize with i=None failing or resizing the wrong keyframes.
+    frame = np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]])
+    d = Deformation.from_keyframes([[0.0, 0, 0], [10, 0, 0], [20, 0, 0]], [frame] * 3, (3.0, 2.0))
+    tilted = d.tilt_keyframe(1, np.pi / 2, axis="v")
+    np.testing.assert_allclose(tilted.keyframes[1].frame, [[-1, 0, 0], [0, 0, 1], [0, 1, 0]], atol=1e-12)
+    np.testing.assert_allclose(tilted.keyframes[0].frame, frame)
+    assert [k.half_extent for k in d.resize_keyframe(None, (4.0, 5.0)).keyframes] == [(4.0, 5.0)] * 3
+    assert [k.half_extent for k in d.resize_keyframe(1, 2.0).keyframes] == [(3.0, 2.0), (2.0, 2.0), (3.0, 2.0)]
