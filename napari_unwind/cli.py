@@ -726,6 +726,10 @@ def _segment_select(volume: Any, args: argparse.Namespace) -> tuple[Any, Any, st
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    if getattr(args, "server", None):
+        from ._cli_remote import run_remote
+
+        return run_remote(args)
     from .io import open_volume
     from .session import Session, save_session
     from .warp import FoldWarning, export_iter
@@ -866,6 +870,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
+    from ._cli_remote import _add_token_options, add_remote_commands
 
     parser = _Parser(
         prog="unwind",
@@ -968,6 +973,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-folds", action="store_true", help="export even where the deformation folds")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs once the new ones are complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+    p.add_argument("--server", default=None, metavar="HOST:PORT",
+                   help="run the whole pipeline as a job on this napari-unwind server instead of in this process")
+    _add_token_options(p)
     _add_input_options(p)
     p.set_defaults(func=cmd_run)
 
@@ -1022,6 +1030,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace outputs of an earlier demo run")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
     p.set_defaults(func=cmd_demo)
+
+    # the remote faces: serve, submit, jobs (and run --server above)
+    add_remote_commands(sub)
     return parser
 
 
