@@ -1,4 +1,5 @@
-"""Synthetic specimens with exact ground truth: a bent cylinder, a bent and twisted fish, a tank of fish.
+"""Synthetic specimens with exact ground truth: a bent cylinder, a bent and twisted fish, a tank of fish, and a
+family of hard specimens drawn from a seed (tight S-bends, coils, helices: :func:`hard_fish_phantom`).
 
 These phantoms are the embedded sample of ``unwind demo``, napari's sample data and the reference of every
 accuracy test. Each one is built from an analytic density defined in *straight* coordinates and an analytic
@@ -46,14 +47,17 @@ nearest knot of a dense arclength-uniform polyline (``cKDTree``), then Newton st
 ``x = (p - c) . u`` and ``y = (p - c) . v``. The map is unique because the curve's radius of curvature is
 checked to stay larger than the cage (``rx |u.k| + ry |v.k| < 0.9`` with ``k`` the curvature vector, so the
 map does not fold) and the curve never comes back near itself. Points whose
-``s`` falls outside ``[0, L]`` are outside the body. Partial volume at the surfaces comes from an approximate
+``s`` falls outside ``[0, L]`` are outside the body. The hard phantoms bend tighter than their cage and come
+back near themselves: there every foot of each voxel on the curve is found (the curve cut into pieces that
+turn by at most 60 degrees) and only the body, not its cage, is checked not to fold or overlap itself.
+Partial volume at the surfaces comes from an approximate
 signed distance (soft edge one voxel wide); the masks are the exact indicator evaluated at voxel centres.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import dask.array as da
@@ -61,6 +65,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from .errors import InvalidInputError
 from .io._volume import Volume, check_spacing
@@ -70,6 +75,8 @@ __all__ = [
     "CURVES",
     "FIN",
     "FLESH",
+    "HARD_KINDS",
+    "HARD_SPACINGS",
     "SPINE",
     "TUBE",
     "UNIT",
@@ -77,6 +84,7 @@ __all__ = [
     "Tank",
     "cylinder_phantom",
     "fish_phantom",
+    "hard_fish_phantom",
     "tank_phantom",
 ]
 
@@ -142,6 +150,11 @@ class Phantom:
         Physical (axis1, axis2) position of the tube axis, which is parallel to axis0.
     seed : int or None
         The seed of the noise (and of the random layout for a tank).
+    mask_arclength : ndarray of float32, shape (N0, N1, N2), or None
+        Hard phantoms only: the arclength ``s`` of the centreline point each mask voxel belongs to (NaN outside
+        the mask), to tell the turns of a coil apart.
+    info : dict or None
+        Hard phantoms only: what was drawn and measured (see :func:`hard_fish_phantom`).
     """
 
     name: str
@@ -164,6 +177,8 @@ class Phantom:
     tube_radii: tuple[float, float] | None = None
     tube_center: tuple[float, float] | None = None
     seed: int | None = None
+    mask_arclength: np.ndarray | None = None
+    info: dict[str, Any] | None = None
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -1317,4 +1332,398 @@ def tank_phantom(
     raise InvalidInputError(
         f"no valid layout of {n_fish} fish found in {max_tries} tries (last: {last_error}); use fewer fish, "
         "a smaller gap, a larger max_tries or another seed"
+    )
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# hard specimens: tight S-bends, coils and helices
+# ------------------------------------------------------------------------------------------------------------------
+#: The kinds of :func:`hard_fish_phantom`.
+HARD_KINDS = ("s-bend", "coil", "helix")
+#: The voxel spacings :func:`hard_fish_phantom` draws from when none is given.
+HARD_SPACINGS = ((1.0, 1.0, 1.0), (1.5, 1.0, 1.0), (1.0, 0.7, 0.7))
+_BODY_LOAD = 0.85  # the body's own Jacobian stays >= 0.15 everywhere (its cage may fold, the body never does)
+_MAX_SIDE = 160  # voxels
+_MIN_GAP = 3.0  # voxels (of the coarsest spacing) between parts of a body that are far apart along it
+
+
+def _body_support(body: _Fish, s: np.ndarray, ca: np.ndarray, sa: np.ndarray) -> np.ndarray:
+    """The largest ``x ca + y sa`` over the body's cross-section at arclength ``s`` (fin and spine included)."""
+    sig = np.asarray(s, dtype=float) / body.L
+    b = body.half_height(sig)
+    out = np.hypot(body.aspect * b * ca, b * sa)
+    top = body.fin_top(sig, b)
+    fin = body.fin_half * np.abs(ca) + np.maximum(np.where(np.isfinite(top), top, 0.0) * sa, 0.0)
+    out = np.maximum(out, np.where(np.isfinite(top), fin, -np.inf))
+    f0, f1 = body.spine_range
+    spine = body.spine_offset * b * sa + np.clip(body.spine_radius * b, body.spine_min, None)
+    return np.maximum(out, np.where((sig >= f0) & (sig <= f1), spine, -np.inf))
+
+
+def _body_load(curve: _Curve, body: _Fish, s: np.ndarray) -> np.ndarray:
+    """``1 - min J`` over the body's cross-section at ``s``: the curvature times the body's extent towards the
+    centre of curvature (1 or more: the body itself folds)."""
+    u, v, _ = curve.frames(s)
+    k = curve.curvature(s)
+    ku, kv = np.sum(k * u, axis=1), np.sum(k * v, axis=1)
+    kap = np.hypot(ku, kv)
+    safe = np.maximum(kap, 1e-300)
+    return kap * _body_support(body, s, ku / safe, kv / safe)
+
+
+def _self_gap(points: np.ndarray, s: np.ndarray, apart: float, cap: float) -> float:
+    """Smallest distance between points whose arclengths ``s`` differ by more than ``apart`` (pairs up to 12 %
+    further apart along the curve may be left out); inf when none come within ``cap``."""
+    w = apart / 8.0
+    bins = np.floor(s / w).astype(int)
+    best = np.inf
+    for b in np.unique(bins):
+        far = bins >= b + 9
+        if not far.any():
+            break
+        d, _ = cKDTree(points[bins == b]).query(points[far], k=1, distance_upper_bound=cap)
+        best = min(best, float(d.min()))
+    return best
+
+
+def _integrated(length: float, kappa: np.ndarray, psi: np.ndarray, frame0: np.ndarray) -> CubicSpline:
+    """The curve of arclength ``length`` (from the origin, along ``frame0[0]``) whose curvature vector is
+    ``kappa (cos(psi) N1 + sin(psi) N2)`` in its parallel-transport frame (T, N1, N2), which starts at the rows of
+    ``frame0``; ``kappa`` and ``psi`` are sampled uniformly in ``s``. Returns a C2 spline of ``s``."""
+    n = len(kappa)
+    s = np.linspace(0.0, length, n)
+    h = s[1] - s[0]
+    km, pm = 0.5 * (kappa[1:] + kappa[:-1]), 0.5 * (psi[1:] + psi[:-1])
+    # T' = k1 N1 + k2 N2, N1' = -k1 T, N2' = -k2 T: the frame turns about its own axis (0, -k2, k1)
+    steps = Rotation.from_rotvec(np.column_stack([np.zeros(n - 1), -km * np.sin(pm), km * np.cos(pm)]) * h)
+    mats = steps.as_matrix()
+    rot = np.asarray(frame0, dtype=float).T.copy()  # columns T, N1, N2
+    tangents = np.empty((n, 3))
+    tangents[0] = rot[:, 0]
+    for i in range(n - 1):
+        rot = rot @ mats[i]
+        tangents[i + 1] = rot[:, 0]
+    pts = np.vstack([np.zeros(3), np.cumsum(0.5 * (tangents[1:] + tangents[:-1]) * h, axis=0)])
+    return CubicSpline(s, pts, axis=0)
+
+
+def _aligned(make: Callable[[float], _Curve], s_ref: float, angle: float) -> _Curve:
+    """``make(roll)`` with the roll that puts the curvature vector at ``s_ref`` at ``angle`` from u (0: along +u,
+    so the body bends sideways there)."""
+    crv = make(0.0)
+    u, v, _ = crv.frames(np.array([s_ref]))
+    k = crv.curvature(np.array([s_ref]))[0]
+    return make(float(np.arctan2(k @ v[0], k @ u[0])) - angle)
+
+
+def _render_pieces(
+    shape: tuple[int, int, int], curve: _Curve, body: _Fish, spacing: Sequence[float]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The body's density above background, its mask and the arclength of each mask voxel, from every foot of
+    every voxel on the curve.
+
+    The curve is cut into pieces that turn by at most 60 degrees. In each piece every voxel within reach is
+    projected on the piece (Newton steps on ``(p - c(s)) . c'(s) = 0`` from the piece's nearest knot) and kept
+    when its foot lies in the piece, so a voxel near two turns of a coil is seen from both. The density is the
+    largest over the feet, the mask holds the voxels inside the body through any foot. Also returns the number
+    of voxels inside the body through two feet or more (0 unless the body overlaps itself).
+    """
+    sp = np.asarray(spacing, dtype=float)
+    L, h = curve.length, curve.h
+    kmax = float(np.max(np.linalg.norm(curve.curvature(curve.knots_s), axis=1)))
+    n_pieces = max(2, int(np.ceil(L * kmax / (np.pi / 3))))
+    edges = np.linspace(0.0, L, n_pieces + 1)
+    bound = body.ext + 2.0 * float(sp.max()) + h
+    excess = np.zeros(shape, dtype=np.float32)
+    mask = np.zeros(shape, dtype=bool)
+    arc = np.full(shape, np.nan, dtype=np.float32)
+    count = np.zeros(shape, dtype=np.uint8)
+    w = float(np.mean(sp))
+    for i in range(n_pieces):
+        a, b = edges[i], edges[i + 1]
+        last = i == n_pieces - 1
+        lo_s, hi_s = (-2.0 * h if i == 0 else a), (L + 2.0 * h if last else b)
+        near = (curve.knots_s >= a - h) & (curve.knots_s <= b + h)
+        kn, ks = curve.knots[near], curve.knots_s[near]
+        lo = np.maximum(np.floor((kn.min(axis=0) - bound) / sp).astype(int), 0)
+        hi = np.minimum(np.ceil((kn.max(axis=0) + bound) / sp).astype(int) + 1, np.asarray(shape))
+        if np.any(hi <= lo):
+            continue
+        grids = [np.arange(lo[d], hi[d]) * sp[d] for d in range(3)]
+        p = np.stack(np.meshgrid(*grids, indexing="ij"), axis=-1).reshape(-1, 3)
+        dist, idx = cKDTree(kn).query(p, k=1, distance_upper_bound=bound, workers=-1)
+        sel = np.flatnonzero(np.isfinite(dist))
+        q, s = p[sel], ks[idx[sel]]
+        reach = 0.5 * (b - a)
+        todo = np.arange(len(s))
+        for _ in range(8):  # Newton steps on the points that still move
+            st = s[todo]
+            r = q[todo] - curve.C(st)
+            d1, d2 = curve.dC(st), curve.ddC(st)
+            g = np.sum(r * d1, axis=1)
+            gp = np.sum(r * d2, axis=1) - np.sum(d1 * d1, axis=1)
+            step = np.clip(np.where(gp < -0.05, -g / np.minimum(gp, -0.05), g), -4.0 * h, 4.0 * h)
+            s[todo] = np.clip(st + step, lo_s - reach, hi_s + reach)
+            todo = todo[np.abs(step) > 1e-9 * h]
+            if not len(todo):
+                break
+        r = q - curve.C(s)
+        u, v, n = curve.frames(s)
+        ok = (np.abs(np.sum(r * n, axis=1)) < 1e-6 * max(1.0, h)) & (s >= lo_s) & (s <= hi_s) & ((s < hi_s) | last)
+        val, inside = body.evaluate(np.sum(r * u, axis=1)[ok], np.sum(r * v, axis=1)[ok], s[ok], w)
+        box = tuple(slice(lo[d], hi[d]) for d in range(3))
+        sub_shape = tuple(int(x) for x in hi - lo)
+        flat = sel[ok]
+        ex = np.zeros(int(np.prod(sub_shape)), dtype=np.float32)
+        ex[flat] = val - BACKGROUND
+        np.maximum(excess[box], ex.reshape(sub_shape), out=excess[box])
+        ins = np.zeros(ex.shape, dtype=bool)
+        ins[flat] = inside
+        where = np.full(ex.shape, np.nan, dtype=np.float32)
+        where[flat[inside]] = s[ok][inside]
+        ins = ins.reshape(sub_shape)
+        mask[box] |= ins
+        count[box] += ins
+        arc[box] = np.where(ins, where.reshape(sub_shape), arc[box])
+    return excess, mask, arc, int(np.count_nonzero(count > 1))
+
+
+def _bisect(gap_of: Callable[[float], float], target: float, lo: float, hi: float) -> float | None:
+    """The smallest parameter in [lo, hi] (to 0.5 %) whose gap is at least ``target``; None when even ``hi``'s is
+    smaller."""
+    if gap_of(hi) < target:
+        return None
+    for _ in range(12):
+        mid = 0.5 * (lo + hi)
+        if gap_of(mid) >= target:
+            hi = mid
+        else:
+            lo = mid
+        if hi - lo < 0.005 * hi:
+            break
+    return hi
+
+
+def _draw_sbend(rng: np.random.Generator, sp: np.ndarray, twist: float, h: float) -> tuple[_Curve, _Fish, dict] | str:
+    """Two or three bends of alternating sense; the first, where the body is widest, 0.8-1.2 half heights tight."""
+    unit = float(sp.min())
+    L = rng.uniform(120.0, 150.0) * unit
+    body = _Fish(L, rng.uniform(8.0, 11.0) * unit, float(sp.max()), 2.0 * float(sp.max()))
+    m = int(rng.integers(2, 4))
+    centre = (np.linspace(0.27, 0.78, m) + rng.uniform(-0.03, 0.03, m)) * L
+    rho = rng.uniform(0.8, 2.0, m) * body.half_height(centre / L)
+    rho[0] = rng.uniform(0.8, 1.2) * body.half_height(centre[0] / L)
+    stops = np.concatenate([[0.0], centre, [L]])
+    room = np.minimum(np.diff(stops)[:-1], np.diff(stops)[1:])
+    width = np.minimum(np.radians(rng.uniform(60.0, 150.0, m)) * rho, 0.48 * room)  # half widths of the bends
+    psi0, drift = rng.uniform(0.0, 2.0 * np.pi), rng.uniform(-0.8, 0.8)  # the bends' plane turns slowly
+    frame0 = Rotation.random(random_state=rng).as_matrix().T
+    side = rng.choice([0.0, np.pi]) + np.radians(rng.uniform(-15.0, 15.0))
+    s = np.linspace(0.0, L, 4001)
+    for _ in range(6):
+        kap = np.zeros_like(s)
+        for k in range(m):
+            z = (s - centre[k]) / width[k]
+            kap += (-1) ** k / rho[k] * np.where(np.abs(z) < 1, 0.5 * (1.0 + np.cos(np.pi * z)), 0.0)
+        fn = _integrated(L, kap, psi0 + drift * s / L, frame0)
+        crv = _aligned(lambda roll, fn=fn: _Curve(fn, 0.0, L, h=h, length=L, twist=twist, roll=roll), centre[0],
+                       side)
+        load = _body_load(crv, body, crv.knots_s)
+        peak = np.array([load[np.abs(crv.knots_s - c) <= w].max() for c, w in zip(centre, width)])
+        if peak.max() <= _BODY_LOAD:
+            return crv, body, {"bends": m}
+        rho = np.where(peak > _BODY_LOAD, rho * peak / (0.97 * _BODY_LOAD), rho)  # the twist turned it the wrong way
+    return "a bend stayed too sharp for the body's own cross-section"
+
+
+def _spiral(r0: float, pitch: float, length: float, frame: np.ndarray, head_inside: bool
+            ) -> tuple[Callable[[np.ndarray], np.ndarray], float]:
+    """A flat spiral ``r = r0 + pitch phi / (2 pi)`` of the given arclength in the plane of ``frame[0:2]``; returns
+    it as a function of ``phi`` (run from the outside in unless ``head_inside``) and its total angle."""
+    a = pitch / (2.0 * np.pi)
+    phi_hi = 1.1 * (np.sqrt(r0**2 + 2.0 * a * length) - r0) / a + 1.0
+    phi = np.linspace(0.0, phi_hi, 20001)
+    speed = np.hypot(r0 + a * phi, a)
+    cum = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * np.diff(phi))])
+    total = float(np.interp(length, cum, phi))
+
+    def fn(t: np.ndarray) -> np.ndarray:
+        ph = t if head_inside else total - t
+        return (r0 + a * ph)[:, None] * (np.cos(ph)[:, None] * frame[0] + np.sin(ph)[:, None] * frame[1])
+
+    return fn, total
+
+
+def _draw_turns(
+    kind: str, rng: np.random.Generator, sp: np.ndarray, twist: float, h: float, ds: float
+) -> tuple[_Curve, _Fish, dict] | str:
+    """A coil (flat spiral) or a helix whose neighbouring turns come within a drawn gap of each other."""
+    unit = float(sp.min())
+    L = rng.uniform(130.0, 150.0) * unit
+    R = rng.uniform(6.0, 8.5) * unit if kind == "coil" else rng.uniform(7.0, 10.0) * unit
+    body = _Fish(L, R, float(sp.max()), 2.0 * float(sp.max()))
+    radius = rng.uniform(1.1, 1.4) * R if kind == "coil" else rng.uniform(1.0, 1.5) * R
+    frame = Rotation.random(random_state=rng).as_matrix().T
+    flag = bool(rng.integers(2))  # coil: head inside; helix: left-handed
+    width = 2.0 * body.aspect * R
+    gap = rng.uniform(_MIN_GAP * float(sp.max()), width)
+    side = rng.choice([0.0, np.pi]) + np.radians(rng.uniform(-15.0, 15.0))
+    _, straight = _straight_truth(body, ds)
+    s_surf = np.nonzero(straight & ~ndimage.binary_erosion(straight, border_value=0))[0] * ds
+
+    def build(pitch: float) -> tuple[_Curve, float]:
+        if kind == "coil":
+            fn, t1 = _spiral(radius, pitch, L, frame, flag)
+        else:
+            c, hand = pitch / (2.0 * np.pi), (-1.0 if flag else 1.0)
+            t1 = L / np.hypot(radius, c)
+
+            def fn(t: np.ndarray) -> np.ndarray:
+                return (c * t)[:, None] * frame[2] + radius * (
+                    np.cos(hand * t)[:, None] * frame[0] + np.sin(hand * t)[:, None] * frame[1])
+
+        return _aligned(lambda roll: _Curve(fn, 0.0, t1, h=h, length=L, twist=twist, roll=roll), 0.5 * L, side), t1
+
+    def gap_of(pitch: float) -> float:
+        return _self_gap(_surface_points(build(pitch)[0], straight, ds), s_surf, np.pi * body.ext, 2.0 * width)
+
+    for _ in range(4):
+        pitch = _bisect(gap_of, gap, 0.3 * R, 8.0 * R)
+        if pitch is None:
+            return f"no {kind} pitch up to {8 * R:.3g} keeps its turns {gap:.3g} apart"
+        crv, t1 = build(pitch)
+        load = float(_body_load(crv, body, crv.knots_s).max())
+        if load <= _BODY_LOAD:
+            turns = t1 / (2.0 * np.pi)
+            if turns < 1.15:
+                return f"the {kind} makes only {turns:.2f} turns"
+            return crv, body, {"turns": float(turns), "gap_target": float(gap), "pitch": float(pitch),
+                               "turn_radius": float(radius)}
+        radius *= load / (0.97 * _BODY_LOAD)  # the twist turned the body's tall side towards the centre
+    return f"the {kind}'s turns stayed too tight for the body's own cross-section"
+
+
+def hard_fish_phantom(
+    seed: int | None = 0,
+    *,
+    kind: str | None = None,
+    spacing: float | Sequence[float] | None = None,
+    noise: float = 40.0,
+    straight_spacing: float | None = None,
+    max_tries: int = 20,
+) -> Phantom:
+    """A random hard specimen with its exact ground truth: a tight S-bend, a coil or a helix, twisted.
+
+    Everything is drawn from ``seed`` (the same seed gives the same phantom):
+
+    - ``"s-bend"``: two or three bends of alternating sense whose plane turns slowly. The first, where the body
+      is widest, has a radius of curvature of 0.8 to 1.2 times the body's half height there, and the body bends
+      sideways there (within 15 degrees), the way a fish bends.
+    - ``"coil"``: a flat spiral of more than 1.15 turns.
+    - ``"helix"``: a helix of more than 1.15 turns.
+    - In coils and helices the surfaces of neighbouring turns come within a gap drawn between 3 voxels and the
+      body's width (``2 * 0.6 * body_radius``).
+    - A twist drawn in [-200, 200] degrees, a random orientation, and (unless ``spacing`` is given) a spacing
+      drawn from :data:`HARD_SPACINGS`: isotropic, (1.5, 1, 1) or (1, 0.7, 0.7). Lengths are 120-150 and body
+      radii 6-11 of the finest spacing; no side of the volume exceeds 160 voxels.
+
+    The cage ``half_extent`` (the specimen's bounding box in straight coordinates) may fold in these bends and
+    reach into neighbouring turns; the body itself never does. Every draw is checked, and drawn again if it
+    fails: the body's own Jacobian stays at least 0.15 over its cross-section (the curvature times the body's
+    extent towards the centre of curvature is at most 0.85); no voxel lies inside the body through two points
+    of the centreline; parts of the body further apart along it than ``pi`` times its reach stay at least 3
+    voxels apart. The straight ground truth is the analytic body (as in :func:`fish_phantom`) and the bent
+    volume is rendered from every foot of each voxel on the centreline, so ``straight_mask`` is the exact
+    straight image of ``mask``.
+
+    Parameters
+    ----------
+    seed : int
+        Seed of the draw and of the noise.
+    kind : {"s-bend", "coil", "helix"}, optional
+        The kind of specimen; default drawn from the seed.
+    spacing : float or tuple of 3 float, optional
+        Voxel size (axis0, axis1, axis2); default drawn from the seed.
+    noise : float
+        Standard deviation of the added noise (grey values), 0 for none.
+    straight_spacing : float, optional
+        Spacing ``ds`` of the straight ground truth; default the finest of ``spacing``.
+    max_tries : int
+        Draws before giving up.
+
+    Returns
+    -------
+    Phantom
+        Named ``"hard-<kind>-<seed>"``, no tube, with ``mask_arclength`` (the ``s`` of each mask voxel) and
+        ``info``: ``kind``, ``seed``, ``attempt`` (draws that failed before), ``twist_deg``, ``body_radius``,
+        ``length``, ``tightest_radius`` (the smallest radius of curvature), ``radius_to_half_height`` (the
+        smallest ratio of the radius of curvature to the body's half height, at ``radius_there`` and
+        ``half_height_there``), ``min_gap`` (between parts of the surface further apart along the body than
+        ``pi`` times its reach; inf if none come within two body widths), ``body_width``, ``max_body_load`` and
+        ``min_body_jacobian`` (1 minus it); S-bends add ``bends``, coils and helices ``turns``, ``gap_target``,
+        ``pitch`` and ``turn_radius``. Lengths are physical.
+
+    Raises
+    ------
+    InvalidInputError
+        For an invalid seed, kind, spacing or number, or when no valid draw was found in ``max_tries``.
+    """
+    seed = _seed(seed)
+    if kind is not None and kind not in HARD_KINDS:
+        raise InvalidInputError(f"kind must be one of {', '.join(HARD_KINDS)} or None, got {kind!r}")
+    if isinstance(max_tries, (bool, np.bool_)) or not isinstance(max_tries, (int, np.integer)) or max_tries < 1:
+        raise InvalidInputError(f"max_tries must be a positive integer, got {max_tries!r}")
+    noise = _positive("noise", noise, allow_zero=True)
+    rng = np.random.default_rng(seed)
+    drawn_kind = HARD_KINDS[int(rng.integers(len(HARD_KINDS)))]
+    drawn_spacing = HARD_SPACINGS[int(rng.integers(len(HARD_SPACINGS)))]
+    kind = drawn_kind if kind is None else kind
+    spacing = check_spacing(drawn_spacing if spacing is None else spacing)
+    sp = np.asarray(spacing)
+    ds = _straight_spacing(straight_spacing, spacing)
+    h = 0.25 * float(sp.min())
+    reason = ""
+    for attempt in range(int(max_tries)):
+        twist = float(np.radians(rng.uniform(-200.0, 200.0)))
+        drawn = _draw_sbend(rng, sp, twist, h) if kind == "s-bend" else _draw_turns(kind, rng, sp, twist, h, ds)
+        if isinstance(drawn, str):
+            reason = drawn
+            continue
+        crv, body, extra = drawn
+        straight = _straight_truth(body, ds)
+        surf = _surface_points(crv, straight[1], ds)
+        s_surf = np.nonzero(straight[1] & ~ndimage.binary_erosion(straight[1], border_value=0))[0] * ds
+        width = 2.0 * body.aspect * body.R
+        gap = _self_gap(surf, s_surf, np.pi * body.ext, 2.0 * width)
+        if gap < _MIN_GAP * float(sp.max()):
+            reason = f"two parts of the body came {gap:.3g} apart"
+            continue
+        margin = 3.0 * float(sp.max())
+        lo, hi = surf.min(axis=0) - margin, surf.max(axis=0) + margin
+        shape = tuple(int(n) for n in np.ceil((hi - lo) / sp).astype(int) + 1)
+        if max(shape) > _MAX_SIDE:
+            reason = f"the volume would be {shape} voxels"
+            continue
+        crv = crv.translated(-lo)
+        excess, mask, arc, overlap = _render_pieces(shape, crv, body, spacing)
+        if overlap:
+            reason = f"the body overlaps itself in {overlap} voxels"
+            continue
+        s = crv.knots_s
+        radius = 1.0 / np.maximum(np.linalg.norm(crv.curvature(s), axis=1), 1e-300)
+        b = body.half_height(s / body.L)
+        k = int(np.argmin(radius / b))
+        load = float(_body_load(crv, body, s).max())
+        info = {"kind": kind, "seed": seed, "attempt": attempt, "twist_deg": float(np.degrees(twist)),
+                "body_radius": float(body.R), "length": float(crv.length), "tightest_radius": float(radius.min()),
+                "radius_to_half_height": float(radius[k] / b[k]), "radius_there": float(radius[k]),
+                "half_height_there": float(b[k]), "min_gap": float(gap), "body_width": float(width),
+                "max_body_load": load, "min_body_jacobian": 1.0 - load, **extra}
+        volume = _finish(excess + np.float32(BACKGROUND), noise, seed)
+        ph = _phantom(f"hard-{kind}-{seed}", volume, mask, crv, body, spacing, ds, tube=None, seed=seed,
+                      straight=straight)
+        return replace(ph, mask_arclength=arc, info=info)
+    raise InvalidInputError(
+        f"no valid hard {kind} phantom found for seed {seed} in {max_tries} draws (last: {reason}); use another "
+        "seed or a larger max_tries"
     )
