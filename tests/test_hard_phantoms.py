@@ -75,7 +75,9 @@ def straightened_dice(ph, dfm) -> tuple[float, float, float]:
     and counting every mask voxel; and the share of the straightened mask that came from another part of the
     body (a neighbouring turn in the cage)."""
     m = straighten(ph.mask.astype(np.float32), dfm, order=1)
-    arc = straighten(ph.mask_arclength, dfm, order=0, fill=-1e9)
+    # the true s of the nearest mask voxel, so that the order-1 mask's edge keeps its arclength
+    nearest = ndi.distance_transform_edt(~ph.mask, sampling=ph.spacing, return_distances=False, return_indices=True)
+    arc = straighten(ph.mask_arclength[tuple(nearest)], dfm, order=0, fill=-1e9)
     ds_ = m.spacing[0]
     got = np.asarray(m.data.compute()) >= 0.5
     ns = got.shape[0]
