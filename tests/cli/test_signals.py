@@ -21,20 +21,25 @@ def demo(tmp_path_factory):
 
 def _start_export(demo, out):
     return subprocess.Popen([str(UNWIND), "straighten", str(demo.tank), "--session", str(demo.session), "-o",
-                             str(out), "--spacing", "0.25", "--no-verify", "-q"],
+                             str(out), "--spacing", "0.2", "--no-verify", "-q"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _wait_for_temp(proc, folder, timeout=60):
+def _signal_when_writing(procs, folders, signals, timeout=120):
+    """Send each process its signal as soon as its temporary output exists (all watched at once)."""
+    pending = set(procs)
     t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        if leftovers(folder):
-            return
-        if proc.poll() is not None:
-            pytest.fail(f"the export ended before it was signalled: {proc.communicate()}")
-        time.sleep(0.02)
-    proc.kill()
-    pytest.fail("no temporary output appeared")
+    while pending and time.monotonic() - t0 < timeout:
+        for name in sorted(pending):
+            if leftovers(folders[name]):
+                procs[name].send_signal(signals[name])
+                pending.discard(name)
+            elif procs[name].poll() is not None:
+                pytest.fail(f"the {name} export ended before it was signalled: {procs[name].communicate()}")
+        time.sleep(0.01)
+    for name in pending:
+        procs[name].kill()
+    assert not pending, f"no temporary output appeared for {sorted(pending)}"
 
 
 def test_signals_mid_export(demo, tmp_path):
@@ -47,9 +52,8 @@ def test_signals_mid_export(demo, tmp_path):
     for name, folder in folders.items():
         folder.mkdir()
         procs[name] = _start_export(demo, folder / "straight.zarr")
-    for name, sig in (("term", signal.SIGTERM), ("int", signal.SIGINT), ("kill", signal.SIGKILL)):
-        _wait_for_temp(procs[name], folders[name])
-        procs[name].send_signal(sig)
+    signals = {"term": signal.SIGTERM, "int": signal.SIGINT, "kill": signal.SIGKILL}
+    _signal_when_writing(procs, folders, signals)
     errs = {name: p.communicate(timeout=60)[1] for name, p in procs.items()}
     time.sleep(0.5)  # nothing reappears once the processes have gone
     for name, status, says in (("term", 143, "terminated (SIGTERM)"), ("int", 130, "interrupted")):
