@@ -227,7 +227,7 @@ def run_remote(args: argparse.Namespace) -> int:
     """
     import time
 
-    from .cli import _check_session_path, _default_session_path, _endpoints_from_args, _reader_options
+    from .cli import _check_io, _check_session_path, _default_session_path, _endpoints_from_args, _reader_options
     from .io import open_volume
     from .io._atomic import check_writable
     from .io._formats import output_format
@@ -246,6 +246,7 @@ def run_remote(args: argparse.Namespace) -> int:
     check_writable(args.output, overwrite=args.overwrite)
     session_path = Path(args.session) if args.session else _default_session_path(args.output)
     target = _check_session_path(session_path, args.overwrite)
+    _check_io([args.output, session_path], [args.input, args.mask])
     endpoints = _endpoints_from_args(args)
     say = (lambda *a: None) if args.quiet else print
     t0 = time.perf_counter()

@@ -31,7 +31,6 @@ from __future__ import annotations
 import bz2
 import gzip
 import os
-import uuid
 import warnings
 import zlib
 from collections.abc import Iterator
@@ -45,7 +44,7 @@ from dask.base import tokenize
 
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
-from ._atomic import TMP_MARK, final_name, remove_path
+from ._atomic import final_name, remove_path, temp_path
 from ._lazy import RawFileArray, iter_slabs, write_slab_depth
 from ._volume import UNIT_ABBREVIATIONS, Volume, normalise_unit
 
@@ -515,7 +514,7 @@ def write_nrrd(
             f"writing {final} would replace {companion}, which belongs to no existing header; "
             "move it away or choose another name"
         )
-    tmp = companion.with_name(f".{companion.name}.{uuid.uuid4().hex[:8]}{TMP_MARK}")
+    tmp = temp_path(companion)
     try:
         with open(tmp, "wb") as fh:
             yield from _stream_voxels(volume, fh, encoding, int(compression_level))

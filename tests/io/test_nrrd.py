@@ -248,3 +248,25 @@ def test_ascii_encoding(tmp_path, vol):
     assert v.dtype == vol.dtype
     np.testing.assert_array_equal(v.data.compute(), vol)
     np.testing.assert_allclose(v.spacing, (3.0, 2.0, 1.0))
+
+
+def test_detached_nrrd_companion_temp_records_its_owner(tmp_path, monkeypatch):
+    """A killed write of a detached header leaves a companion temp that the next write can clean up."""
+    import napari_unwind.io.nrrd_io as nrrd_io
+    from napari_unwind.io import write_volume
+    from napari_unwind.io._atomic import remove_stale_temps
+
+    seen = []
+    real = nrrd_io.temp_path
+
+    def spy(path, **kw):
+        p = real(path, **kw)
+        seen.append(p)
+        return p
+
+    monkeypatch.setattr(nrrd_io, "temp_path", spy)
+    write_volume(np.arange(24, dtype=np.uint16).reshape(2, 3, 4), tmp_path / "a.nhdr")
+    assert seen, "the companion must be written under an owned temporary name"
+    # the owner is alive: never removed; the name parses as a temp of the companion
+    assert remove_stale_temps(tmp_path / "a.raw") == []
+    assert ".p" in seen[0].name and seen[0].name.startswith(".a.raw.")

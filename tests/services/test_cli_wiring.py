@@ -42,3 +42,15 @@ def test_run_without_server_stays_local(monkeypatch, tmp_path, capsys):
                    str(tmp_path / "out.tif")])
     assert rc == 1
     assert "missing.tif" in capsys.readouterr().err
+
+
+def test_run_with_server_refuses_an_output_over_its_input(tmp_path, capsys):
+    scan = tmp_path / "scan.tif"
+    scan.write_bytes(b"not read: the check comes first")
+    before = scan.read_bytes()
+    rc = cli.main(["run", str(scan), "--mask", str(tmp_path / "m.tif"), "-o", str(scan), "--overwrite",
+                   "--server", "127.0.0.1:1"])
+    assert rc == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "scan.tif" in err[0]
+    assert scan.read_bytes() == before
