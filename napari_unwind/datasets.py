@@ -1151,8 +1151,11 @@ def tank_phantom(
     gap: float = 3.0,
     max_tries: int = 20,
     straight_spacing: float | None = None,
+    wall_value: float = TUBE,
+    wall_thickness: float = 3.0,
+    wall_noise: float = 0.0,
 ) -> Tank:
-    """Several fish, roughly parallel to axis0, packed in one tube; none touches another fish or the tube.
+    """Several fish, roughly parallel to axis0, packed in one tube; apart, or touching with ``gap=0``.
 
     Each fish gets its own random smooth 3D bend, twist (uniform in [-pi, pi]), roll, length (within 10 % of
     ``length``), body radius (within 10 % of ``body_radius``), axial offset and head direction (towards smaller
@@ -1176,11 +1179,20 @@ def tank_phantom(
         Voxel size (axis0, axis1, axis2).
     gap : float
         Smallest allowed distance, in voxels (index units), between voxel centres of two fish and between a
-        fish and the tube wall.
+        fish and the tube wall. 0: the closest fish touch each other and the wall (surfaces about one voxel
+        apart, masks adjacent; the soft edges meet well above the background).
     max_tries : int
         Layouts drawn before giving up.
     straight_spacing : float, optional
         Spacing ``ds`` of each fish's straight ground truth; default the finest of ``spacing``.
+    wall_value : float
+        Grey value of the tube wall (default 1800, brighter than flesh; a dense wall: 2500 or more).
+    wall_thickness : float
+        Thickness of the tube wall in voxels (of the coarsest of axis1/axis2), >= 1 (default 3).
+    wall_noise : float
+        Standard deviation (grey values) of extra noise inside the wall (slightly smoothed like ``noise``), as
+        CT noise grows with the attenuation of a dense wall: the wall then holds many maxima separated by
+        noise-level saddles. 0 (default): the wall has the scan's noise only.
 
     Returns
     -------
@@ -1203,14 +1215,20 @@ def tank_phantom(
     if length <= 4 * body_radius:
         raise InvalidInputError(f"length ({length}) must be larger than 4 * body_radius ({4 * body_radius})")
     noise = _positive("noise", noise, allow_zero=True)
-    gap = _positive("gap", gap)
+    gap = _positive("gap", gap, allow_zero=True)
+    wall_value = _positive("wall_value", wall_value)
+    wall_thickness = _positive("wall_thickness", wall_thickness)
+    if wall_thickness < 1.0:
+        raise InvalidInputError(f"wall_thickness must be at least 1 voxel, got {wall_thickness}")
+    wall_noise = _positive("wall_noise", wall_noise, allow_zero=True)
     spacing = check_spacing(spacing)
     sp = np.asarray(spacing)
     vox = float(sp.max())
     ds = _straight_spacing(straight_spacing, spacing)
     rng = np.random.default_rng(seed)
-    need = (gap + 2.0) * vox  # surface samples apart by this keep the rendered masks >= gap voxels apart
-    wall, margin = 3.0 * float(sp[1:].max()), 2.0 * vox
+    # surface samples apart by this keep the rendered masks >= gap voxels apart (gap 0: about one voxel, touching)
+    need = (gap + 2.0) * vox if gap > 0 else vox
+    wall, margin = wall_thickness * float(sp[1:].max()), 2.0 * vox
     last_error = "no draw had bends gentle enough"
     for _attempt in range(max_tries):
         fish = []
@@ -1292,14 +1310,20 @@ def tank_phantom(
             tree = cKDTree(bpts[i])
             for j in range(i + 1, n_fish):
                 dmin = min(dmin, float(tree.query(bpts[j], k=1, workers=-1)[0].min()))
-        tube_plane = _tube_excess(shape, sp, ctr, r_in, r_out)
-        tube_rho = np.argwhere(tube_plane >= (TUBE - BACKGROUND) / 2.0) * sp[1:] - np.asarray(ctr)
+        tube_plane = _tube_excess(shape, sp, ctr, r_in, r_out) * np.float32(
+            (wall_value - BACKGROUND) / (TUBE - BACKGROUND))
+        tube_rho = np.argwhere(tube_plane >= (wall_value - BACKGROUND) / 2.0) * sp[1:] - np.asarray(ctr)
         fish_rho = max(float(np.max(np.hypot(p[:, 1] * sp[1] - ctr[0], p[:, 2] * sp[2] - ctr[1]))) for p in bpts)
         tube_gap = (float(np.min(np.hypot(tube_rho[:, 0], tube_rho[:, 1]))) - fish_rho) / vox
         if overlap or dmin < gap or tube_gap < gap:
             last_error = f"fish {dmin:.3g} voxels apart and {tube_gap:.3g} voxels from the tube (need {gap})"
             continue
         excess += tube_plane[None]
+        if wall_noise > 0:  # the dense wall is noisier (as CT noise grows with attenuation)
+            lumps = rng.standard_normal(shape, dtype=np.float32)
+            lumps = ndimage.gaussian_filter(lumps, sigma=0.7, output=np.float32)
+            lumps *= np.float32(wall_noise / max(float(lumps.std()), 1e-12))
+            excess += lumps * (tube_plane[None] / np.float32(wall_value - BACKGROUND))
         excess += BACKGROUND
         volume = _finish(excess, noise, seed)
         tube_info = ((float(r_in), float(r_out)), (float(ctr[0]), float(ctr[1])))

@@ -233,6 +233,24 @@ def test_tank_of_five():
     _check_tank(tank, features)
 
 
+def test_a_dense_noisy_wall_does_not_outrank_a_fish():
+    """Issue 10: a dense tube wall with noise-level saddles broke into pieces that outranked a fish (at ``k`` =
+    fish + 1 a fish had no feature). The wall's maxima are apart by noise only: they merge before any fish."""
+    tank = tank_phantom(n_fish=3, seed=0, wall_value=3000, wall_thickness=6, wall_noise=600, gap=1)
+    tree = join_tree(tank.volume)
+    features = tree.simplify(len(tank.fish) + 1)  # the fish and the wall, nothing to spare
+    tube = _tube_mask(tank)
+    found = set()
+    for fish in tank.fish:
+        best = max(range(1, features.k + 1), key=lambda i: dice(features.labels == i, fish.mask))
+        assert dice(features.labels == best, fish.mask) >= 0.8, (fish.name, best)
+        found.add(best)
+    assert len(found) == len(tank.fish)
+    (wall,) = set(range(1, features.k + 1)) - found
+    assert np.count_nonzero((features.labels == wall) & tube) >= 0.9 * np.count_nonzero(features.labels == wall)
+    assert 1e-3 < tree.noise < 0.5 * tank.fish[0].volume.std()  # a noise level was estimated from the data
+
+
 # ------------------------------------------------------------------------------------------------------------------
 # the real aorta CT
 # ------------------------------------------------------------------------------------------------------------------
@@ -416,3 +434,15 @@ def test_bad_refinement(tmp_path, tank3, tank3_tree):
         refine_mask(vol, mask[:-1], isovalue=500)
     with pytest.raises(InvalidInputError, match="Volume"):
         refine_mask(tank3.volume, mask, isovalue=500)
+
+
+def test_a_tree_saved_before_the_noise_level_still_loads(tank3_tree):
+    d = tank3_tree.to_dict()
+    d["version"] = np.array(1)
+    del d["significant"], d["noise"]
+    old = JoinTree.from_dict(d)
+    assert old.significant.all() and np.isnan(old.noise)
+    np.testing.assert_array_equal(old.prune_order, tank3_tree.prune_order)
+    d["version"] = np.array(99)
+    with pytest.raises(InvalidInputError, match="version 99"):
+        JoinTree.from_dict(d)

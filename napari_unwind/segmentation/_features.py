@@ -20,8 +20,8 @@ Threshold
     neighbour's object (above that neighbour's threshold: a bright inclusion such as a spine or stent strut) is
     part of that object and is cut at the neighbour's threshold when that is lower.
 Ids
-    Importance ranks: 1 is the root, 2 the last pruned branch, and so on (hypervolume order). The features of
-    ``k`` keep their ids for ``k + 1``.
+    Importance ranks: 1 is the root, 2 the last pruned branch, and so on (hypervolume order, noise-level branches
+    last; see :mod:`._jointree`). The features of ``k`` keep their ids for ``k + 1``.
 
 (The first draft cut every feature at its own saddle, the root at the highest saddle of its children: a single
 noise maximum surviving on the root's own object then cut the root down to a few voxels, and the saddle level,
