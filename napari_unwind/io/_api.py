@@ -254,17 +254,22 @@ def import_volume_iter(
     spacing: Any = None,
     unit: str | None = None,
     labels: bool = False,
+    compression: str | None = None,
+    compression_level: int | None = None,
     **reader_options: Any,
 ) -> Iterator[Progress]:
     """Generator form of :func:`import_volume`: yields progress, returns the opened result."""
     if not isinstance(src, Volume):
         src = open_volume(src, **reader_options)
     dst = Path(dst)
+    # None: the writer's defaults (napari_unwind.io.ome_zarr.DEFAULT_COMPRESSION, imported only when writing)
+    codec = {k: v for k, v in (("compression", compression), ("compression_level", compression_level))
+             if v is not None}
     if not dst.name.lower().endswith(".zarr"):
         raise InvalidInputError(f"import writes an OME-Zarr folder; name the output *.zarr, got {dst}")
     written = yield from write_volume_iter(src, dst, spacing=spacing, unit=unit, format="ome-zarr",
                                            overwrite=overwrite, nan_value=nan_value, chunks=chunks,
-                                           max_side=max_side, labels=labels, pyramid=True)
+                                           max_side=max_side, labels=labels, pyramid=True, **codec)
     return open_volume(written, format="ome-zarr")
 
 
@@ -279,6 +284,8 @@ def import_volume(
     spacing: Any = None,
     unit: str | None = None,
     labels: bool = False,
+    compression: str | None = None,
+    compression_level: int | None = None,
     progress: Callable[[Progress], Any] | None = None,
     **reader_options: Any,
 ) -> Volume:
@@ -306,6 +313,13 @@ def import_volume(
         Override the geometry the source file declares (for formats that do not store it, e.g. BMP stacks).
     labels : bool
         The source holds labels: downsample by nearest.
+    compression : {"lz4", "zstd", "none"}, optional
+        Blosc compressor of the chunks (default lz4: straightening from the store is bound by decompression,
+        which lz4 does 3-4x faster than zstd, for files about 1.5x larger; the table is in
+        ``benchmarks/RESULTS.md``). Every chunk carries a crc32c checksum. Stores written before (blosc zstd)
+        stay readable.
+    compression_level : int, optional
+        Blosc level 1-9 (default 5 for lz4, 3 for zstd).
     progress : callable, optional
         Called with each progress record.
     **reader_options
@@ -318,4 +332,5 @@ def import_volume(
     """
     return run(import_volume_iter(src, dst, chunks=chunks, max_side=max_side, overwrite=overwrite,
                                   nan_value=nan_value, spacing=spacing, unit=unit, labels=labels,
+                                  compression=compression, compression_level=compression_level,
                                   **reader_options), progress)

@@ -2,9 +2,16 @@
 
 A scan is stored as a multiscale pyramid: level 0 at full resolution, each next level halved along every axis
 (box average for intensities, nearest for labels) until every side is at most ``max_side`` (256). Every level
-is chunked (128^3 by default), zstd-compressed and checksummed (the zarr v3 core codec crc32c), and the ``ome``
-attributes record axes, units and the scale of each level, so napari, Fiji (MoBIE/n5-viewer) and ome-zarr-py read
-it with the right geometry.
+is chunked (128^3 by default), compressed with blosc lz4 (byte shuffle; bit shuffle for 8-bit voxels) and
+checksummed (the zarr v3 core codec crc32c), and the ``ome`` attributes record axes, units and the scale of each
+level, so napari, Fiji (MoBIE/n5-viewer) and ome-zarr-py read it with the right geometry. lz4 was chosen by
+measuring (``benchmarks/bench_straighten.py --codecs``, table in ``benchmarks/RESULTS.md``): straightening from the
+store waits mostly for decompression, which lz4 does 3-4x faster than zstd, for files about 1.5x larger. Stores
+written before with blosc zstd read as before.
+
+Reading: dask reads one chunk per task. A whole chunk of a store with these codecs (bytes, blosc, crc32c) is read,
+checked and decoded straight into its array in the task's thread, without zarr's asynchronous pipeline (about a
+third faster); every other read goes through zarr.
 
 Writing streams slab by slab along axis0 in one pass: every level is built from the slabs as they go by and
 written chunk-aligned, none is read back. Peak memory is about two slabs of ``chunks[0]`` planes (the one being
@@ -21,7 +28,9 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import os
+import sys
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -31,7 +40,8 @@ import dask.array as da
 import numpy as np
 import zarr
 from dask.base import tokenize
-from zarr.codecs import BloscCodec, Crc32cCodec
+from numcodecs import Blosc
+from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec
 
 from ..errors import InvalidInputError, UnknownFormatError
 from ..progress import Progress
@@ -42,6 +52,12 @@ __all__ = ["read_ome_zarr", "write_ome_zarr", "pyramid_shapes", "DEFAULT_CHUNKS"
 
 DEFAULT_CHUNKS = (128, 128, 128)
 DEFAULT_MAX_SIDE = 256
+#: The working store's compressor (blosc) and its level; chosen by ``benchmarks/bench_straighten.py --codecs``:
+#: lz4 decodes 3-4x faster than zstd, which straightening from the store is bound by, for files about 1.5x larger.
+DEFAULT_COMPRESSION = "lz4"
+DEFAULT_COMPRESSION_LEVEL = {"lz4": 5, "zstd": 3}
+COMPRESSIONS = ("lz4", "zstd", "none")
+SHUFFLES = ("auto", "byte", "bit", "none")
 AXES = ("z", "y", "x")
 NGFF_VERSION = "0.5"
 
@@ -88,6 +104,42 @@ def _first_line(exc: BaseException) -> str:
     return text if len(text) <= 200 else text[:197] + "..."
 
 
+try:  # zarr's crc32c codec computes its checksums with it (a dependency of zarr >= 3.1)
+    import google_crc32c
+except ImportError:  # pragma: no cover - older zarr: every chunk is read through zarr
+    google_crc32c = None
+
+#: numcodecs' blosc decoder: the blosc header names the compressor, so one instance decodes every blosc chunk.
+_BLOSC = Blosc()
+
+
+def _direct_codecs(array: zarr.Array) -> tuple[bool, bool] | None:
+    """``(blosc, crc32c)`` when a chunk of ``array`` can be decoded without zarr's codec pipeline, else None.
+
+    That is a zarr v3 array without shards whose codecs are ``bytes`` (native byte order), optionally ``blosc``,
+    optionally ``crc32c``: what :func:`write_ome_zarr` writes now and wrote before. Anything else is read by zarr.
+    """
+    meta = array.metadata
+    if google_crc32c is None or meta.zarr_format != 3 or array.shards is not None:
+        return None
+    if np.dtype(array.dtype).kind not in "biuf":
+        return None
+    codecs = list(getattr(meta, "codecs", ()))
+    if not codecs or not isinstance(codecs[0], BytesCodec):
+        return None
+    endian = codecs[0].endian
+    if np.dtype(array.dtype).itemsize > 1 and (endian is None or endian.value != sys.byteorder):
+        return None
+    rest = codecs[1:]
+    crc = bool(rest) and isinstance(rest[-1], Crc32cCodec)
+    if crc:
+        rest = rest[:-1]
+    blosc = bool(rest) and isinstance(rest[0], BloscCodec)
+    if blosc:
+        rest = rest[1:]
+    return None if rest else (blosc, crc)
+
+
 class _ZarrChunks:
     """A picklable array-like over one array of a local zarr store, read chunk by chunk by dask.
 
@@ -95,6 +147,11 @@ class _ZarrChunks:
     the store records that every chunk was written (``complete``: stores this module writes), a chunk missing on
     disk is an error too, instead of reading as the fill value. Existence is checked only for chunks whose values
     all equal the fill value, so intact stores pay nothing but one comparison per voxel.
+
+    A whole chunk of a store with the codecs :func:`write_ome_zarr` writes (bytes, blosc, crc32c) is read
+    directly: the file is read, its crc32c checked and blosc decodes it into the result, in the calling thread
+    (blosc releases the GIL, so dask's threads decode in parallel). That skips zarr's asynchronous pipeline and
+    its copies, about a third of the reading time; anything else goes through zarr.
     """
 
     def __init__(self, array: zarr.Array, store: str, *, complete: bool):
@@ -106,6 +163,7 @@ class _ZarrChunks:
         self.dtype = np.dtype(array.dtype)
         self.grid = tuple(int(c) for c in (array.shards or array.chunks))
         self.fill = array.fill_value
+        self.direct = _direct_codecs(array)
 
     def chunk_file(self, coords: tuple[int, ...]) -> str:
         """Path of the file holding chunk (or shard) ``coords``."""
@@ -136,7 +194,75 @@ class _ZarrChunks:
             ranges.append(range(start // g, (stop - 1) // g + 1))
         return list(itertools.product(*ranges))
 
+    def _whole_chunk(self, key: Any) -> tuple[tuple[int, ...], list[tuple[int, int, int]]] | None:
+        """The chunk coordinates when ``key`` selects exactly one whole chunk (as dask's reads do), else None."""
+        bounds = self._bounds(key)
+        if bounds is None:
+            return None
+        coords = []
+        for (start, stop, step), g, n in zip(bounds, self.grid, self.shape, strict=True):
+            c = start // g
+            if step != 1 or start != c * g or stop != min(n, (c + 1) * g):
+                return None
+            coords.append(c)
+        return tuple(coords), bounds
+
+    def _read_direct(self, coords: tuple[int, ...], bounds: list[tuple[int, int, int]]) -> np.ndarray:
+        """Chunk ``coords`` read, checked and decoded without zarr (see the class docstring)."""
+        blosc, crc = self.direct
+        path = self.chunk_file(coords)
+        part = tuple(slice(0, stop - start) for start, stop, _ in bounds)
+        try:
+            with open(path, "rb") as fh:
+                buf = bytearray(os.fstat(fh.fileno()).st_size)  # writable: the result may be handed out
+                got = fh.readinto(buf)
+        except FileNotFoundError:
+            if self.complete:
+                raise self._missing(coords) from None
+            return np.full([stop - start for start, stop, _ in bounds], self.fill, dtype=self.dtype)
+        except OSError as exc:
+            raise InvalidInputError(f"{path}: cannot read chunk {'/'.join(map(str, coords))} "
+                                    f"({exc.strerror or exc}); check the disk or copy the store again") from None
+        data = np.frombuffer(buf, dtype=np.uint8, count=got)
+        if crc:
+            if got < 4:
+                raise self._corrupt_chunk(coords, f"{got} bytes, shorter than its checksum")
+            data, stored = data[:-4], int.from_bytes(bytes(data[-4:]), "little")
+            if google_crc32c.value(data) != stored:
+                raise self._corrupt_chunk(coords, "its crc32c checksum does not match")
+        nbytes = math.prod(self.grid) * self.dtype.itemsize
+        if not blosc:
+            if data.size != nbytes:
+                raise self._corrupt_chunk(coords, f"{data.size} bytes instead of {nbytes}")
+            return data.view(self.dtype).reshape(self.grid)[part]
+        # blosc header: version, versionlz, flags, typesize, then nbytes, blocksize, cbytes (uint32, little endian)
+        header = bytes(data[:16])
+        if len(header) < 16 or int.from_bytes(header[4:8], "little") != nbytes \
+                or int.from_bytes(header[12:16], "little") != data.size:
+            raise self._corrupt_chunk(coords, "not a blosc stream of the chunk's size")
+        out = np.empty(self.grid, dtype=self.dtype)
+        try:
+            _BLOSC.decode(data, out=out)
+        except Exception as exc:  # noqa: BLE001 - numcodecs raises RuntimeError, ValueError...
+            raise self._corrupt_chunk(coords, _first_line(exc)) from None
+        return out[part]
+
+    def _corrupt_chunk(self, coords: tuple[int, ...], why: str) -> InvalidInputError:
+        return InvalidInputError(f"{self.chunk_file(coords)}: chunk {'/'.join(map(str, coords))} is corrupt "
+                                 f"({why}); re-import the scan")
+
+    def _missing(self, coords: tuple[int, ...]) -> InvalidInputError:
+        return InvalidInputError(
+            f"{self.chunk_file(coords)}: chunk {'/'.join(map(str, coords))} is missing, but {self.store} "
+            "records that every chunk was written; the copy is incomplete: copy the store again or "
+            "re-import the scan"
+        )
+
     def __getitem__(self, key: Any) -> np.ndarray:
+        if self.direct is not None:
+            whole = self._whole_chunk(key)
+            if whole is not None:
+                return self._read_direct(*whole)
         try:
             block = np.asarray(self.array[key])
         except Exception as exc:  # noqa: BLE001 - codecs raise RuntimeError, ValueError, zstd errors...
@@ -153,10 +279,7 @@ class _ZarrChunks:
             try:
                 self.array[region]
             except Exception as chunk_exc:  # noqa: BLE001
-                return InvalidInputError(
-                    f"{self.chunk_file(coords)}: chunk {'/'.join(map(str, coords))} is corrupt "
-                    f"({_first_line(chunk_exc)}); re-import the scan"
-                )
+                return self._corrupt_chunk(coords, _first_line(chunk_exc))
         where = os.path.join(self.store, str(self.array.path))
         return InvalidInputError(f"{where}: a chunk is corrupt ({_first_line(exc)}); re-import the scan")
 
@@ -177,11 +300,7 @@ class _ZarrChunks:
                 lo, hi = max(start, c * g), min(stop, (c + 1) * g)
                 part.append(slice(-(-(lo - start) // step), -(-(hi - start) // step)))
             if isfill[tuple(part)].all() and not os.path.exists(self.chunk_file(coords)):
-                raise InvalidInputError(
-                    f"{self.chunk_file(coords)}: chunk {'/'.join(map(str, coords))} is missing, but {self.store} "
-                    "records that every chunk was written; the copy is incomplete: copy the store again or "
-                    "re-import the scan"
-                )
+                raise self._missing(coords)
 
 
 def _lazy(array: zarr.Array, store: Path, *, complete: bool) -> da.Array:
@@ -439,6 +558,27 @@ def _ngff_attrs(name: str, unit: str | None, spacings: list[tuple[float, ...]], 
     return {"version": NGFF_VERSION, "multiscales": [ms]}
 
 
+def _codecs(compression: Any, level: Any, shuffle: Any, dtype: np.dtype) -> list:
+    """The chunk codecs: blosc (unless ``compression="none"``), then crc32c.
+
+    The checksum comes after compression: a chunk cut short or with flipped bytes is an error, never other values.
+    """
+    if compression not in COMPRESSIONS:
+        raise InvalidInputError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
+    if shuffle not in SHUFFLES:
+        raise InvalidInputError(f"shuffle must be one of {', '.join(SHUFFLES)}, got {shuffle!r}")
+    if compression == "none":
+        return [Crc32cCodec()]
+    if level is None:
+        level = DEFAULT_COMPRESSION_LEVEL[compression]
+    if isinstance(level, bool) or not isinstance(level, int | np.integer) or not 1 <= level <= 9:
+        raise InvalidInputError(f"compression_level must be a whole number 1..9, got {level!r}")
+    if shuffle == "auto":
+        shuffle = "bit" if np.dtype(dtype).itemsize == 1 else "byte"  # byte shuffle decodes faster for 16-bit CT
+    names = {"byte": "shuffle", "bit": "bitshuffle", "none": "noshuffle"}
+    return [BloscCodec(cname=compression, clevel=int(level), shuffle=names[shuffle]), Crc32cCodec()]
+
+
 def write_ome_zarr(
     volume: Volume,
     path: Path,
@@ -447,7 +587,9 @@ def write_ome_zarr(
     pyramid: bool = True,
     max_side: int = DEFAULT_MAX_SIDE,
     labels: bool = False,
-    compression_level: int = 3,
+    compression: str = DEFAULT_COMPRESSION,
+    compression_level: int | None = None,
+    shuffle: str = "auto",
     name: str | None = None,
     attributes: dict[str, Any] | None = None,
 ) -> Iterator[Progress]:
@@ -467,8 +609,15 @@ def write_ome_zarr(
         Stop halving once every side is <= max_side (default 256).
     labels : bool
         The voxels are labels: downsample by nearest, never by averaging.
-    compression_level : int
-        zstd level (1-9); 3 is a good balance of speed and size.
+    compression : {"lz4", "zstd", "none"}
+        Blosc compressor of every chunk (default lz4: reading, which straightening from the store waits for, is
+        3-4x faster than zstd's for files about 1.5x larger; see ``benchmarks/RESULTS.md``). Every chunk carries
+        a crc32c checksum whatever the choice.
+    compression_level : int, optional
+        Blosc level 1-9 (default 5 for lz4, 3 for zstd).
+    shuffle : {"auto", "byte", "bit", "none"}
+        Blosc's shuffle filter before compression; "auto" (default): byte shuffle for multi-byte voxels, bit
+        shuffle for 8-bit ones.
     name : str, optional
         Image name stored in the metadata.
     attributes : dict, optional
@@ -486,10 +635,8 @@ def write_ome_zarr(
     except TypeError as exc:
         raise InvalidInputError(f"attributes must be JSON-serialisable: {exc}") from None
 
+    codecs = _codecs(compression, compression_level, shuffle, dtype)
     root = zarr.open_group(store=str(path), mode="w", zarr_format=3)
-    shuffle = "bitshuffle" if dtype.itemsize == 1 else "shuffle"  # byte shuffle is faster for 16-bit CT here
-    # crc32c after compression: a chunk cut short or with flipped bytes is an error, never other values
-    codecs = [BloscCodec(cname="zstd", clevel=int(compression_level), shuffle=shuffle), Crc32cCodec()]
     arrays = []
     for lvl, shp in enumerate(shapes):
         c = _normalise_chunks(chunk_shape, shp)

@@ -153,3 +153,133 @@ def test_streaming_reads_each_source_slab_once(tmp_path):
     v = import_volume(Volume(src, spacing=1.0), tmp_path / "s.zarr", chunks=(8, 32, 32), max_side=8)
     assert sorted(reads) == list(range(16))
     np.testing.assert_array_equal(v.data[::4, 0, 0].compute(), np.arange(16))
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# the working store's codec (issue 10): lz4 now, zstd stores written before still read the same
+# ------------------------------------------------------------------------------------------------------------------
+#: Every codec chain write_ome_zarr has written (git history of napari_unwind/io/ome_zarr.py), and the new default.
+HISTORIC_CODECS = {
+    "blosc-zstd bitshuffle (first releases)": lambda: [zarr.codecs.BloscCodec(cname="zstd", clevel=3,
+                                                                              shuffle="bitshuffle")],
+    "blosc-zstd byte shuffle": lambda: [zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle")],
+    "blosc-zstd byte shuffle + crc32c": lambda: [zarr.codecs.BloscCodec(cname="zstd", clevel=3, shuffle="shuffle"),
+                                                 zarr.codecs.Crc32cCodec()],
+}
+
+
+def _ngff_store(path, a, codecs, chunks, *, complete):
+    """An OME-Zarr store like the ones write_ome_zarr made with ``codecs``, written by zarr itself."""
+    root = zarr.open_group(str(path), mode="w", zarr_format=3)
+    arr = root.create_array("0", shape=a.shape, chunks=chunks, dtype=a.dtype, compressors=codecs, fill_value=0,
+                            dimension_names=["z", "y", "x"], config={"write_empty_chunks": complete})
+    arr[...] = a
+    root.attrs["ome"] = {"version": "0.5", "multiscales": [{
+        "axes": [{"name": n, "type": "space", "unit": "micrometer"} for n in "zyx"],
+        "datasets": [{"path": "0", "coordinateTransformations": [{"type": "scale", "scale": [1.0, 1.0, 1.0]}]}]}]}
+    root.attrs["unwind"] = {"spacing": [1.0, 1.0, 1.0], "unit": "micrometer", "all_chunks_written": complete}
+    return path
+
+
+@pytest.mark.parametrize("codecs", list(HISTORIC_CODECS), ids=list(HISTORIC_CODECS))
+@pytest.mark.parametrize("dtype", ["uint8", "uint16", "int16", "float32"])
+def test_stores_written_with_the_old_codecs_read_back_identically(tmp_path, codecs, dtype):
+    rng = np.random.default_rng(3)
+    a = (rng.normal(500, 200, (37, 21, 30))).astype(dtype)
+    a[:16, :16, :16] = 0  # an all-fill chunk
+    for complete in (True, False):
+        store = _ngff_store(tmp_path / f"old-{complete}.zarr", a, HISTORIC_CODECS[codecs](), (16, 16, 16),
+                            complete=complete)
+        v = open_volume(store)
+        np.testing.assert_array_equal(v.data.compute(), a)
+        np.testing.assert_array_equal(v.data.compute(), zarr.open_array(str(store / "0"), mode="r")[...])
+        np.testing.assert_array_equal(v.data[5:30, 3:19, 7:29].compute(), a[5:30, 3:19, 7:29])
+
+
+def test_the_default_codec_is_blosc_lz4_with_shuffle_and_a_checksum(tmp_path):
+    for dtype, shuffle in (("uint16", "shuffle"), ("float32", "shuffle"), ("uint8", "bitshuffle")):
+        out = write_volume(np.zeros((8, 8, 8), dtype), tmp_path / f"{dtype}.zarr", max_side=4)
+        for level in ("0", "1"):
+            codecs = json.loads((out / level / "zarr.json").read_text())["codecs"]
+            assert [c["name"] for c in codecs] == ["bytes", "blosc", "crc32c"]
+            assert codecs[1]["configuration"]["cname"] == "lz4"
+            assert codecs[1]["configuration"]["shuffle"] == shuffle
+
+
+@pytest.mark.parametrize("options", [{"compression": "zstd"}, {"compression": "zstd", "compression_level": 1},
+                                     {"compression": "lz4", "shuffle": "bit"}, {"compression": "none"},
+                                     {"compression": "lz4", "compression_level": 9, "shuffle": "none"}])
+def test_every_compression_option_round_trips(tmp_path, options):
+    a = np.random.default_rng(4).integers(0, 4000, (35, 20, 27)).astype(np.uint16)
+    out = write_volume(a, tmp_path / "v.zarr", chunks=16, max_side=8, **options)
+    codecs = json.loads((out / "0" / "zarr.json").read_text())["codecs"]
+    assert codecs[-1]["name"] == "crc32c"
+    if options["compression"] != "none":
+        assert codecs[1]["configuration"]["cname"] == options["compression"]
+    v = open_volume(out)
+    np.testing.assert_array_equal(v.data.compute(), a)
+    np.testing.assert_array_equal(v.levels[1].compute(), zarr.open_array(str(out / "1"), mode="r")[...])
+
+
+@pytest.mark.parametrize("options, match", [({"compression": "gzip"}, "compression must be one of"),
+                                            ({"compression_level": 0}, "compression_level must be"),
+                                            ({"compression_level": 12}, "compression_level must be"),
+                                            ({"compression_level": 2.5}, "compression_level must be"),
+                                            ({"shuffle": "bytes"}, "shuffle must be one of")])
+def test_bad_codec_options_are_one_line_errors(tmp_path, options, match):
+    with pytest.raises(InvalidInputError, match=match) as info:
+        write_volume(np.zeros((4, 4, 4), np.uint16), tmp_path / "v.zarr", **options)
+    assert "\n" not in str(info.value) and repr(next(iter(options.values()))) in str(info.value)
+    assert not (tmp_path / "v.zarr").exists()
+
+
+def test_whole_chunks_of_our_stores_are_decoded_without_zarrs_pipeline(tmp_path, monkeypatch):
+    """dask's reads of the stores we write skip zarr's asynchronous codec pipeline (the faster path)."""
+    a = np.random.default_rng(5).integers(0, 60000, (40, 33, 20)).astype(np.uint16)
+    v = open_volume(write_volume(a, tmp_path / "v.zarr", chunks=16, max_side=8))
+
+    def refuse(self, key):
+        raise AssertionError("read through zarr")
+
+    monkeypatch.setattr(zarr.Array, "__getitem__", refuse)
+    np.testing.assert_array_equal(v.data.compute(), a)
+    for lvl in v.levels[1:]:
+        assert lvl.compute().shape == lvl.shape
+
+
+@pytest.mark.parametrize("damage", ["valid checksum over garbage", "a chunk of another size", "truncated",
+                                    "empty file"])
+def test_a_damaged_chunk_read_directly_is_one_error_naming_it(tmp_path, damage):
+    import google_crc32c
+
+    a = np.random.default_rng(6).integers(0, 60000, (40, 33, 20)).astype(np.uint16)
+    out = write_volume(a, tmp_path / "v.zarr", chunks=16, max_side=8)
+    chunk = out / "0" / "c" / "1" / "0" / "1"
+    good = chunk.read_bytes()
+    if damage == "valid checksum over garbage":
+        body = good[:16] + bytes(len(good) - 20)  # the blosc header kept, the stream zeroed
+        chunk.write_bytes(body + np.uint32(google_crc32c.value(body)).tobytes())
+    elif damage == "a chunk of another size":
+        other = write_volume(a, tmp_path / "w.zarr", chunks=8, max_side=8)
+        chunk.write_bytes((other / "0" / "c" / "1" / "0" / "1").read_bytes())
+    elif damage == "truncated":
+        chunk.write_bytes(good[: len(good) // 2])
+    else:
+        chunk.write_bytes(b"")
+    with pytest.raises(InvalidInputError) as info:
+        open_volume(out).data.compute()
+    msg = str(info.value)
+    assert str(chunk) in msg and "corrupt" in msg and "re-import" in msg and "\n" not in msg
+    np.testing.assert_array_equal(open_volume(out).data[:16].compute(), a[:16])  # the other chunks still read
+
+
+def test_import_volume_takes_the_codec_options(tmp_path):
+    a = np.random.default_rng(7).integers(0, 4000, (30, 20, 20)).astype(np.uint16)
+    src = write_volume(a, tmp_path / "src.tif")
+    for compression, level in (("zstd", 2), (None, None)):
+        v = import_volume(src, tmp_path / f"{compression}.zarr", compression=compression, compression_level=level,
+                          max_side=8)
+        blosc = json.loads((tmp_path / f"{compression}.zarr" / "1" / "zarr.json").read_text())["codecs"][1]
+        assert blosc["configuration"]["cname"] == (compression or "lz4")
+        assert blosc["configuration"]["clevel"] == (level or 5)
+        np.testing.assert_array_equal(v.data.compute(), a)
