@@ -15,13 +15,15 @@ The registry names modules as strings so that importing :mod:`napari_unwind.io` 
 from __future__ import annotations
 
 import importlib
+import os
 import re
 from collections.abc import Callable
 from pathlib import Path
 
-from ..errors import UnknownFormatError
+from ..errors import InvalidInputError, UnknownFormatError
 
-__all__ = ["FORMATS", "detect_format", "reader_for", "writer_for", "output_format", "IMAGE_SLICE_SUFFIXES"]
+__all__ = ["FORMATS", "detect_format", "reader_for", "writer_for", "output_format", "IMAGE_SLICE_SUFFIXES",
+           "natural_key", "numbered_siblings"]
 
 #: format name -> (module, reader function, writer function or None, description)
 FORMATS: dict[str, tuple[str, str, str | None, str]] = {
@@ -35,6 +37,60 @@ FORMATS: dict[str, tuple[str, str, str | None, str]] = {
 }
 
 IMAGE_SLICE_SUFFIXES = (".bmp", ".png", ".tif", ".tiff", ".jpg", ".jpeg")
+
+# ------------------------------------------------------------------------------------------------------------------
+# numbered slices: shared by the stack reader and the TIFF reader (a 2D TIFF may be one slice of a stack), so it
+# lives here, below both, and neither imports the other for it
+# ------------------------------------------------------------------------------------------------------------------
+#: ``<prefix><number><suffix>``: the slice number is the last run of digits in the name.
+_NUMBERED = re.compile(r"^(?P<prefix>.*?)(?P<num>\d+)(?P<suffix>\D*)$")
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key treating runs of digits as numbers: ``fish_2.png`` < ``fish_10.png``."""
+    tokens = [t for t in re.split(r"(\d+)", name) if t]
+    return tuple((0, int(t), "") if t.isdigit() else (1, 0, t.lower()) for t in tokens), name
+
+
+def _image_files(folder: Path) -> list[Path]:
+    try:
+        entries = list(folder.iterdir())
+    except OSError as exc:
+        raise InvalidInputError(f"cannot list the folder {folder}: {exc.strerror or exc}") from None
+    return [p for p in entries if not p.name.startswith(".") and p.suffix.lower() in IMAGE_SLICE_SUFFIXES
+            and p.is_file()]
+
+
+def _group_key(name: str) -> tuple[str, str] | None:
+    m = _NUMBERED.match(name)
+    if m is None:
+        return None
+    return m.group("prefix"), m.group("suffix").lower()
+
+
+def _groups(files: list[Path]) -> dict[tuple[str, str], list[tuple[int, Path]]]:
+    groups: dict[tuple[str, str], list[tuple[int, Path]]] = {}
+    for p in files:
+        m = _NUMBERED.match(p.name)
+        if m is not None:
+            groups.setdefault((m.group("prefix"), m.group("suffix").lower()), []).append((int(m.group("num")), p))
+    for members in groups.values():
+        members.sort(key=lambda t: (t[0], natural_key(t[1].name)))
+    return groups
+
+
+def numbered_siblings(path: str | os.PathLike) -> list[Path]:
+    """The slices of the numbered stack ``path`` belongs to (same prefix and suffix), in number order.
+
+    ``[path]`` when ``path`` has no number or no sibling.
+    """
+    path = Path(path)
+    key = _group_key(path.name)
+    if key is None or path.suffix.lower() not in IMAGE_SLICE_SUFFIXES:
+        return [path]
+    members = _groups(_image_files(path.parent)).get(key, [])
+    return [p for _, p in members] or [path]
+
 
 _SUFFIX_FORMAT = {
     ".zarr": "ome-zarr",

@@ -35,7 +35,7 @@ from dask.base import tokenize
 from ..errors import InvalidInputError, OutputError, SeriesSelectionError
 from ..progress import Progress
 from ._atomic import final_name
-from ._formats import IMAGE_SLICE_SUFFIXES
+from ._formats import _NUMBERED, IMAGE_SLICE_SUFFIXES, _group_key, _groups, _image_files, natural_key, numbered_siblings
 from ._lazy import slab_depth
 from ._volume import Volume
 
@@ -51,7 +51,6 @@ __all__ = [
 #: Slice name pattern used when the output name does not give one.
 DEFAULT_PATTERN = "slice_{:05d}.png"
 _TIFF = (".tif", ".tiff")
-_NUMBERED = re.compile(r"^(?P<prefix>.*?)(?P<num>\d+)(?P<suffix>\D*)$")
 _FIELD = re.compile(r"\{[^{}]*\}")
 #: Voxel types each slice format can store, and what to use instead.
 _WRITABLE = {
@@ -65,54 +64,8 @@ _WRITABLE = {
 # ------------------------------------------------------------------------------------------------------------------
 # finding the slices
 # ------------------------------------------------------------------------------------------------------------------
-def natural_key(name: str) -> tuple:
-    """Sort key treating runs of digits as numbers: ``fish_2.png`` < ``fish_10.png``."""
-    tokens = [t for t in re.split(r"(\d+)", name) if t]
-    return tuple((0, int(t), "") if t.isdigit() else (1, 0, t.lower()) for t in tokens), name
-
-
-def _image_files(folder: Path) -> list[Path]:
-    try:
-        entries = list(folder.iterdir())
-    except OSError as exc:
-        raise InvalidInputError(f"cannot list the folder {folder}: {exc.strerror or exc}") from None
-    return [p for p in entries if not p.name.startswith(".") and p.suffix.lower() in IMAGE_SLICE_SUFFIXES
-            and p.is_file()]
-
-
-def _group_key(name: str) -> tuple[str, str] | None:
-    m = _NUMBERED.match(name)
-    if m is None:
-        return None
-    return m.group("prefix"), m.group("suffix").lower()
-
-
-def _groups(files: list[Path]) -> dict[tuple[str, str], list[tuple[int, Path]]]:
-    groups: dict[tuple[str, str], list[tuple[int, Path]]] = {}
-    for p in files:
-        m = _NUMBERED.match(p.name)
-        if m is not None:
-            groups.setdefault((m.group("prefix"), m.group("suffix").lower()), []).append((int(m.group("num")), p))
-    for members in groups.values():
-        members.sort(key=lambda t: (t[0], natural_key(t[1].name)))
-    return groups
-
-
 def _glob_of(key: tuple[str, str]) -> str:
     return f"{key[0]}*{key[1]}"
-
-
-def numbered_siblings(path: str | os.PathLike) -> list[Path]:
-    """The slices of the numbered stack ``path`` belongs to (same prefix and suffix), in number order.
-
-    ``[path]`` when ``path`` has no number or no sibling.
-    """
-    path = Path(path)
-    key = _group_key(path.name)
-    if key is None or path.suffix.lower() not in IMAGE_SLICE_SUFFIXES:
-        return [path]
-    members = _groups(_image_files(path.parent)).get(key, [])
-    return [p for _, p in members] or [path]
 
 
 def _check_numbers(members: list[tuple[int, Path]], where: str) -> None:

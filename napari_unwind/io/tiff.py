@@ -46,6 +46,7 @@ from dask.base import tokenize
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import final_name
+from ._formats import numbered_siblings, reader_for
 from ._lazy import RawFileArray, slab_depth
 from ._volume import Volume, normalise_unit
 
@@ -391,10 +392,8 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
             raise InvalidInputError(f"{path}: cannot find the image rows and columns in axes {axes!r}")
         planes = [(a, n) for a, n in keep if a not in "YXS"]
         if not planes:
-            from .stack import numbered_siblings, read_stack
-
             if pattern is not None or len(numbered_siblings(path)) > 1:
-                return read_stack(path, pattern=pattern)
+                return reader_for("stack")(path, pattern=pattern)  # through the registry: tiff never imports stack
             colour = f" of {dict(keep)['S']} samples per pixel (colour)" if "S" in kaxes else ""
             raise InvalidInputError(
                 f"{path} is a single 2D image{colour} (shape {shape}); a volume needs 3D: a multi-page TIFF, or "
