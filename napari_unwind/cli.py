@@ -446,7 +446,7 @@ def cmd_map_points(args: argparse.Namespace) -> int:
 
 def cmd_segment(args: argparse.Namespace) -> int:
     from .io import open_volume
-    from .segmentation import check_segmentation_output, save_features_iter, segment_iter
+    from .segmentation import check_segmentation_output, save_features_iter, segment_iter, specimens
 
     check_segmentation_output(args.output, overwrite=args.overwrite)  # before minutes of work, not after
     _check_io([args.output], [args.input])
@@ -456,14 +456,23 @@ def cmd_segment(args: argparse.Namespace) -> int:
                              args.quiet)
     dt = time.perf_counter() - t0
     written = _run_with_bar(save_features_iter(features, args.output, overwrite=args.overwrite), args.quiet)
+    found = specimens(features)
+    specimen_ids = {st.id for st in found}
+    if args.specimens and args.quiet:  # for scripts: the specimen ids alone
+        print(",".join(str(st.id) for st in found))
     if not args.quiet:
         print(f"segmented {args.input} at level {features.level} ({_fmt_triple(features.shape)}) into "
               f"{features.k} features in {dt:.1f} s -> {written}")
-        print(f"{'id':>3} {'voxels':>9} {'values':>17} {'bounding box (full-resolution voxels)':>40}")
-        for st in features.stats:
+        print(f"{'id':>3} {'voxels':>9} {'values':>17} {'bounding box (full-resolution voxels)':>40} "
+              f"{'elongation':>10}  kind")
+        for st in found if args.specimens else features.stats:
             box = st.bbox_full
+            kind = "specimen" if st.id in specimen_ids else "container" if st.container else "-"
             print(f"{st.id:>3} {st.voxel_count:>9} {st.value_min:>8.4g}-{st.value_max:<8.4g} "
-                  f"{box[0]:>6}:{box[3]:<6} {box[1]:>6}:{box[4]:<6} {box[2]:>6}:{box[5]:<6}")
+                  f"{box[0]:>6}:{box[3]:<6} {box[1]:>6}:{box[4]:<6} {box[2]:>6}:{box[5]:<6} "
+                  f"{st.elongation:>10.2f}  {kind}")
+        print(f"{len(found)} specimen(s) (elongated, inside the scan, not containers): "
+              f"{', '.join(str(st.id) for st in found) or 'none'}")
         print("pick features with: unwind select LABELS --at A0,A1,A2 -o MASK (points in full-resolution voxels)")
     return 0
 
@@ -915,6 +924,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="pyramid level to work on (default: the finest with every side <= 256)")
     p.add_argument("--smooth", type=_non_negative, default=1.0,
                    help="Gaussian sigma in working voxels (default 1; 0 none)")
+    p.add_argument("--specimens", action="store_true",
+                   help="list only the specimen-like features: elongated, inside the scan, not containers (a tube "
+                        "or dish that touches the border or encloses others); with -q, print their ids alone")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
     _add_input_options(p)

@@ -66,3 +66,20 @@ def test_segment_checks_its_output_before_working(tmp_path):
     (tmp_path / "labels.zarr").mkdir()
     code, _, err = _run("segment", flat, "-o", tmp_path / "labels.zarr")
     assert code == 1 and "--overwrite" in err and "nothing to segment" not in err
+
+
+def test_segment_lists_the_specimens(tank, tmp_path):
+    _, t, scan, _ = tank
+    labels = tmp_path / "labels.zarr"
+    code, out, err = _run("segment", scan, "-o", labels, "--features", "7", "--specimens", "-q")
+    assert code == 0, err
+    ids = [int(v) for v in out.strip().split(",")]
+    lab = np.asarray(open_volume(labels).data)
+    assert len(ids) == len(t.fish)  # the fish, not the tube nor its pieces
+    for fish in t.fish:
+        assert max(_dice(lab == i, fish.mask) for i in ids) >= 0.9
+    code, out, err = _run("segment", scan, "-o", labels, "--features", "7", "--specimens", "--overwrite")
+    assert code == 0, err
+    assert f"{len(t.fish)} specimen(s)" in out and "container" not in out.split("specimen(s)")[0]
+    code, out, _ = _run("segment", scan, "-o", labels, "--features", "7", "--overwrite")
+    assert "container" in out  # the full table marks the tube

@@ -7,12 +7,16 @@
 3. :func:`select` turns features chosen by seed points (full-resolution voxel coordinates) or ids into a mask;
    :func:`refine_mask` / :func:`refine_mask_iter` upsample it to full resolution chunk by chunk and refine it
    with an isovalue.
-4. :func:`save_features` / :func:`load_features` keep a segmentation as OME-Zarr labels with its statistics;
+4. :func:`specimens` keeps the specimen-like features: elongated, inside the scan, not containers (a tube, a
+   dish: features that touch the scan's border or enclose others, marked ``container`` in the statistics).
+5. :func:`save_features` / :func:`load_features` keep a segmentation as OME-Zarr labels with its statistics;
    :meth:`JoinTree.to_npz` / :meth:`JoinTree.from_npz` cache a tree.
 """
 
-from ._features import Features, FeatureStats, segment, segment_iter, simplify
-from ._jointree import MAX_FEATURES, JoinTree, join_tree, join_tree_iter, sweep_order
+from ._common import MAX_FEATURES
+from ._features import Features, FeatureStats, simplify, specimens
+from ._jointree import JoinTree, join_tree, join_tree_iter, sweep_order
+from ._segment import segment, segment_iter
 from ._select import (
     check_segmentation_output,
     load_features,
@@ -44,5 +48,6 @@ __all__ = [
     "select",
     "selected_ids",
     "simplify",
+    "specimens",
     "sweep_order",
 ]

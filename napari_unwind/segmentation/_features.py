@@ -30,7 +30,6 @@ close to the background, gave every feature a halo of background noise.)
 
 from __future__ import annotations
 
-from collections.abc import Generator
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -38,10 +37,9 @@ import numpy as np
 from numba import njit
 
 from ..errors import InvalidInputError
-from ..progress import Progress, run
-from ._jointree import JoinTree, check_features_count, join_tree_iter
+from ._common import check_features_count
 
-__all__ = ["Features", "FeatureStats", "segment", "segment_iter", "simplify"]
+__all__ = ["Features", "FeatureStats", "simplify", "specimens"]
 
 _NBINS = 1024  # histogram bins per feature for its threshold
 
@@ -176,6 +174,73 @@ def _label(values, branch, fid, thr, shape, labels, stats_i, stats_f):
             s[0] += 1
 
 
+@njit(cache=True, nogil=True)
+def _moments(labels, shape, k1):
+    """Per label: (count, sum i, sum j, sum k, sum ii, sum jj, sum kk, sum ij, sum ik, sum jk)."""
+    n1 = shape[1]
+    n2 = shape[2]
+    plane = n1 * n2
+    m = np.zeros((k1, 10), dtype=np.float64)
+    for x in range(labels.shape[0]):
+        f = labels[x]
+        if f == 0:
+            continue
+        i = x // plane
+        r = x - i * plane
+        j = r // n2
+        kk = r - j * n2
+        row = m[f]
+        row[0] += 1.0
+        row[1] += i
+        row[2] += j
+        row[3] += kk
+        row[4] += i * i
+        row[5] += j * j
+        row[6] += kk * kk
+        row[7] += i * j
+        row[8] += i * kk
+        row[9] += j * kk
+    return m
+
+
+def _elongations(moments: np.ndarray, spacing: Any) -> np.ndarray:
+    """Principal-axis ratio of every label from its moments (physical units), NaN when empty."""
+    sp = np.asarray(spacing, dtype=float)
+    out = np.full(moments.shape[0], np.nan)
+    for f, row in enumerate(moments):
+        n = row[0]
+        if f == 0 or n == 0:
+            continue
+        mean = row[1:4] / n
+        c = np.empty((3, 3))
+        c[0, 0], c[1, 1], c[2, 2] = row[4:7] / n - mean**2
+        c[0, 1] = c[1, 0] = row[7] / n - mean[0] * mean[1]
+        c[0, 2] = c[2, 0] = row[8] / n - mean[0] * mean[2]
+        c[1, 2] = c[2, 1] = row[9] / n - mean[1] * mean[2]
+        c *= np.outer(sp, sp)
+        ev = np.sort(np.linalg.eigvalsh(c + np.diag(sp**2 / 12.0)))[::-1]  # + the voxel's own extent
+        out[f] = float(np.sqrt(ev[0] / ev[1]))
+    return out
+
+
+def _enclosers(labels: np.ndarray, k: int, max_positions: list[tuple[int, int, int]]) -> np.ndarray:
+    """``enc[f]`` True when feature ``f`` encloses another feature (see :class:`FeatureStats`)."""
+    enc = np.zeros(k + 1, dtype=bool)
+    for g, m in enumerate(max_positions, start=1):
+        halves = []  # per axis: the labels before and after the maximum along the line through it
+        for a in range(3):
+            idx = list(m)
+            idx[a] = slice(None)
+            line = labels[tuple(idx)]
+            halves.append((set(np.unique(line[: m[a]]).tolist()), set(np.unique(line[m[a] + 1:]).tolist())))
+        for a in range(3):  # the plane normal to axis a: met on both sides along both of its axes
+            b, c = [x for x in range(3) if x != a]
+            around = halves[b][0] & halves[b][1] & halves[c][0] & halves[c][1]
+            for f in around - {0, g}:
+                enc[f] = True
+    return enc
+
+
 # ------------------------------------------------------------------------------------------------------------------
 # results
 # ------------------------------------------------------------------------------------------------------------------
@@ -212,6 +277,15 @@ class FeatureStats:
         Working voxel of the maximum.
     max_position_full : tuple of 3 int
         A full-resolution voxel inside the working voxel of the maximum (its first corner).
+    elongation : float
+        Principal-axis ratio of the labelled voxels in physical units: the square root of the largest over the
+        second-largest eigenvalue of their covariance (1 for a ball, about 6 for a fish; NaN when empty).
+    touches_border : bool
+        The labelled voxels reach a face of the scan (the specimen may run off it).
+    container : bool
+        Touches the border, or encloses another feature: around that feature's maximum, this feature is met on
+        both sides along both axes of some plane (a tube around fish, a dish, a wall). Specimens are not
+        containers (:func:`specimens`).
     """
 
     id: int
@@ -228,6 +302,9 @@ class FeatureStats:
     parent: int
     max_position: tuple[int, int, int]
     max_position_full: tuple[int, int, int]
+    elongation: float = float("nan")
+    touches_border: bool = False
+    container: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -266,7 +343,7 @@ class Features:
     labels: np.ndarray
     k: int
     stats: tuple[FeatureStats, ...]
-    tree: JoinTree | None
+    tree: Any  # the JoinTree (the tree module imports this one, not the other way round), or None
     scale: tuple[float, float, float]
     full_shape: tuple[int, int, int]
     level: int = 0
@@ -487,7 +564,7 @@ def _nearest_labelled(labels: np.ndarray, w: np.ndarray, scale: np.ndarray) -> t
 # ------------------------------------------------------------------------------------------------------------------
 # simplification
 # ------------------------------------------------------------------------------------------------------------------
-def simplify(tree: JoinTree, k: int = 5) -> Features:
+def simplify(tree: Any, k: int = 5) -> Features:
     """Keep the ``k`` features of largest hypervolume of ``tree`` (see :meth:`JoinTree.simplify`)."""
     k = check_features_count(k)
     if k > tree.n_maxima:
@@ -533,6 +610,10 @@ def simplify(tree: JoinTree, k: int = 5) -> Features:
     stats_f = np.zeros((k + 1, 2), dtype=np.float64)
     _label(values, branch, fid, thr, np.array(tree.shape, dtype=np.int64), labels, stats_i, stats_f)
 
+    labels = labels.reshape(tree.shape)
+    elong = _elongations(_moments(labels.ravel(), np.array(tree.shape, dtype=np.int64), k + 1), tree.spacing)
+    max_pos = [tuple(int(v) for v in np.unravel_index(int(tree.max_voxel[b]), tree.shape)) for b in survivors]
+    encloses = _enclosers(labels, k, max_pos)
     scale = np.asarray(tree.scale)
     full = np.asarray(tree.full_shape)
     hyp_of = np.empty(tree.n_maxima, dtype=np.float64)
@@ -546,6 +627,7 @@ def simplify(tree: JoinTree, k: int = 5) -> Features:
         lo_full = np.minimum(np.floor(lo * scale), full).astype(int)
         hi_full = np.minimum(np.ceil(hi * scale), full).astype(int)
         mx = np.unravel_index(int(tree.max_voxel[b]), tree.shape)
+        border = bool(s[0] > 0 and (np.any(lo == 0) or np.any(hi == np.asarray(tree.shape))))
         stats.append(FeatureStats(
             id=f,
             voxel_count=int(s[0]),
@@ -561,9 +643,12 @@ def simplify(tree: JoinTree, k: int = 5) -> Features:
             parent=int(fparent[f]),
             max_position=tuple(int(v) for v in mx),
             max_position_full=tuple(int(min(np.floor(c * sc), n - 1)) for c, sc, n in zip(mx, scale, full)),
+            elongation=float(elong[f]),
+            touches_border=border,
+            container=bool(border or encloses[f]),
         ))
     return Features(
-        labels=labels.reshape(tree.shape),
+        labels=labels,
         k=k,
         stats=tuple(stats),
         tree=tree,
@@ -579,53 +664,42 @@ def simplify(tree: JoinTree, k: int = 5) -> Features:
     )
 
 
-def segment_iter(
-    volume: Any, *, features: int = 5, level: int | None = None, smooth: float = 1.0, connectivity: int = 6
-) -> Generator[Progress, None, Features]:
-    """Generator form of :func:`segment`: yields progress, returns the :class:`Features`."""
-    k = check_features_count(features)
-    tree = yield from join_tree_iter(volume, level=level, smooth=smooth, connectivity=connectivity)
-    yield Progress("simplify", 0, 1, f"{k} features")
-    result = tree.simplify(k)
-    yield Progress("simplify", 1, 1)
-    return result
-
-
-def segment(
-    volume: Any,
-    *,
-    features: int = 5,
-    level: int | None = None,
-    smooth: float = 1.0,
-    connectivity: int = 6,
-    progress=None,
-) -> Features:
-    """Segment a volume into its ``features`` most important bright objects (join tree + hypervolume).
+def specimens(features: Features, *, min_elongation: float = 3.0, min_voxels: int = 1) -> tuple[FeatureStats, ...]:
+    """The specimen-like features: elongated, inside the scan, not containers.
 
     Parameters
     ----------
-    volume : Volume or array_like, shape (N0, N1, N2)
-        The scan (a Volume's pyramid level ``level`` is used) or a 3D array.
-    features : int
-        Number of features to keep, 1..100 (default 5).
-    level : int, optional
-        Pyramid level; default the finest with every side <= 256.
-    smooth : float
-        Gaussian sigma in working voxels before the sweep (default 1; 0 for none).
-    connectivity : int
-        6 (default) or 26.
-    progress : callable, optional
-        Called with each :class:`~napari_unwind.progress.Progress` record.
+    features : Features
+        A segmentation (:func:`segment`, :meth:`JoinTree.simplify` or :func:`load_features`).
+    min_elongation : float
+        Smallest principal-axis ratio (:attr:`FeatureStats.elongation`) of a specimen (default 3: a fish is
+        about 6, a tube about 2, a blob of noise about 1-2).
+    min_voxels : int
+        Smallest labelled voxel count at working resolution (default 1: any non-empty feature).
 
     Returns
     -------
-    Features
-        Labels (working resolution, 0 = background), statistics, and the tree for re-simplifying.
+    tuple of FeatureStats
+        By id (importance). Features loaded from a file saved before these statistics existed have NaN
+        elongations and are never specimens: segment again.
 
     Raises
     ------
     InvalidInputError
-        As :func:`join_tree`, and when ``features`` is not in 1..100 or exceeds the number of maxima.
+        For something that is not a :class:`Features` or a bad option.
     """
-    return run(segment_iter(volume, features=features, level=level, smooth=smooth, connectivity=connectivity),
-               progress)
+    if not isinstance(features, Features):
+        raise InvalidInputError(f"specimens needs Features (from segment or load_features), got {type(features)}")
+    try:
+        min_elongation = float(min_elongation)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"min_elongation must be a number >= 1, got {min_elongation!r}") from None
+    if not np.isfinite(min_elongation) or min_elongation < 1:
+        raise InvalidInputError(f"min_elongation must be a finite number >= 1, got {min_elongation}")
+    if isinstance(min_voxels, (bool, np.bool_)) or not isinstance(min_voxels, (int, np.integer)) or min_voxels < 1:
+        raise InvalidInputError(f"min_voxels must be an integer >= 1, got {min_voxels!r}")
+    return tuple(
+        s for s in features.stats
+        if s.voxel_count >= min_voxels and not s.container and s.elongation is not None
+        and s.elongation >= min_elongation
+    )

@@ -52,11 +52,11 @@ from numba import njit
 
 from ..errors import InvalidInputError
 from ..progress import Progress, run
+from ._common import MAX_FEATURES
+from ._features import simplify as _simplify
 
 __all__ = ["JoinTree", "join_tree", "join_tree_iter", "MAX_FEATURES"]
 
-#: Largest number of features a simplification may keep (the original's slider ran 1-100).
-MAX_FEATURES = 100
 
 #: A branch whose persistence is below this many local noise sigmas is noise-level (pruned first). Measured on
 #: phantom tanks: the noise maxima of a noisy wall reach about 6 sigmas, a fish 28 or more; the aorta CT test needs
@@ -409,15 +409,6 @@ def _check_int(name: str, value: Any, lo: int, hi: int | None = None) -> int:
     return value
 
 
-def check_features_count(k: Any) -> int:
-    """Validate a number of features: an integer in 1..100."""
-    if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)):
-        raise InvalidInputError(f"the number of features must be an integer between 1 and {MAX_FEATURES}, got {k!r}")
-    if not 1 <= int(k) <= MAX_FEATURES:
-        raise InvalidInputError(f"the number of features must be between 1 and {MAX_FEATURES}, got {int(k)}")
-    return int(k)
-
-
 def _working_array(volume_or_array: Any, level: Any) -> tuple[np.ndarray, dict[str, Any]]:
     """The working-resolution voxels (float32) and the geometry that maps them to full resolution."""
     from ..io._volume import Volume
@@ -616,9 +607,7 @@ class JoinTree:
         Features
             The label volume (working resolution) and the statistics of each feature.
         """
-        from ._features import simplify
-
-        return simplify(self, k)
+        return _simplify(self, k)
 
     # -- serialisation -------------------------------------------------------------------------------------------
     _ARRAYS = ("values", "branch", "birth", "death", "parent", "count", "max_voxel", "saddle_voxel", "attach",

@@ -1,0 +1,137 @@
+"""Containers, specimens and ``run --all`` (issue 10, item 4): a tank splits into its specimens.
+
+References are independent of the code under test: hand-built volumes whose containers and specimens follow
+from their construction, numpy's covariance for the elongation, and the phantom tanks' true masks.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from napari_unwind.datasets import tank_phantom
+from napari_unwind.errors import InvalidInputError
+from napari_unwind.segmentation import join_tree, segment, specimens
+
+PKG = Path(__file__).resolve().parents[1] / "napari_unwind"
+
+
+def dice(a: np.ndarray, b: np.ndarray) -> float:
+    return 2.0 * np.count_nonzero(a & b) / (np.count_nonzero(a) + np.count_nonzero(b))
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# the import circle of item 8
+# ------------------------------------------------------------------------------------------------------------------
+def _imports(path: Path, package: str) -> set[str]:
+    """Modules of ``package`` that ``path`` imports anywhere (functions included), by relative or absolute name."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level == 1 and node.module:
+                out.add(f"{package}.{node.module}")
+            elif node.level == 1:
+                out.update(f"{package}.{a.name}" for a in node.names)
+            elif node.module and node.module.startswith(package + "."):
+                out.add(node.module)
+    return out
+
+
+def test_the_segmentation_modules_import_no_circle():
+    package = "napari_unwind.segmentation"
+    files = {f"{package}.{p.stem}": p for p in (PKG / "segmentation").glob("_*.py")}
+    graph = {m: _imports(p, package) & set(files) for m, p in files.items()}
+    state: dict[str, int] = {}
+
+    def visit(m: str, path: list[str]) -> None:
+        state[m] = 1
+        for n in sorted(graph[m]):
+            assert state.get(n) != 1, f"import circle: {' -> '.join(path + [m, n])}"
+            if n not in state:
+                visit(n, path + [m])
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [])
+    assert f"{package}._features" in graph[f"{package}._jointree"]  # the tree simplifies with the features module
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# containers and specimens by construction
+# ------------------------------------------------------------------------------------------------------------------
+def _scene() -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """A tube (axis0, not touching the border) around two rods, a rod outside it, a ball on the border."""
+    shape = (44, 44, 44)
+    vol = np.zeros(shape, np.float32)
+    i, j, k = np.indices(shape)
+    rho = np.hypot(j - 21.5, k - 21.5)
+    parts = {
+        "tube": (rho >= 12) & (rho <= 14) & (i >= 4) & (i < 40),
+        "rod_a": (i >= 8) & (i < 36) & (abs(j - 17) <= 1) & (abs(k - 21) <= 1),
+        "rod_b": (i >= 8) & (i < 34) & (abs(j - 26) <= 1) & (abs(k - 22) <= 1),
+        "rod_out": (i >= 10) & (i < 34) & (abs(j - 3) <= 1) & (abs(k - 3) <= 1),
+        "ball": (i - 22) ** 2 + (j - 22) ** 2 + k**2 <= 16,  # cut by the face k = 0
+    }
+    for m, v in zip(parts.values(), (5.0, 10.0, 9.0, 8.0, 7.0)):
+        vol[m] = v
+    return vol, parts
+
+
+def test_containers_and_specimens_follow_from_the_construction():
+    vol, parts = _scene()
+    features = segment(vol, features=5, smooth=0)
+    which = {}
+    for name, m in parts.items():
+        ids, counts = np.unique(features.labels[m], return_counts=True)
+        which[name] = int(ids[np.argmax(counts)])
+        assert dice(features.labels == which[name], m) > 0.9, name
+    st = {name: features.stat(fid) for name, fid in which.items()}
+    assert st["tube"].container and not st["tube"].touches_border  # it encloses the rods
+    assert st["ball"].container and st["ball"].touches_border
+    for name in ("rod_a", "rod_b", "rod_out"):
+        assert not st[name].container and not st[name].touches_border, name
+    assert {s.id for s in specimens(features)} == {which["rod_a"], which["rod_b"], which["rod_out"]}
+    assert specimens(features, min_elongation=100) == ()
+
+
+def test_elongation_is_the_principal_axis_ratio():
+    vol, _ = _scene()
+    spacing = (1.0, 0.5, 2.0)
+    from napari_unwind.io import Volume
+
+    features = segment(Volume(data=vol, spacing=spacing), features=5, smooth=0)
+    for s in features.stats:
+        pts = np.argwhere(features.labels == s.id) * np.asarray(spacing)
+        cov = np.cov(pts.T, bias=True) + np.diag(np.asarray(spacing) ** 2 / 12.0)
+        ev = np.sort(np.linalg.eigvalsh(cov))[::-1]
+        assert s.elongation == pytest.approx(np.sqrt(ev[0] / ev[1]), rel=1e-6)
+
+
+def test_specimens_refuses_bad_input():
+    vol, _ = _scene()
+    features = segment(vol, features=3, smooth=0)
+    with pytest.raises(InvalidInputError, match="needs Features"):
+        specimens(vol)
+    with pytest.raises(InvalidInputError, match="min_elongation"):
+        specimens(features, min_elongation=0.5)
+    with pytest.raises(InvalidInputError, match="min_voxels"):
+        specimens(features, min_voxels=0)
+
+
+def test_a_dense_wall_tank_gives_its_fish_and_nothing_else():
+    tank = tank_phantom(n_fish=3, seed=0, wall_value=3000, wall_thickness=6, wall_noise=600, gap=1)
+    features = join_tree(tank.volume).simplify(8)  # more than enough: the wall's pieces are containers or round
+    found = specimens(features)
+    assert len(found) == len(tank.fish)
+    matched = set()
+    for fish in tank.fish:
+        best = max(found, key=lambda s: dice(features.labels == s.id, fish.mask))
+        assert dice(features.labels == best.id, fish.mask) >= 0.8
+        matched.add(best.id)
+    assert len(matched) == len(tank.fish)
+    wall = [s for s in features.stats if s.id not in matched and s.voxel_count > 0.5 * features.labels.size / 100]
+    assert all(s.container or s.elongation < 3 for s in wall)
