@@ -331,13 +331,22 @@ def _load_session_for(args: argparse.Namespace, input_path: str | None, outputs:
     return session
 
 
-def _check_folds(deformation, allow: bool) -> None:
+def _check_folds(deformation, allow: bool, folded: float | None = None) -> None:
+    """Refuse a folding deformation unless ``allow``; ``folded`` is the fraction of the specimen's mask where it
+    folds (None: unknown, no mask). A fold over no specimen voxel (``folded == 0``) is only a warning."""
     folds = deformation.folds()
     if not folds:
         return
     where = ", ".join(f"s = {a:.4g}..{b:.4g}" for a, b in folds)
     msg = (f"the deformation folds where the cage is larger than the radius of curvature ({where} "
-           f"{deformation.unit or 'units'}); shrink the cage or add keyframes there")
+           f"{deformation.unit or 'units'}); shrink the cage there: unwind skeleton/run --cage RX,RY (half extents) "
+           "or --cage-margin M, or edit the keyframes' cages in the session (Deformation.set_cage)")
+    if folded is not None and folded == 0:
+        print(f"unwind: warning: {msg}; no voxel of the specimen's mask lies in the folds (only empty cage "
+              "corners), so the export goes ahead", file=sys.stderr)
+        return
+    if folded is not None:
+        msg += f"; {100 * folded:.2g} % of the specimen's mask lies in the folds"
     if not allow:
         raise UnwindError(msg + ", or pass --allow-folds to export anyway")
     print(f"unwind: warning: {msg}", file=sys.stderr)
@@ -734,7 +743,47 @@ def _segment_select(volume: Any, args: argparse.Namespace) -> tuple[Any, Any, st
     return lazy, segmentation, report
 
 
+def _run_all(args: argparse.Namespace) -> int:
+    """``unwind run SCAN --all -o OUTDIR``: every specimen, no click (napari_unwind.batch)."""
+    from .batch import straighten_all_iter
+
+    clash = [name for name, given in (("--mask", args.mask), ("--select", args.select), ("--head", args.head),
+                                      ("--tail", args.tail), ("--chain", args.chain), ("--session", args.session),
+                                      ("--isovalue", args.isovalue is not None), ("--fill-holes", args.fill_holes),
+                                      ("--server", getattr(args, "server", None))) if given]
+    if clash:
+        raise UnwindError(f"--all finds every specimen and its ends itself; it does not take {', '.join(clash)}")
+    say = (lambda *a: None) if args.quiet else print
+    skeleton = dict(estimate_twist=not args.no_twist, n_levels=args.levels,
+                    smoothing_iterations=args.smoothing_iterations, cage_radius=args.cage_radius,
+                    tolerance=args.tolerance, snap_tolerance=args.snap_tolerance,
+                    half_extent=getattr(args, "cage", None), cage_margin=getattr(args, "cage_margin", 0.1))
+    _check_io([args.output], [args.input])
+    result = _run_with_bar(
+        straighten_all_iter(args.input, args.output, features=args.features, level=args.level,
+                            allow_folds=args.allow_folds, order=args.order, overwrite=args.overwrite,
+                            reader_options=_reader_options(args, args.input), skeleton=skeleton),
+        args.quiet,
+    )
+    feats = result.features
+    say(f"segmented {args.input} at level {feats.level} ({_fmt_triple(feats.shape)}) into {feats.k} features; "
+        f"{len(result.rows)} specimen(s)")
+    for r in result.rows:
+        if r["status"] == "ok":
+            tilt = "" if r.get("max_tilt") is None else f", largest tilt {r['max_tilt']:.3g} deg"
+            cov = "" if r.get("coverage") is None else f", coverage {r['coverage']:.3f}"
+            say(f"specimen {r['specimen']}: length {r['length']:.4g} {r['unit'] or 'voxels'}, {r['keyframes']} "
+                f"keyframes{tilt}{cov} -> {r['output']}")
+    for r in result.failed:
+        print(f"unwind: error: specimen {r['specimen']} failed: {r['reason']}", file=sys.stderr)
+    say(f"summary -> {result.table} ({len(result.rows) - len(result.failed)} straightened, {len(result.failed)} "
+        f"failed) in {result.seconds:.1f} s")
+    return 1 if result.failed else 0
+
+
 def cmd_run(args: argparse.Namespace) -> int:
+    if getattr(args, "all", False):
+        return _run_all(args)
     if getattr(args, "server", None):
         from ._cli_remote import run_remote
 
@@ -789,7 +838,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     written_session = save_session(session, target, overwrite=args.overwrite)
     say(f"session -> {written_session}")
     try:
-        _check_folds(deformation, args.allow_folds)
+        _check_folds(deformation, args.allow_folds, folded=result.folded)
     except UnwindError as exc:
         raise UnwindError(f"{exc}; the session was saved: edit it, or export as it is with unwind straighten "
                           f"{args.input} --session {written_session} -o {args.output} --allow-folds") from None
@@ -962,7 +1011,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="the whole pipeline: segment, select, skeleton, straighten")
     p.add_argument("input", help="the scan, any supported format")
-    p.add_argument("-o", "--output", required=True, help="the straight volume to write; the suffix chooses the format")
+    p.add_argument("-o", "--output", required=True, help="the straight volume to write; the suffix chooses the format "
+                   "(with --all: a folder)")
+    p.add_argument("--all", action="store_true",
+                   help="straighten every specimen (elongated, inside the scan, not a container such as the tube) "
+                   "with no click: -o OUTDIR gets specimen-ID.zarr, specimen-ID.unwind.json and specimens.csv (length, "
+                   "keyframes, min Jacobian, tilt, coverage); a specimen that fails is reported with its reason and "
+                   "the others go on; exit status 1 if any failed, after doing the rest")
     p.add_argument("--mask", default=None, help="the specimen's mask (same shape as INPUT) instead of segmenting")
     p.add_argument("--select", type=_triple, action="append", metavar="A0,A1,A2",
                    help="a point inside the specimen, full-resolution voxels (repeatable: several features)")

@@ -7,6 +7,7 @@ from their construction, numpy's covariance for the elongation, and the phantom 
 from __future__ import annotations
 
 import ast
+import csv
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,8 @@ import pytest
 
 from napari_unwind.datasets import tank_phantom
 from napari_unwind.errors import InvalidInputError
-from napari_unwind.segmentation import join_tree, segment, specimens
+from napari_unwind.io import open_volume, write_volume
+from napari_unwind.segmentation import join_tree, refine_mask, segment, select, specimens
 
 PKG = Path(__file__).resolve().parents[1] / "napari_unwind"
 
@@ -135,3 +137,102 @@ def test_a_dense_wall_tank_gives_its_fish_and_nothing_else():
     assert len(matched) == len(tank.fish)
     wall = [s for s in features.stats if s.id not in matched and s.voxel_count > 0.5 * features.labels.size / 100]
     assert all(s.container or s.elongation < 3 for s in wall)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# run --all
+# ------------------------------------------------------------------------------------------------------------------
+def _dense_tank(n_fish: int, seed: int, gap: float = 1.0):
+    return tank_phantom(n_fish=n_fish, seed=seed, wall_value=3000, wall_thickness=6, wall_noise=600, gap=gap)
+
+
+def _check_batch(tank, result, outdir: Path) -> dict[str, float]:
+    """Every fish found once and straightened, nothing else; returns the Dice of each fish's mask."""
+    from napari_unwind.session import load_session
+
+    vol = tank.to_volume()
+    assert [r["status"] for r in result.rows] == ["ok"] * len(tank.fish), result.failed
+    rows = {r["specimen"]: r for r in result.rows}
+    with open(outdir / "specimens.csv", newline="") as fh:
+        table = list(csv.DictReader(fh))
+    assert [int(r["specimen"]) for r in table] == list(rows)
+    out: dict[str, float] = {}
+    for fish in tank.fish:
+        best_id, best = None, 0.0
+        for fid in rows:
+            st = result.features.stat(fid)
+            mask = np.asarray(refine_mask(vol, select(result.features, ids=[fid]), features=result.features,
+                                          isovalue=st.threshold))
+            d = dice(mask, fish.mask)
+            if d > best:
+                best_id, best = fid, d
+        assert best >= 0.9, (fish.name, best_id, best)
+        out[fish.name] = best
+        row = rows.pop(best_id)  # one specimen per fish
+        assert abs(row["length"] - fish.length) <= 0.05 * fish.length, (fish.name, row["length"], fish.length)
+        straight = open_volume(outdir / row["output"])
+        assert straight.shape[0] * straight.spacing[0] == pytest.approx(row["length"], rel=0.05)
+        session = load_session(outdir / row["session"])
+        assert session.segmentation.selected == (best_id,)
+    assert not rows  # nothing else was straightened
+    return out
+
+
+def test_run_all_on_a_small_dense_tank(tmp_path):
+    """The CLI as a user runs it: one straight volume and session per fish, the table, exit 0."""
+    from conftest import run_unwind
+
+    tank = _dense_tank(3, 0)
+    scan = write_volume(tank.volume, tmp_path / "tank.zarr", spacing=tank.spacing, unit=tank.unit)
+    code, out, err = run_unwind("run", scan, "--all", "-o", tmp_path / "out", "-q")
+    assert code == 0, err
+    with open(tmp_path / "out" / "specimens.csv", newline="") as fh:
+        table = list(csv.DictReader(fh))
+    assert len(table) == 3 and {r["status"] for r in table} == {"ok"}
+    for r in table:
+        assert float(r["length"]) > 100 and int(r["keyframes"]) >= 2 and r["reason"] == ""
+        assert (tmp_path / "out" / r["output"]).is_dir() and (tmp_path / "out" / r["session"]).is_file()
+    # a second run into the same folder needs --overwrite; --all takes no click options
+    code, _, err = run_unwind("run", scan, "--all", "-o", tmp_path / "out", "-q")
+    assert code == 1 and "--overwrite" in err and "Traceback" not in err
+    code, _, err = run_unwind("run", scan, "--all", "-o", tmp_path / "o2", "--select", "1,2,3")
+    assert code == 1 and "--select" in err and not (tmp_path / "o2").exists()
+
+
+def test_a_failing_specimen_is_reported_and_the_others_go_on(tmp_path, monkeypatch, capsys):
+    import napari_unwind.skeleton as skeleton
+    from napari_unwind.cli import main
+
+    tank = _dense_tank(3, 0)
+    scan = write_volume(tank.volume, tmp_path / "tank.zarr", spacing=tank.spacing, unit=tank.unit)
+    real = skeleton.estimate_deformation_iter
+    calls = []
+
+    def flaky(mask, *a, **kw):  # the second specimen's skeleton fails
+        calls.append(1)
+        if len(calls) == 2:
+            raise InvalidInputError("the mask has no interior (planted failure)")
+        return (yield from real(mask, *a, **kw))
+
+    monkeypatch.setattr(skeleton, "estimate_deformation_iter", flaky)
+    code = main(["run", str(scan), "--all", "-o", str(tmp_path / "out"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 1 and "planted failure" in err and err.count("failed") == 1
+    with open(tmp_path / "out" / "specimens.csv", newline="") as fh:
+        table = list(csv.DictReader(fh))
+    assert [r["status"] for r in table] == ["ok", "failed", "ok"]
+    assert "planted failure" in table[1]["reason"] and table[1]["output"] == ""
+    assert all((tmp_path / "out" / r["output"]).is_dir() for r in (table[0], table[2]))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("n_fish, seed, gap", [(3, 21, 1.0), (5, 22, 3.0), (8, 23, 1.0), (12, 24, 1.0)])
+def test_every_fish_of_a_dense_tank_is_found_and_straightened(tmp_path, n_fish, seed, gap):
+    from napari_unwind.batch import straighten_all
+
+    tank = _dense_tank(n_fish, seed, gap)
+    scan = write_volume(tank.volume, tmp_path / "tank.zarr", spacing=tank.spacing, unit=tank.unit)
+    result = straighten_all(scan, tmp_path / "out")
+    dices = _check_batch(tank, result, tmp_path / "out")
+    print(f"{n_fish} fish (seed {seed}, gap {gap}): {result.seconds:.1f} s, Dice "
+          + " ".join(f"{d:.3f}" for d in dices.values()))
