@@ -616,7 +616,9 @@ def _estimate(mask_data: Any, endpoints: Any, *, spacing: Sequence[float], origi
             estimate_deformation_iter(mask_data, endpoints, spacing=spacing, origin=origin, unit=unit,
                                       volume=volume, estimate_twist=not args.no_twist, n_levels=args.levels,
                                       smoothing_iterations=args.smoothing_iterations, cage_radius=args.cage_radius,
-                                      tolerance=args.tolerance, snap_tolerance=args.snap_tolerance),
+                                      tolerance=args.tolerance, snap_tolerance=args.snap_tolerance,
+                                      half_extent=getattr(args, "cage", None),
+                                      cage_margin=getattr(args, "cage_margin", 0.1)),
             args.quiet,
         )
     messages = list(result.warnings)
@@ -647,6 +649,7 @@ def _skeleton_report(result: Any, args: argparse.Namespace) -> list[str]:
         deg = np.degrees(np.asarray(result.twist, dtype=float))
         lines.append(f"twist: {deg.min():.1f} to {deg.max():.1f} degrees along the body (relative to parallel "
                      "transport)")
+    lines.append(result.report())
     total = sum(result.timings.values())
     lines.append("times: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings.items()) + f" (total {total:.1f} s)")
     return lines
@@ -824,6 +827,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     result, messages = _estimate(mask, endpoints, spacing=volume.spacing, origin=volume.origin, unit=volume.unit,
                                  volume=volume.data, args=args)
     dt = time.perf_counter() - t0
+    if result.deformation.folds():  # reported once, by the fold check below
+        messages = [m for m in messages if not m.startswith("the deformation folds")]
     _warn_lines(notes + messages)
     _say_endpoints(result, say)
     say(f"skeleton of {what} in {dt:.1f} s")
@@ -906,6 +911,25 @@ def _add_skeleton_options(p: argparse.ArgumentParser) -> None:
                    "fewer keyframes")
     p.add_argument("--snap-tolerance", type=_non_negative, default=5.0,
                    help="ends outside the mask move onto it when within this many voxels (default 5)")
+    p.add_argument("--cage", type=_cage_pair, default=None, metavar="RX,RY",
+                   help="cage half extents along u and v for every keyframe, in the scan's unit (default: fitted "
+                   "per keyframe and per side to the specimen's sections)")
+    p.add_argument("--cage-margin", type=_non_negative, default=0.1, metavar="M",
+                   help="relative margin of the fitted cages (default 0.1: 10 %%; 2 voxels are added besides)")
+
+
+def _cage_pair(text: str) -> tuple[float, float]:
+    """``RX,RY`` (or one number for both): two positive finite numbers."""
+    parts = text.split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) == 1:
+        values = values * 2
+    if len(values) != 2 or not all(math.isfinite(v) and v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected two positive numbers RX,RY (half extents), got {text!r}")
+    return (values[0], values[1])
 
 
 def _add_max_output(p: argparse.ArgumentParser) -> None:

@@ -7,7 +7,9 @@ A straight box ``(x, y, s)``, ``s`` the arclength in ``[0, L]``, maps into the b
 (DESIGN.md section 3, the paper's "Cylindrical Deformation" with its typo corrected).
 
 - Keyframes ``i = 0..m-1`` hold a position ``e_i``, an orthonormal right-handed frame ``R_i = (u_i, v_i, n_i)``
-  (``u x v = n``, ``n`` along the curve) and the cage half-extents ``(rx_i, ry_i)``.
+  (``u x v = n``, ``n`` along the curve), the cage half-extents ``(rx_i, ry_i)`` and the cage's in-plane centre
+  offset ``(ox_i, oy_i)``: the cage is ``x in [ox - rx, ox + rx]``, ``y in [oy - ry, oy + ry]`` (per-side extents,
+  so that a bend's inner side can be thinner than its outer side). Both are interpolated linearly in ``s``.
 - ``d_0 = 0``, ``d_{i+1} = d_i + |e_{i+1} - e_i|``, ``L = d_{m-1}``. On ``[d_k, d_{k+1}]`` the centre moves linearly
   and the whole frame (bend and twist) is interpolated by quaternion SLERP, so both are smooth across keyframes.
 - Padding extends the box beyond both ends along the end normals (``s < 0`` and ``s > L``).
@@ -35,7 +37,9 @@ from .io._volume import check_spacing, normalise_unit
 __all__ = ["Keyframe", "Deformation", "InverseResult", "parallel_transport_frames", "SCHEMA"]
 
 #: Identifies the dict layout of :meth:`Deformation.to_dict`.
-SCHEMA = "napari-unwind/deformation/1"
+SCHEMA = "napari-unwind/deformation/2"
+#: Older dict layouts :meth:`Deformation.from_dict` still reads (schema 1: no cage offsets, taken as zero).
+OLD_SCHEMAS = ("napari-unwind/deformation/1",)
 
 
 
@@ -68,11 +72,15 @@ class Keyframe:
         the straightened specimen's "up" (axis1 of the straight volume), ``u`` its axis2.
     half_extent : tuple of 2 float
         Cage half-sizes ``(rx, ry)`` along ``u`` and ``v``, physical units.
+    offset : tuple of 2 float
+        Centre ``(ox, oy)`` of the cage box in the cross-section plane (default ``(0, 0)``, the curve point): the
+        cage spans ``x in [ox - rx, ox + rx]`` and ``y in [oy - ry, oy + ry]``.
     """
 
     position: np.ndarray
     frame: np.ndarray
     half_extent: tuple[float, float]
+    offset: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         p = np.asarray(self.position, dtype=float).reshape(-1)
@@ -84,6 +92,10 @@ class Keyframe:
         if not all(np.isfinite(v) and v > 0 for v in he):
             raise InvalidInputError(f"cage half-extents must be positive, got {self.half_extent!r}")
         object.__setattr__(self, "half_extent", he)
+        off = tuple(float(v) for v in np.broadcast_to(np.asarray(self.offset, dtype=float), (2,)))
+        if not all(np.isfinite(v) for v in off):
+            raise InvalidInputError(f"a cage offset must be 2 finite numbers, got {self.offset!r}")
+        object.__setattr__(self, "offset", off)
         self.position.flags.writeable = False
         self.frame.flags.writeable = False
 
@@ -99,16 +111,33 @@ class Keyframe:
     def n(self) -> np.ndarray:
         return self.frame[2]
 
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """The cage's sides ``(x_lo, x_hi, y_lo, y_hi)`` in the cross-section plane."""
+        (rx, ry), (ox, oy) = self.half_extent, self.offset
+        return (ox - rx, ox + rx, oy - ry, oy + ry)
+
+    @classmethod
+    def from_bounds(cls, position: np.ndarray, frame: np.ndarray, bounds: Sequence[float]) -> Keyframe:
+        """A keyframe whose cage spans ``x in [x_lo, x_hi]``, ``y in [y_lo, y_hi]`` (``bounds``, 4 numbers)."""
+        b = np.asarray(bounds, dtype=float).reshape(-1)
+        if b.shape != (4,) or not np.isfinite(b).all() or not (b[1] > b[0] and b[3] > b[2]):
+            raise InvalidInputError(f"cage bounds must be 4 finite numbers (x_lo, x_hi, y_lo, y_hi) with x_lo < x_hi "
+                                    f"and y_lo < y_hi, got {bounds!r}")
+        return cls(position, frame, ((b[1] - b[0]) / 2, (b[3] - b[2]) / 2), ((b[0] + b[1]) / 2, (b[2] + b[3]) / 2))
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "position": [float(x) for x in self.position],
             "frame": [[float(x) for x in row] for row in self.frame],
             "half_extent": list(self.half_extent),
+            "offset": list(self.offset),
         }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Keyframe:
-        return cls(np.asarray(d["position"], float), np.asarray(d["frame"], float), tuple(d["half_extent"]))
+        return cls(np.asarray(d["position"], float), np.asarray(d["frame"], float), tuple(d["half_extent"]),
+                   tuple(d.get("offset", (0.0, 0.0))))
 
 
 @dataclass(frozen=True)
@@ -120,7 +149,8 @@ class InverseResult:
     xys : ndarray, shape (N, 3)
         ``(x, y, s)`` of each point; NaN where no cross-section plane holds the point.
     inside : ndarray of bool, shape (N,)
-        The point lies in the cage: ``-pad_start <= s <= L + pad_end``, ``|x| <= rx(s)`` and ``|y| <= ry(s)``.
+        The point lies in the cage: ``-pad_start <= s <= L + pad_end``, ``|x - ox(s)| <= rx(s)`` and
+        ``|y - oy(s)| <= ry(s)``.
     residual : ndarray, shape (N,)
         ``|f(x, y, s) - p|`` after the Newton steps (physical units).
     """
@@ -266,6 +296,7 @@ class Deformation:
         spacing: Sequence[float] | float = 1.0,
         origin: Sequence[float] | float = 0.0,
         unit: str | None = None,
+        offsets: np.ndarray | Sequence[float] | float = 0.0,
     ) -> Deformation:
         """Build from arrays.
 
@@ -279,6 +310,8 @@ class Deformation:
             Cage half-sizes ``(rx, ry)``, physical units; one pair for all or one per keyframe.
         pad, spacing, origin, unit
             See the class attributes.
+        offsets : float, (2,) or (m, 2)
+            Cage centre offsets ``(ox, oy)`` in the cross-section planes (default 0), see :class:`Keyframe`.
         """
         positions = np.asarray(positions, dtype=float)
         frames = np.asarray(frames, dtype=float)
@@ -287,7 +320,8 @@ class Deformation:
         if frames.shape != (len(positions), 3, 3):
             raise InvalidInputError(f"frames must have shape ({len(positions)}, 3, 3), got {frames.shape}")
         he = np.broadcast_to(np.asarray(half_extents, dtype=float), (len(positions), 2))
-        kfs = tuple(Keyframe(p, f, tuple(h)) for p, f, h in zip(positions, frames, he, strict=True))
+        off = np.broadcast_to(np.asarray(offsets, dtype=float), (len(positions), 2))
+        kfs = tuple(Keyframe(p, f, tuple(h), tuple(o)) for p, f, h, o in zip(positions, frames, he, off, strict=True))
         return cls(kfs, pad=pad, spacing=spacing, origin=origin, unit=unit)
 
     @classmethod
@@ -350,6 +384,23 @@ class Deformation:
         return np.array([k.half_extent for k in self.keyframes])
 
     @property
+    def offsets(self) -> np.ndarray:
+        """Keyframe cage centre offsets ``(ox, oy)``, shape (m, 2)."""
+        return np.array([k.offset for k in self.keyframes])
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """Keyframe cage sides ``(x_lo, x_hi, y_lo, y_hi)``, shape (m, 4)."""
+        return np.array([k.bounds for k in self.keyframes])
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """The union of the cages over ``s``: ``(x_lo, x_hi, y_lo, y_hi)`` (the sides are linear between keyframes,
+        so their extremes are at keyframes)."""
+        b = self.bounds
+        return (float(b[:, 0].min()), float(b[:, 1].max()), float(b[:, 2].min()), float(b[:, 3].max()))
+
+    @property
     def knots(self) -> np.ndarray:
         """Arclength ``d_i`` of each keyframe, shape (m,), ``d_0 = 0``."""
         if "knots" not in self._cache:
@@ -369,8 +420,9 @@ class Deformation:
 
     @property
     def max_half_extent(self) -> tuple[float, float]:
-        he = self.half_extents
-        return (float(he[:, 0].max()), float(he[:, 1].max()))
+        """The largest ``|x|`` and ``|y|`` any cage reaches (for a centred cage, the largest half-extents)."""
+        x0, x1, y0, y1 = self.extent
+        return (max(-x0, x1), max(-y0, y1))
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -434,6 +486,18 @@ class Deformation:
         s = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0, self.length)
         he = self.half_extents
         return np.stack([np.interp(s, self.knots, he[:, 0]), np.interp(s, self.knots, he[:, 1])], axis=1)
+
+    def offset_at(self, s: np.ndarray | float) -> np.ndarray:
+        """Cage centre offsets ``(ox, oy)`` at arclengths ``s`` (linear between keyframes), shape (K, 2)."""
+        s = np.clip(np.atleast_1d(np.asarray(s, dtype=float)), 0, self.length)
+        off = self.offsets
+        return np.stack([np.interp(s, self.knots, off[:, 0]), np.interp(s, self.knots, off[:, 1])], axis=1)
+
+    def bounds_at(self, s: np.ndarray | float) -> np.ndarray:
+        """Cage sides ``(x_lo, x_hi, y_lo, y_hi)`` at arclengths ``s``, shape (K, 4)."""
+        he, off = self.half_extent_at(s), self.offset_at(s)
+        return np.stack([off[:, 0] - he[:, 0], off[:, 0] + he[:, 0], off[:, 1] - he[:, 1], off[:, 1] + he[:, 1]],
+                        axis=1)
 
     def forward(self, xys: np.ndarray) -> np.ndarray:
         """Map straight coordinates to the bent scan: ``f(x, y, s) = c(s) + x u(s) + y v(s)``.
@@ -513,14 +577,15 @@ class Deformation:
                 best[sl][ok] = xys[ok]
                 best_res[sl][ok] = res[ok]
                 best_r[sl][ok] = r[ok]
-        he = self.half_extent_at(np.nan_to_num(best[:, 2]))
-        inside = (
-            np.isfinite(best[:, 2])
-            & (best[:, 2] >= lo - 1e-9)
-            & (best[:, 2] <= hi + 1e-9)
-            & (np.abs(best[:, 0]) <= he[:, 0] + 1e-9)
-            & (np.abs(best[:, 1]) <= he[:, 1] + 1e-9)
-        )
+        b = self.bounds_at(np.nan_to_num(best[:, 2]))
+        with np.errstate(invalid="ignore"):
+            inside = (
+                np.isfinite(best[:, 2])
+                & (best[:, 2] >= lo - 1e-9)
+                & (best[:, 2] <= hi + 1e-9)
+                & (best[:, 0] >= b[:, 0] - 1e-9) & (best[:, 0] <= b[:, 1] + 1e-9)
+                & (best[:, 1] >= b[:, 2] - 1e-9) & (best[:, 1] <= b[:, 3] + 1e-9)
+            )
         return InverseResult(best, inside, np.where(np.isfinite(best_res), best_res, np.nan))
 
     def _newton(self, p: np.ndarray, s: np.ndarray, *, max_iter: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -562,8 +627,9 @@ class Deformation:
         """Smallest Jacobian determinant of ``f`` over the cage's cross-section at each ``s`` (shape (K,)).
 
         With a linear centre and a SLERP frame of rate ``w`` (local) on a segment,
-        ``det J(x, y, s) = n . c' + (y w_x - x w_y)``, smallest at a corner of the cage. It is 1 for a straight
-        cage and reaches 0 where the cage is as large as the local radius of curvature: there the map folds.
+        ``det J(x, y, s) = n . c' + (y w_x - x w_y)``, smallest at a corner of the cage
+        ``[x_lo, x_hi] x [y_lo, y_hi]``. It is 1 for a straight cage and reaches 0 where the cage's inner side
+        reaches the local centre of curvature: there the map folds.
         """
         s = np.atleast_1d(np.asarray(s, dtype=float))
         sc = np.clip(s, 0, self.length)
@@ -571,11 +637,27 @@ class Deformation:
         k = self.segment_of(sc)
         seg_dir = np.diff(self.positions, axis=0) / np.diff(self.knots)[:, None]
         w = self._segment_rates()[k]
-        he = self.half_extent_at(sc)
+        b = self.bounds_at(sc)
         base = np.einsum("ij,ij->i", r[:, 2], seg_dir[k])
-        det = base - (he[:, 0] * np.abs(w[:, 1]) + he[:, 1] * np.abs(w[:, 0]))
+        det = (base + np.minimum(b[:, 2] * w[:, 0], b[:, 3] * w[:, 0])
+               - np.maximum(b[:, 0] * w[:, 1], b[:, 1] * w[:, 1]))
         outside = (s < 0) | (s > self.length)
         return np.where(outside, 1.0, det)
+
+    def jacobian(self, xys: np.ndarray) -> np.ndarray:
+        """The Jacobian determinant of ``f`` at straight points ``(x, y, s)`` (shape (N, 3)): ``n . c' + y w_x - x w_y``
+        inside the curve's arclength, 1 in the padding (a translation along the end normals)."""
+        xys = np.asarray(xys, dtype=float)
+        if xys.ndim != 2 or xys.shape[1] != 3:
+            raise InvalidInputError(f"straight points must have shape (N, 3) as (x, y, s), got {xys.shape}")
+        s = xys[:, 2]
+        sc = np.clip(np.nan_to_num(s), 0, self.length)
+        _, r = self.sample(sc)
+        k = self.segment_of(sc)
+        seg_dir = np.diff(self.positions, axis=0) / np.diff(self.knots)[:, None]
+        w = self._segment_rates()[k]
+        det = np.einsum("ij,ij->i", r[:, 2], seg_dir[k]) + xys[:, 1] * w[:, 0] - xys[:, 0] * w[:, 1]
+        return np.where((s < 0) | (s > self.length), 1.0, det)
 
     def folds(self, *, threshold: float = 0.0, step: float | None = None) -> list[tuple[float, float]]:
         """Arclength intervals where the map folds (the cage is larger than the local radius of curvature).
@@ -617,19 +699,29 @@ class Deformation:
         Raises :class:`InvalidInputError` when a side would exceed ``2**62`` voxels (a spacing absurdly small for
         the deformation's size), so that the shape's product stays a number that can be reported.
         """
+        return self._grid(spacing)[0]
+
+    def grid_centre(self, spacing: float | None = None) -> tuple[int, int]:
+        """Pixel ``(row, column)`` of the straight grid at ``x = 0, y = 0`` (the curve): ``y = (i - row) ds`` and
+        ``x = (j - column) ds``. The grid covers the union of the cages over ``s`` with the curve on a pixel
+        centre; for centred cages the curve is the middle pixel, ``((Ny - 1) / 2, (Nx - 1) / 2)``."""
+        return self._grid(spacing)[1]
+
+    def _grid(self, spacing: Any) -> tuple[tuple[int, int, int], tuple[int, int]]:
         ds = self._ds(spacing)
         lo, hi = self.s_range
-        rx, ry = self.max_half_extent
-        sides = ((hi - lo) / ds, ry / ds, rx / ds)
-        if not all(math.isfinite(v) and v < 2**62 for v in sides):
+        x0, x1, y0, y1 = self.extent
+        sides = ((hi - lo) / ds, max(-y0, 0.0) / ds, max(y1, 0.0) / ds, max(-x0, 0.0) / ds, max(x1, 0.0) / ds)
+        if not all(math.isfinite(v) and v < 2**61 for v in sides):
+            rx, ry = self.max_half_extent
             raise InvalidInputError(
                 f"output spacing {ds!r} is absurdly small for this deformation (length {hi - lo:.6g}, cage half "
                 f"extents {rx:.6g} x {ry:.6g} {self.unit or 'units'}): the straight grid would have about "
-                f"{sides[0]:.3g} x {2 * sides[1]:.3g} x {2 * sides[2]:.3g} voxels; choose a spacing near the scan's "
-                f"({min(self.spacing):g})"
+                f"{sides[0]:.3g} x {sides[1] + sides[2]:.3g} x {sides[3] + sides[4]:.3g} voxels; choose a spacing "
+                f"near the scan's ({min(self.spacing):g})"
             )
-        return (int(math.floor(sides[0] + 1e-9)) + 1, 2 * int(math.ceil(sides[1] - 1e-9)) + 1,
-                2 * int(math.ceil(sides[2] - 1e-9)) + 1)
+        n = [int(math.ceil(v - 1e-9)) for v in sides[1:]]
+        return ((int(math.floor(sides[0] + 1e-9)) + 1, n[0] + n[1] + 1, n[2] + n[3] + 1), (n[0], n[2]))
 
     def _ds(self, spacing: Any) -> float:
         """The output spacing ``ds``: ``spacing`` checked (a finite positive number), default the finest scan's."""
@@ -668,10 +760,10 @@ class Deformation:
             Step for one column (``+ds`` along u).
         """
         ds = self._ds(spacing)
-        ns, ny, nx = self.output_shape(ds)
+        (ns, _, _), (i0, j0) = self._grid(ds)
         s = self.s_range[0] + ds * np.arange(ns)
         c, r = self.sample(s)
-        base = c - ((ny - 1) / 2) * ds * r[:, 1] - ((nx - 1) / 2) * ds * r[:, 0]
+        base = c - i0 * ds * r[:, 1] - j0 * ds * r[:, 0]
         dv = ds * r[:, 1]
         du = ds * r[:, 0]
         if voxels:
@@ -701,9 +793,10 @@ class Deformation:
             raise InvalidInputError(f"there is a keyframe at s={s:g} already; edit it instead")
         c, r = self.sample([s])
         he = tuple(self.half_extent_at(s)[0])
+        off = tuple(self.offset_at(s)[0])
         k = int(self.segment_of([s])[0])
         kfs = list(self.keyframes)
-        kfs.insert(k + 1, Keyframe(c[0], r[0], he))
+        kfs.insert(k + 1, Keyframe(c[0], r[0], he, off))
         return self._with(kfs)
 
     def index_at(self, s: float) -> int:
@@ -728,7 +821,7 @@ class Deformation:
         i = self._check_index(i)
         k = self.keyframes[i]
         kfs = list(self.keyframes)
-        kfs[i] = Keyframe(k.position + float(dx) * k.u + float(dy) * k.v, k.frame, k.half_extent)
+        kfs[i] = Keyframe(k.position + float(dx) * k.u + float(dy) * k.v, k.frame, k.half_extent, k.offset)
         return self._with(kfs)
 
     def twist_keyframe(self, i: int, angle: float) -> Deformation:
@@ -746,7 +839,7 @@ class Deformation:
         k = self.keyframes[i]
         rot = Rotation.from_rotvec(float(angle) * k.frame[about]).as_matrix()
         kfs = list(self.keyframes)
-        kfs[i] = Keyframe(k.position, (rot @ k.frame.T).T, k.half_extent)
+        kfs[i] = Keyframe(k.position, (rot @ k.frame.T).T, k.half_extent, k.offset)
         return self._with(kfs)
 
     def set_frame(self, i: int, frame: np.ndarray) -> Deformation:
@@ -754,16 +847,25 @@ class Deformation:
         i = self._check_index(i)
         k = self.keyframes[i]
         kfs = list(self.keyframes)
-        kfs[i] = Keyframe(k.position, frame, k.half_extent)
+        kfs[i] = Keyframe(k.position, frame, k.half_extent, k.offset)
         return self._with(kfs)
 
     def resize_keyframe(self, i: int | None, half_extent: Sequence[float] | float) -> Deformation:
-        """Set the cage half-sizes ``(rx, ry)`` of keyframe ``i`` (``None``: of every keyframe)."""
+        """Set the cage half-sizes ``(rx, ry)`` of keyframe ``i`` (``None``: of every keyframe), keeping the cage
+        centre offsets."""
         idx = range(len(self)) if i is None else [self._check_index(i)]
         kfs = list(self.keyframes)
         he = tuple(np.broadcast_to(np.asarray(half_extent, dtype=float), (2,)))
         for j in idx:
-            kfs[j] = Keyframe(kfs[j].position, kfs[j].frame, he)
+            kfs[j] = Keyframe(kfs[j].position, kfs[j].frame, he, kfs[j].offset)
+        return self._with(kfs)
+
+    def set_cage(self, i: int | None, bounds: Sequence[float]) -> Deformation:
+        """Set the cage sides ``(x_lo, x_hi, y_lo, y_hi)`` of keyframe ``i`` (``None``: of every keyframe)."""
+        idx = range(len(self)) if i is None else [self._check_index(i)]
+        kfs = list(self.keyframes)
+        for j in idx:
+            kfs[j] = Keyframe.from_bounds(kfs[j].position, kfs[j].frame, bounds)
         return self._with(kfs)
 
     def with_pad(self, before: float, after: float) -> Deformation:
@@ -798,9 +900,12 @@ class Deformation:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Deformation:
         """Inverse of :meth:`to_dict`; raises :class:`InvalidInputError` on anything malformed."""
-        if not isinstance(d, dict) or d.get("schema") != SCHEMA:
+        if not isinstance(d, dict) or d.get("schema") not in (SCHEMA, *OLD_SCHEMAS):
             got = d.get("schema") if isinstance(d, dict) else type(d).__name__
             raise InvalidInputError(f"not a deformation of schema {SCHEMA!r} (got {got!r})")
+        if d["schema"] != SCHEMA and any(isinstance(k, dict) and "offset" in k for k in d.get("keyframes", ())):
+            raise InvalidInputError(f"a deformation of schema {d['schema']!r} has no cage offsets, but this one has; "
+                                    f"label it {SCHEMA!r}")
         try:
             kfs = tuple(Keyframe.from_dict(k) for k in d["keyframes"])
             return cls(kfs, pad=tuple(d.get("pad", (0, 0))), spacing=tuple(d["spacing"]),
@@ -820,4 +925,4 @@ class Deformation:
 
     def __repr__(self) -> str:
         return (f"Deformation({len(self)} keyframes, length={self.length:.4g} {self.unit or 'units'}, "
-                f"pad={self.pad}, cage={self.max_half_extent})")
+                f"pad={self.pad}, cage={self.extent})")

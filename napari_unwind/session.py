@@ -13,10 +13,10 @@ Files are pretty JSON (sorted keys, indent 2) so that diffs in version control s
 naming the file and what is wrong, refuses a file from a newer napari-unwind, and migrates an older schema through
 :data:`_MIGRATIONS`. :func:`verify_source` checks that the scan is still there and unchanged.
 
-Schema 1 (``"schema": "napari-unwind/session"``, ``"schema_version": 1``)::
+Schema 2 (``"schema": "napari-unwind/session"``, ``"schema_version": 2``)::
 
     {
-      "schema": "napari-unwind/session", "schema_version": 1,
+      "schema": "napari-unwind/session", "schema_version": 2,
       "software": {"name": "napari-unwind", "version": "0.1.0"},
       "created": "2025-01-31T12:00:00.000Z", "modified": "2025-01-31T12:05:00.000Z",
       "source": {"path": "/data/fish.zarr", "checksum": "sha256:<64 hex>", "size": 123456, "shape": [Z, Y, X],
@@ -27,6 +27,10 @@ Schema 1 (``"schema": "napari-unwind/session"``, ``"schema_version": 1``)::
       "endpoints": {"head": [z, y, x], "tail": [z, y, x], "chain": [[[z, y, x], [z, y, x]], ...]} or null,
       "notes": ""
     }
+
+Schema 1 is the same with a deformation of schema ``napari-unwind/deformation/1``: keyframe cages centred on the
+curve (no ``"offset"``). It migrates with zero offsets. A schema-2 file is refused by a napari-unwind that reads
+schema 1 at most (it is "written by a newer napari-unwind"), so per-side cages are never silently dropped.
 
 Schema 0 is the pre-release layout: one flat object with no ``schema`` key, recognised by its ``source_path``::
 
@@ -105,7 +109,7 @@ __all__ = [
 #: Identifies a session file.
 SCHEMA_ID = "napari-unwind/session"
 #: The schema version this napari-unwind writes.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 #: Every session file name ends with this.
 SESSION_SUFFIX = ".unwind.json"
 SOFTWARE = "napari-unwind"
@@ -728,7 +732,7 @@ def _migrate_0_to_1(old: dict) -> dict:
         pass  # left for schema 1's check to report
     deformation = None
     if old.get("keyframes"):
-        deformation = {"schema": DEFORMATION_SCHEMA, "unit": old.get("unit"), "spacing": spacing,
+        deformation = {"schema": "napari-unwind/deformation/1", "unit": old.get("unit"), "spacing": spacing,
                        "origin": [0.0, 0.0, 0.0], "pad": old.get("pad", [0.0, 0.0]), "keyframes": old["keyframes"]}
     segmentation = {key: old[key] for key in ("k", "level", "selected", "isovalue") if key in old} or None
     endpoints = None
@@ -749,8 +753,20 @@ def _migrate_0_to_1(old: dict) -> dict:
     }
 
 
+def _migrate_1_to_2(old: dict) -> dict:
+    """Schema 1 -> 2: the deformation's keyframes get cage offsets ``(0, 0)`` (deformation schema 2)."""
+    new = dict(old, schema_version=2)
+    deformation = old.get("deformation")
+    if isinstance(deformation, dict) and deformation.get("schema") == "napari-unwind/deformation/1":
+        keyframes = deformation.get("keyframes")
+        if isinstance(keyframes, list):
+            keyframes = [dict(k, offset=[0.0, 0.0]) if isinstance(k, dict) else k for k in keyframes]
+        new["deformation"] = dict(deformation, schema=DEFORMATION_SCHEMA, keyframes=keyframes)
+    return new
+
+
 #: schema version -> function taking a dict of that version to the next one.
-_MIGRATIONS: dict[int, Callable[[dict], dict]] = {0: _migrate_0_to_1}
+_MIGRATIONS: dict[int, Callable[[dict], dict]] = {0: _migrate_0_to_1, 1: _migrate_1_to_2}
 
 
 def _schema_version(d: dict) -> int:

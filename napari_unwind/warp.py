@@ -1,8 +1,9 @@
 """Straighten a scan along a :class:`~napari_unwind.deformation.Deformation`, bend it back, and map points.
 
 The straight volume has axis0 = ``s`` (arclength), axis1 = ``y`` (along v) and axis2 = ``x`` (along u), on an
-isotropic grid of spacing ``ds``: straight voxel ``(k, i, j)`` is ``s = s_lo + k ds``, ``y = (i - (Ny - 1) / 2) ds``,
-``x = (j - (Nx - 1) / 2) ds`` (see :meth:`Deformation.output_shape` and :meth:`Deformation.slice_geometry`).
+isotropic grid of spacing ``ds``: straight voxel ``(k, i, j)`` is ``s = s_lo + k ds``, ``y = (i - i0) ds``,
+``x = (j - j0) ds`` with ``(i0, j0)`` = :meth:`Deformation.grid_centre` (``((Ny - 1) / 2, (Nx - 1) / 2)`` for
+centred cages; see :meth:`Deformation.output_shape` and :meth:`Deformation.slice_geometry`).
 
 How straightening scales (DESIGN.md section 7)
 ----------------------------------------------
@@ -1006,8 +1007,8 @@ def straighten(
     _warn_folds(deformation, "straight volume")
     geometry = _check_coverage(d2, ds, data.shape, "straight volume")
     out = _straighten_array(data, d2, ds, order, chunks, fill, geometry)
-    ns, ny, nx = out.shape
-    origin = (d2.s_range[0], -(ny - 1) / 2 * ds, -(nx - 1) / 2 * ds)
+    i0, j0 = d2.grid_centre(ds)
+    origin = (d2.s_range[0], -i0 * ds, -j0 * ds)
     meta = {
         "deformation": d2.to_dict(),
         "order": order,
@@ -1293,7 +1294,7 @@ def _map_tables(d: Deformation) -> tuple[np.ndarray, ...]:
 
     ``knots`` (m,), ``pos`` (m, 3), ``rot`` (m, 3, 3) world matrices with columns u, v, n, ``rates`` (m-1, 3) the
     SLERP angular velocity of each segment in its start frame (so ``R(s) = R_k exp([rates_k] (s - d_k))``),
-    ``he`` (m, 2) and ``pad`` (2,).
+    ``bounds`` (m, 4) the cage sides ``(x_lo, x_hi, y_lo, y_hi)`` and ``pad`` (2,).
     """
     from scipy.spatial.transform import Rotation
 
@@ -1304,7 +1305,7 @@ def _map_tables(d: Deformation) -> tuple[np.ndarray, ...]:
     rates = np.array([(rs[k].inv() * rs[k + 1]).as_rotvec() / (knots[k + 1] - knots[k])
                       for k in range(len(knots) - 1)])
     return (knots, np.ascontiguousarray(d.positions, dtype=float), rot, rates,
-            np.ascontiguousarray(d.half_extents, dtype=float), np.asarray(d.pad, dtype=float))
+            np.ascontiguousarray(d.bounds, dtype=float), np.asarray(d.pad, dtype=float))
 
 
 @njit(nogil=True, cache=True)
@@ -1403,7 +1404,7 @@ def _newton_s(p0, p1, p2, s, lo, hi, knots, pos, rot, rates, max_iter, tol):
 
 
 @njit(nogil=True, cache=True)
-def _inverse_points(pts, knots, pos, rot, rates, he, pad, reach, out, inside):
+def _inverse_points(pts, knots, pos, rot, rates, bounds, pad, reach, out, inside):
     """The inverse map of :meth:`Deformation.inverse`, point by point, for physical points ``pts`` (N, 3).
 
     Same method (seeds on the three nearest pieces of the centre polyline and its padded ends, Newton on
@@ -1479,10 +1480,12 @@ def _inverse_points(pts, knots, pos, rot, rates, he, pad, reach, out, inside):
                 k = q
         k = min(k, m - 2)
         lam = (sc - knots[k]) / (knots[k + 1] - knots[k])
-        rx = (1.0 - lam) * he[k, 0] + lam * he[k + 1, 0]
-        ry = (1.0 - lam) * he[k, 1] + lam * he[k + 1, 1]
-        inside[n] = (lo - 1e-9 <= s <= hi + 1e-9 and abs(out[n, 0]) <= rx + 1e-9
-                     and abs(out[n, 1]) <= ry + 1e-9)
+        x_lo = (1.0 - lam) * bounds[k, 0] + lam * bounds[k + 1, 0]
+        x_hi = (1.0 - lam) * bounds[k, 1] + lam * bounds[k + 1, 1]
+        y_lo = (1.0 - lam) * bounds[k, 2] + lam * bounds[k + 1, 2]
+        y_hi = (1.0 - lam) * bounds[k, 3] + lam * bounds[k + 1, 3]
+        inside[n] = (lo - 1e-9 <= s <= hi + 1e-9 and x_lo - 1e-9 <= out[n, 0] <= x_hi + 1e-9
+                     and y_lo - 1e-9 <= out[n, 1] <= y_hi + 1e-9)
 
 
 def _fast_inverse(d: Deformation, points: np.ndarray, reach: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
@@ -1490,8 +1493,8 @@ def _fast_inverse(d: Deformation, points: np.ndarray, reach: float = np.inf) -> 
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.empty((len(pts), 3))
     inside = np.zeros(len(pts), dtype=np.bool_)
-    knots, pos, rot, rates, he, pad = _map_tables(d)
-    _inverse_points(pts, knots, pos, rot, rates, he, pad, float(reach), out, inside)
+    knots, pos, rot, rates, bounds, pad = _map_tables(d)
+    _inverse_points(pts, knots, pos, rot, rates, bounds, pad, float(reach), out, inside)
     return out, inside
 
 
@@ -1505,7 +1508,7 @@ def _bend_block(region: np.ndarray, k_offset: int, block_offset: tuple[int, int,
     region = np.asarray(region)
     if order == 3:
         region = ndimage.spline_filter(region, 3, output=np.float64, mode="constant")
-    _, ny, nx = d.output_shape(ds)
+    i0, j0 = d.grid_centre(ds)
     s_lo = d.s_range[0]
     reach = float(np.hypot(*d.max_half_extent)) + ds
     tables = _map_tables(d)
@@ -1525,8 +1528,7 @@ def _bend_block(region: np.ndarray, k_offset: int, block_offset: tuple[int, int,
             continue
         idx = np.flatnonzero(inside)
         sel = xys[idx]
-        coords = np.stack([(sel[:, 2] - s_lo) / ds - k_offset, sel[:, 1] / ds + (ny - 1) / 2,
-                           sel[:, 0] / ds + (nx - 1) / 2])
+        coords = np.stack([(sel[:, 2] - s_lo) / ds - k_offset, sel[:, 1] / ds + i0, sel[:, 0] / ds + j0])
         vals = ndimage.map_coordinates(region, coords, order=order, mode="constant", cval=float(fill), output=dt,
                                        prefilter=False)
         out[a].reshape(-1)[idx] = vals
@@ -1748,7 +1750,7 @@ def map_points(
     pad = _check_pad(pad)
     ds = deformation._ds(spacing)
     d = _padded(deformation, pad, ds)
-    _, ny, nx = d.output_shape(ds)
+    i0, j0 = d.grid_centre(ds)
     s_lo, s_hi = d.s_range
     out = np.full(pts.shape, np.nan)
     if len(pts) == 0:
@@ -1756,16 +1758,15 @@ def map_points(
     if to == "straight":
         xys, inside = _fast_inverse(d, d.to_physical(pts))  # Deformation.inverse, compiled
         xys = xys[inside]
-        out[inside] = np.stack([(xys[:, 2] - s_lo) / ds, xys[:, 1] / ds + (ny - 1) / 2,
-                                xys[:, 0] / ds + (nx - 1) / 2], axis=1)
+        out[inside] = np.stack([(xys[:, 2] - s_lo) / ds, xys[:, 1] / ds + i0, xys[:, 0] / ds + j0], axis=1)
     else:
         s = s_lo + pts[:, 0] * ds
-        y = (pts[:, 1] - (ny - 1) / 2) * ds
-        x = (pts[:, 2] - (nx - 1) / 2) * ds
-        he = d.half_extent_at(s)
+        y = (pts[:, 1] - i0) * ds
+        x = (pts[:, 2] - j0) * ds
+        b = d.bounds_at(s)
         tol = 1e-9 * max(1.0, d.length)
-        inside = ((s >= s_lo - tol) & (s <= s_hi + tol) & (np.abs(x) <= he[:, 0] + tol)
-                  & (np.abs(y) <= he[:, 1] + tol))
+        inside = ((s >= s_lo - tol) & (s <= s_hi + tol) & (x >= b[:, 0] - tol) & (x <= b[:, 1] + tol)
+                  & (y >= b[:, 2] - tol) & (y <= b[:, 3] + tol))
         if inside.any():
             phys = d.forward(np.stack([x[inside], y[inside], s[inside]], axis=1))
             out[inside] = d.to_voxels(phys)

@@ -251,3 +251,95 @@ def test_bad_keyframes_are_refused():
         Keyframe([0, 0, 0], np.eye(3), (1.0, 0.0))
     with pytest.raises(InvalidInputError, match="coincide"):
         parallel_transport_frames(np.array([[0, 0, 0], [0, 0, 0], [1, 0, 0]], float))
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# per-side cages (keyframe offsets): analytic references on the circle, whose centre of curvature lies at x = +R
+# ---------------------------------------------------------------------------------------------------------------------
+def _with_bounds(d, bounds):
+    return d.set_cage(None, bounds)
+
+
+@pytest.mark.parametrize("bounds", [(-3.0, 8.0, -2.0, 2.0), (-8.0, 3.0, -2.0, 2.0), (-9.0, -1.0, 1.0, 6.0),
+                                    (2.0, 9.5, -4.0, -1.0)])
+def test_jacobian_min_of_an_offset_cage_is_one_minus_its_inner_side_over_r(bounds):
+    radius = 10.0
+    d, _ = circle_deformation(radius=radius, n_keys=400, arc=np.pi / 2, cage=1.0, bend_in="u")
+    d = _with_bounds(d, bounds)
+    s = np.linspace(0.5, d.length - 0.5, 50)
+    # det J = 1 - x / R, smallest at the side nearest the centre of curvature (x = x_hi)
+    np.testing.assert_allclose(d.jacobian_min(s), 1 - bounds[1] / radius, atol=2e-3)
+    assert (len(d.folds()) > 0) == (bounds[1] >= radius)
+
+
+def test_jacobian_min_matches_finite_differences_of_forward_over_an_offset_cage():
+    rng = np.random.default_rng(3)
+    d, _ = circle_deformation(radius=12.0, n_keys=30, arc=2.0, cage=1.0, bend_in="v")
+    d = d.twist_keyframe(10, 0.4).tilt_keyframe(20, 0.2)
+    d = d.set_cage(None, (-2.0, 5.0, -6.0, 3.0)).set_cage(5, (-1.0, 2.0, -9.0, 1.0))
+    s = rng.uniform(0.2, d.length - 0.2, 40)
+    b = d.bounds_at(s)
+    h = 1e-5
+    best = np.full(len(s), np.inf)
+    for fx in np.linspace(0, 1, 9):
+        for fy in np.linspace(0, 1, 9):
+            x = b[:, 0] + fx * (b[:, 1] - b[:, 0])
+            y = b[:, 2] + fy * (b[:, 3] - b[:, 2])
+            cols = []
+            for e in np.eye(3):
+                p = np.column_stack([x, y, s])
+                cols.append((d.forward(p + h * e) - d.forward(p - h * e)) / (2 * h))
+            det = np.linalg.det(np.stack(cols, axis=2))
+            best = np.minimum(best, det)
+    # the Jacobian is affine in (x, y): its minimum over the box is at a corner, which the 9 x 9 grid holds
+    np.testing.assert_allclose(d.jacobian_min(s), best, atol=1e-5)
+
+
+def test_inverse_inside_follows_the_offset_cage():
+    d, _ = circle_deformation(radius=30.0, n_keys=60, arc=1.0, cage=1.0, bend_in="u")
+    d = d.set_cage(None, (-3.0, 6.0, -1.0, 4.0))
+    s = np.full(6, d.length / 2)
+    xys = np.column_stack([[-2.9, 5.9, -3.2, 6.2, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 3.9, -1.2], s])
+    res = d.inverse(d.forward(xys))
+    np.testing.assert_allclose(res.xys, xys, atol=1e-6)
+    assert res.inside.tolist() == [True, True, False, False, True, False]
+
+
+def test_output_grid_covers_the_union_of_cages_with_the_curve_on_a_pixel():
+    d = straight_deformation(length=20.0, cage=1.0)
+    d = d.set_cage(0, (-3.0, 8.0, -1.5, 2.0)).set_cage(1, (-5.0, 2.0, -1.0, 4.2))
+    ns, ny, nx = d.output_shape(1.0)
+    i0, j0 = d.grid_centre(1.0)
+    assert (ns, ny, nx) == (21, 2 + 5 + 1, 5 + 8 + 1)
+    assert (i0, j0) == (2, 5)
+    base, dv, du = d.slice_geometry(1.0, voxels=False)
+    # pixel (i0, j0) of every slice is the curve point; pixel (0, 0) is (x, y) = (-5, -2)
+    c, _ = d.sample(np.arange(ns, dtype=float))
+    np.testing.assert_allclose(base + i0 * dv + j0 * du, c, atol=1e-9)
+    np.testing.assert_allclose(base, d.forward(np.column_stack([np.full(ns, -5.0), np.full(ns, -2.0),
+                                                               np.arange(ns, dtype=float)])), atol=1e-9)
+
+
+def test_offsets_survive_edits_and_serialisation_and_schema_1_reads_as_zero_offsets():
+    d, _ = circle_deformation(radius=30.0, n_keys=5, arc=1.0, cage=2.0)
+    d = d.set_cage(2, (-1.0, 4.0, -3.0, 1.0))
+    assert d.keyframes[2].bounds == (-1.0, 4.0, -3.0, 1.0)
+    for e in (d.twist_keyframe(2, 0.3), d.tilt_keyframe(2, 0.1), d.move_keyframe(2, 1.0, 0.5),
+              d.resize_keyframe(2, (2.5, 2.0))):
+        assert e.keyframes[2].offset == (1.5, -1.0)
+    s2 = d.knots[2] + 0.25 * (d.knots[3] - d.knots[2])
+    added = d.add_keyframe(s2)
+    np.testing.assert_allclose(added.keyframes[3].bounds, d.bounds_at(s2)[0])
+    assert Deformation.from_dict(d.to_dict()) == d
+    old = d.set_cage(None, (-2.0, 2.0, -2.0, 2.0)).to_dict()
+    old["schema"] = "napari-unwind/deformation/1"
+    for k in old["keyframes"]:
+        del k["offset"]
+    back = Deformation.from_dict(old)
+    assert np.all(back.offsets == 0) and np.allclose(back.half_extents, 2.0)
+    bad = d.to_dict()
+    bad["schema"] = "napari-unwind/deformation/1"
+    with pytest.raises(InvalidInputError, match="no cage offsets"):
+        Deformation.from_dict(bad)
+    with pytest.raises(InvalidInputError, match="x_lo < x_hi"):
+        d.set_cage(0, (1.0, -1.0, 0.0, 1.0))

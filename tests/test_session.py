@@ -636,3 +636,30 @@ def test_one_dicom_file_hashes_its_series_folder(tmp_path, phantom):
     assert digest == manifest_digest({p.name: p for p in files})
     flip_byte(files[-1], -1)
     assert checksum(files[0]) != digest
+
+
+def test_schema1_is_migrated_with_centred_cages_and_a_schema2_file_is_newer_for_a_schema1_reader(
+        tmp_path, scan, phantom, monkeypatch):
+    session = make_session(scan, phantom)
+    session.deformation = session.deformation.set_cage(1, (-1.0, 5.0, -4.0, 2.0))
+    path = save_session(session, tmp_path / "s.unwind.json")
+    new = json.loads(path.read_text())
+    assert new["schema_version"] == 2 and new["deformation"]["schema"] == "napari-unwind/deformation/2"
+    assert load_session(path).deformation.keyframes[1].bounds == (-1.0, 5.0, -4.0, 2.0)
+
+    # a schema-1 file (centred cages, no offsets) loads with zero offsets and the same half extents
+    old = json.loads(path.read_text())
+    old["schema_version"] = 1
+    old["deformation"]["schema"] = "napari-unwind/deformation/1"
+    for k in old["deformation"]["keyframes"]:
+        del k["offset"]
+    path.write_text(json.dumps(old))
+    loaded = load_session(path).deformation
+    assert np.all(loaded.offsets == 0)
+    np.testing.assert_allclose(loaded.half_extents[1], (3.0, 3.0))
+
+    # a reader of schema 1 refuses the new file instead of dropping the offsets
+    path.write_text(json.dumps(new))
+    monkeypatch.setattr(S, "SCHEMA_VERSION", 1)
+    with pytest.raises(InvalidInputError, match="newer napari-unwind"):
+        load_session(path)

@@ -12,12 +12,13 @@ from typing import Any
 import numpy as np
 from scipy import ndimage as ndi
 
-from ..deformation import Deformation, parallel_transport_frames
+from ..deformation import Deformation, Keyframe, parallel_transport_frames
 from ..errors import InvalidInputError
 from ..io._volume import Volume, check_spacing, normalise_unit
 from ..progress import Progress, ProgressGenerator, run
 from ..session import Endpoints
 from ._curve import arclength, regularise_ends, resample_curve, select_keyframes, smooth_curve
+from ._foldfree import coverage, format_lost, max_tilt, unfold
 from ._harmonic import decimate_surface, harmonic_field, level_set_centroids, surface_mesh, tet_mesh
 
 __all__ = ["estimate_deformation", "estimate_deformation_iter", "SkeletonResult", "WorkingMask", "working_mask"]
@@ -53,6 +54,18 @@ class SkeletonResult:
         Seconds spent per stage.
     warnings : tuple of str
         Handled-but-suspicious conditions (also issued as UserWarning).
+    min_jacobian : float
+        Smallest Jacobian determinant of the deformation over its cages (dense in s): > 0 means no fold.
+    max_tilt : float
+        Largest angle (degrees) between a cross-section's normal and the curve.
+    coverage : float
+        Fraction of the mask's voxels (at the working resolution) inside the cage where the map does not fold.
+    lost : tuple of (s_start, s_end, fraction)
+        Arclength intervals (physical units) whose mask voxels are left out of the cage, with the fraction of the
+        mask each loses.
+    folded : float
+        Fraction of the mask's voxels (working resolution) where the map folds: 0 when every fold lies in empty
+        corners of the cage.
     """
 
     deformation: Deformation
@@ -66,6 +79,20 @@ class SkeletonResult:
     mesh: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+    min_jacobian: float = float("nan")
+    max_tilt: float = float("nan")
+    coverage: float = float("nan")
+    lost: tuple[tuple[float, float, float], ...] = ()
+    folded: float = 0.0
+
+    def report(self) -> str:
+        """One line: minimum Jacobian, largest tilt, coverage and where mask is lost."""
+        from ._foldfree import format_lost
+
+        unit = self.deformation.unit or "units"
+        return (f"cage: min Jacobian {self.min_jacobian:.3g} ({'no fold' if self.min_jacobian > 0 else 'FOLDS'}), "
+                f"max tilt {self.max_tilt:.3g} deg, coverage {100 * self.coverage:.2f} % of the mask, lost: "
+                f"{format_lost(self.lost, unit)}")
 
 
 @dataclass(frozen=True)
@@ -321,6 +348,61 @@ def _part_curve(
     return np.vstack([head, cents[ok], tail])
 
 
+def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx: np.ndarray, eps: float,
+                     margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Keyframe frames and cage sides ``(m, 4)``: cages fitted per side to the sections, their margins given up
+    where a bend would fold them, and the keyframes' normals tilted where that is not enough (DESIGN.md section
+    3, ways 1 and 2; the caller shrinks what still folds, way 3).
+
+    The tilt: each keyframe's normal is the dense tangent smoothed over a Gaussian window ``sigma`` (0: no
+    tilt), so that consecutive sections fan out. Every window of a ladder is tried over the whole curve; a
+    keyframe whose two segments keep ``det J >= eps`` untilted (margins given up) keeps ``sigma = 0``; another
+    takes the smallest window that reaches ``eps`` (or, when none does, the one that gets closest, if it beats
+    no tilt), and the windows are then made to vary no faster than the arclength so that neighbouring normals
+    stay consistent.
+    """
+    from ._cage import fit_cages
+    from ._foldfree import tilted_frames, unfold
+
+    sc = arclength(curve)
+    step = float(max(wm.working_spacing))
+    ladder = [0.0] + [step * 1.5 ** i for i in range(12) if step * 1.5 ** i < sc[-1] / 2]
+    a = sc[idx]
+
+    def build(sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        kf = tilted_frames(frames, sc, idx, sigma)
+        d = Deformation.from_keyframes(curve[idx], kf, 1.0)
+        # the sections as the deformation cuts them: its own centres and SLERP frames at the dense arclengths
+        s_dense = np.union1d(np.clip(sc, 0, d.length), d.knots)
+        c, fr = d.sample(s_dense)
+        keys = np.searchsorted(s_dense, d.knots)
+        b = fit_cages(wm.binary, c, fr, keys, spacing=wm.working_spacing, margin=margin)
+        tissue = fit_cages(wm.binary, c, fr, keys, spacing=wm.working_spacing, margin=0.0, min_margin=0.0)
+        d = Deformation(tuple(Keyframe.from_bounds(k.position, k.frame, bb) for k, bb in zip(d.keyframes, b,
+                                                                                               strict=True)))
+        d = unfold(d, eps=eps, floor=tissue)
+        seg = np.array([d.jacobian_min(np.linspace(d.knots[k], d.knots[k + 1], 5)).min() for k in range(len(idx) - 1)])
+        # a keyframe's figure: the worse of its two segments
+        key = np.minimum(np.concatenate([[np.inf], seg]), np.concatenate([seg, [np.inf]]))
+        return kf, d.bounds, key
+
+    chosen = np.full(len(idx), -1)
+    best_key = np.full(len(idx), -np.inf)
+    best_level = np.zeros(len(idx), dtype=int)
+    for level, sg in enumerate(ladder):
+        _, _, key = build(np.full(len(idx), sg))
+        better = key > best_key + 0.05  # a tilt must pay for itself
+        best_key = np.where(better, key, best_key)
+        best_level = np.where(better, level, best_level)
+        chosen = np.where((chosen < 0) & (key >= eps), level, chosen)
+        if (chosen >= 0).all():
+            break
+    sigma = np.asarray(ladder)[np.where(chosen >= 0, chosen, best_level)]
+    sigma = np.max(sigma[None, :] - np.abs(a[:, None] - a[None, :]), axis=1).clip(min=0)
+    kf, b, _ = build(sigma)
+    return kf, b
+
+
 def estimate_deformation_iter(
     mask: Any,
     endpoints: Any = None,
@@ -344,6 +426,9 @@ def estimate_deformation_iter(
     max_triangles: int | None = 3000,
     mesher: dict[str, Any] | None = None,
     end_window_factor: float = 2.0,
+    fold_free: bool = True,
+    cage_margin: float = 0.1,
+    min_jacobian: float = 0.2,
 ) -> ProgressGenerator[SkeletonResult]:
     """Generator form of :func:`estimate_deformation`: yields :class:`Progress` per stage, returns a
     :class:`SkeletonResult` (its ``deformation`` is what :func:`estimate_deformation` returns).
@@ -375,6 +460,10 @@ def estimate_deformation_iter(
             raise InvalidInputError(f"{name} must be a positive number (voxels), got {value!r}")
     if not (isinstance(end_window_factor, (int, float, np.number)) and 0 <= end_window_factor < np.inf):
         raise InvalidInputError(f"end_window_factor must be a number >= 0, got {end_window_factor!r}")
+    if not (isinstance(cage_margin, (int, float, np.number)) and 0 <= cage_margin < np.inf):
+        raise InvalidInputError(f"cage_margin must be a number >= 0 (0.1: 10 %), got {cage_margin!r}")
+    if not (isinstance(min_jacobian, (int, float, np.number)) and 0 < min_jacobian < 1):
+        raise InvalidInputError(f"min_jacobian must be a number in (0, 1), got {min_jacobian!r}")
     if level_spacing not in ("arclength", "uniform"):
         raise InvalidInputError(f"level_spacing must be 'arclength' or 'uniform', got {level_spacing!r}")
     if smoothing not in ("taubin", "laplacian"):
@@ -476,7 +565,7 @@ def estimate_deformation_iter(
         frames = apply_twist(frames, theta)
         t = _stage("twist", timings, t)
     yield Progress("cage", 0, 1, "cross-section extent")
-    auto_he, auto_pad = propose_cage(wm.binary, curve_w, frames, spacing=wm.working_spacing)
+    auto_he, auto_pad = propose_cage(wm.binary, curve_w, frames, spacing=wm.working_spacing, margin=cage_margin)
     he = auto_he if half_extent is None else half_extent
     pd = auto_pad if pad is None else pad
     length = float(arclength(curve)[-1])
@@ -487,21 +576,45 @@ def estimate_deformation_iter(
     t = _stage("cage", timings, t)
     yield Progress("keyframes", 0, 1, "prism subdivision")
     idx = select_keyframes(curve, frames, radius=cage_radius * vox, tolerance=tolerance * vox)
-    deformation = Deformation.from_keyframes(curve[idx] + org, frames[idx], he, pad=pd, spacing=tuple(sp),
-                                             origin=tuple(org), unit=unit)
+    offsets = 0.0
+    key_frames = frames[idx]
+    if fold_free and half_extent is None:
+        yield Progress("keyframes", 0, 1, "per-side cages, tilting the sections where a bend would fold them")
+        key_frames, b = _fold_free_cages(wm, curve_w, frames, idx, float(min_jacobian), float(cage_margin))
+        he = np.stack([(b[:, 1] - b[:, 0]) / 2, (b[:, 3] - b[:, 2]) / 2], axis=1)
+        offsets = np.stack([(b[:, 1] + b[:, 0]) / 2, (b[:, 3] + b[:, 2]) / 2], axis=1)
+    deformation = Deformation.from_keyframes(curve[idx] + org, key_frames, he, pad=pd, spacing=tuple(sp),
+                                             origin=tuple(org), unit=unit, offsets=offsets)
+    if fold_free:
+        # where the inner side still reaches the centre of curvature: shrink it (the third way out)
+        deformation = unfold(deformation, eps=float(min_jacobian))
     folds = deformation.folds()
     if folds:
         where = ", ".join(f"{a:.4g}-{b:.4g}" for a, b in folds)
         note(f"the deformation folds (the cage is wider than the bend's radius) at s = {where} {unit or 'units'}: "
-             "give a smaller half_extent or edit the keyframes there")
-    _stage("keyframes", timings, t)
+             "give a smaller cage (--cage RX,RY, or half_extent=) or shrink the cages of the keyframes there in the "
+             "session (Deformation.set_cage)")
+    t = _stage("keyframes", timings, t)
     yield Progress("keyframes", 1, 1, f"{len(idx)} keyframes")
+    yield Progress("coverage", 0, 1, "mapping the mask into the straight box")
+    s_dense = np.union1d(np.arange(0.0, deformation.length, vox / 2), deformation.knots)
+    jmin = float(deformation.jacobian_min(s_dense).min())
+    tilt = max_tilt(deformation)
+    mask_pts = wm.from_working(np.argwhere(wm.binary)) * sp + org
+    cov = coverage(deformation, mask_pts, bin_width=2 * float(max(wm.working_spacing)))
+    if cov.lost and sum(f for *_, f in cov.lost) >= 1e-3:
+        lost_at = format_lost(cov.lost, unit or "units")
+        note(f"the cage leaves {100 * (1 - cov.fraction):.2g} % of the mask out ({lost_at}): give a larger cage "
+             "(--cage RX,RY or --cage-margin), or edit the keyframes there in the session (Deformation.set_cage)")
+    _stage("coverage", timings, t)
+    yield Progress("coverage", 1, 1, f"{100 * cov.fraction:.2f} %")
     used = Endpoints(head=tuple(snapped[0][0]), tail=tuple(snapped[-1][1]),
                      chain=tuple((tuple(a), tuple(b)) for a, b in snapped) if len(snapped) > 1 else ())
     return SkeletonResult(
         deformation=deformation, endpoints=used, suggested=suggested, curve=curve / sp, frames=frames,
         twist=theta, keyframe_indices=idx, factor=wm.factor,
-        mesh={"parts": mesh_info}, timings=timings, warnings=tuple(notes))
+        mesh={"parts": mesh_info}, timings=timings, warnings=tuple(notes), min_jacobian=jmin, max_tilt=tilt,
+        coverage=cov.fraction, lost=cov.lost, folded=cov.folded)
 
 
 def estimate_deformation(
@@ -556,7 +669,10 @@ def estimate_deformation(
         surface is decimated to this many triangles before meshing, None for no decimation; the mesher's time
         grows with the surface), ``mesher`` (options of :func:`tet_mesh`, e.g. ``edge_length_fac``) and
         ``end_window_factor`` (2: the curve's ends, over this many times the largest inscribed radius, are
-        replaced by a quadratic fit, see :func:`~napari_unwind.skeleton.regularise_ends`; 0 keeps them).
+        replaced by a quadratic fit, see :func:`~napari_unwind.skeleton.regularise_ends`; 0 keeps them),
+        ``fold_free`` (True: each keyframe's cage fitted per side to the sections there, and inner sides shrunk
+        where the Jacobian would fall below ``min_jacobian``, 0.2; False: one centred cage for the whole body, as
+        before), ``cage_margin`` (0.1: the cage's relative margin; 2 working voxels are added besides).
 
     Returns
     -------

@@ -11,6 +11,13 @@ voxels nearest the last point with ``z > 0`` lie beyond the tail.
 - ``(before, after)``: how far the mask reaches beyond the first point along ``-n_0`` and beyond the last one
   along ``+n_K``, plus ``end_margin``, so that fleshy ends the curve does not reach are kept.
 
+Per keyframe and per side (:func:`fit_cages`): the same voxels, grouped by the curve point they are nearest to,
+give each curve point its cross-section's extent on each side (``x_lo, x_hi, y_lo, y_hi``: a bend's inner half
+can be thinner than its outer half). A keyframe's cage holds the sections of the two curve stretches it bounds
+(the cage is linear between keyframes), with the same margins. A voxel counts for a curve point only when it is
+nearest to it, so other turns of a coil and other parts of the body that cross the section plane far from the
+centre are left to their own curve points.
+
 Stray voxels: parts of the mask smaller than 0.1 % of it (specks left by a segmentation) are ignored. Curves
 with points farther apart than a voxel are first densified (positions linear, frames by quaternion SLERP, as
 :class:`napari_unwind.deformation.Deformation` interpolates them).
@@ -30,7 +37,7 @@ from ..errors import InvalidInputError
 from ..io._volume import check_spacing
 from ._twist import _check_frames, _check_points
 
-__all__ = ["propose_cage"]
+__all__ = ["propose_cage", "fit_cages"]
 
 _STRUCT26 = np.ones((3, 3, 3), dtype=bool)
 _SPECK_FRACTION = 1e-3  # parts smaller than this fraction of the mask are ignored
@@ -101,25 +108,96 @@ def propose_cage(
     min_margin = 2.0 * vox if min_margin is None else _nonneg("min_margin", min_margin)
     end_margin = 2.0 * vox if end_margin is None else _nonneg("end_margin", end_margin)
 
-    vox_idx = _boundary_voxels(arr)
-    if len(vox_idx) == 0:
-        raise InvalidInputError("the mask is empty: there is no specimen to fit a cage around; check the segmentation")
-    p = vox_idx * sp
-
-    pts, fr = _densify(pts, fr, float(sp.min()))
-    _, j = cKDTree(pts).query(p, workers=-1)
-    d = p - pts[j]
-    x = np.einsum("ij,ij->i", d, fr[j, 0])
-    y = np.einsum("ij,ij->i", d, fr[j, 1])
-    z = np.einsum("ij,ij->i", d, fr[j, 2])
+    _, j, x, y, z, last = _sections(arr, pts, fr, sp)
     rx = float(np.abs(x).max()) * (1.0 + margin) + min_margin
     ry = float(np.abs(y).max()) * (1.0 + margin) + min_margin
-    last = len(pts) - 1
     ahead = (j == 0) & (z < 0)
     behind = (j == last) & (z > 0)
     before = (float(-z[ahead].min()) if ahead.any() else 0.0) + end_margin
     after = (float(z[behind].max()) if behind.any() else 0.0) + end_margin
     return (rx, ry), (before, after)
+
+
+def _sections(arr: np.ndarray, pts: np.ndarray, fr: np.ndarray, sp: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Boundary voxels in the coordinates of their nearest (densified) curve point.
+
+    Returns ``t`` (the curve parameter of each dense point: original index, fractional between points), ``j``
+    (each voxel's dense point), ``x, y, z`` and the index of the last dense point.
+    """
+    vox_idx = _boundary_voxels(arr)
+    if len(vox_idx) == 0:
+        raise InvalidInputError("the mask is empty: there is no specimen to fit a cage around; check the segmentation")
+    p = vox_idx * sp
+    pts, fr, t = _densify(pts, fr, float(sp.min()))
+    _, j = cKDTree(pts).query(p, workers=-1)
+    d = p - pts[j]
+    x = np.einsum("ij,ij->i", d, fr[j, 0])
+    y = np.einsum("ij,ij->i", d, fr[j, 1])
+    z = np.einsum("ij,ij->i", d, fr[j, 2])
+    return t, j, x, y, z, len(pts) - 1
+
+
+def fit_cages(
+    mask: Any,
+    points: np.ndarray,
+    frames: np.ndarray,
+    keyframes: Sequence[int],
+    *,
+    spacing: Sequence[float] | float,
+    margin: float = 0.1,
+    min_margin: float | None = None,
+) -> np.ndarray:
+    """Per keyframe, the cage sides ``(x_lo, x_hi, y_lo, y_hi)`` that hold the body's cross-sections there.
+
+    See the module docstring for the method.
+
+    Parameters
+    ----------
+    mask, points, frames, spacing, margin, min_margin
+        As for :func:`propose_cage` (the points and frames of the dense curve).
+    keyframes : sequence of int
+        Sorted indices into ``points`` of the keyframes, the first and last points included.
+
+    Returns
+    -------
+    ndarray, shape (m, 4)
+        Sides per keyframe, physical units; each side is enlarged by ``margin`` (relative) and ``min_margin``
+        (absolute) and lies at least ``min_margin`` from the curve, so every cage holds its curve point.
+    """
+    arr = np.asarray(mask)
+    if arr.ndim != 3:
+        raise InvalidInputError(f"mask must be a 3D array (axis0, axis1, axis2), got shape {arr.shape}")
+    arr = arr != 0 if arr.dtype != bool else arr
+    pts = _check_points(points)
+    fr = _check_frames(frames, len(pts))
+    sp = np.asarray(check_spacing(spacing))
+    margin = _nonneg("margin", margin)
+    min_margin = 2.0 * float(sp.max()) if min_margin is None else _nonneg("min_margin", min_margin)
+    key = np.asarray(keyframes, dtype=np.int64).reshape(-1)
+    if len(key) < 2 or key[0] != 0 or key[-1] != len(pts) - 1 or (np.diff(key) <= 0).any():
+        raise InvalidInputError(f"keyframes must be sorted indices into the curve from 0 to {len(pts) - 1}, got "
+                                f"{key.tolist()}")
+    t, j, x, y, z, _ = _sections(arr, pts, fr, sp)
+    # each dense point's section extent, per side
+    n_dense = len(t)
+    ext = np.zeros((n_dense, 4))
+    np.minimum.at(ext[:, 0], j, x)
+    np.maximum.at(ext[:, 1], j, x)
+    np.minimum.at(ext[:, 2], j, y)
+    np.maximum.at(ext[:, 3], j, y)
+    # a keyframe's cage holds the sections of the two stretches of curve it bounds
+    seg = np.clip(np.searchsorted(key, t, side="right") - 1, 0, len(key) - 2)
+    out = np.zeros((len(key), 4))
+    for k in range(len(key) - 1):
+        e = ext[seg == k]
+        if len(e) == 0:
+            continue
+        env = np.array([e[:, 0].min(), e[:, 1].max(), e[:, 2].min(), e[:, 3].max()])
+        for i in (k, k + 1):
+            out[i] = [min(out[i, 0], env[0]), max(out[i, 1], env[1]), min(out[i, 2], env[2]), max(out[i, 3], env[3])]
+    sign = np.array([-1.0, 1.0, -1.0, 1.0])
+    return out * (1.0 + margin) + sign * min_margin
 
 
 def _boundary_voxels(mask: np.ndarray) -> np.ndarray:
@@ -144,12 +222,13 @@ def _boundary_voxels(mask: np.ndarray) -> np.ndarray:
     return np.argwhere(edge) + np.array([s.start for s in sl])
 
 
-def _densify(pts: np.ndarray, fr: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """Insert points (linear) and frames (SLERP) so that consecutive points are at most ``step`` apart."""
+def _densify(pts: np.ndarray, fr: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Insert points (linear) and frames (SLERP) so that consecutive points are at most ``step`` apart; also
+    returns each new point's parameter (original index, fractional between points)."""
     seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
     m = np.maximum(1, np.ceil(seg / step).astype(int))
     if (m == 1).all():
-        return pts, fr
+        return pts, fr, np.arange(len(pts), dtype=float)
     rots = Rotation.from_matrix(np.transpose(fr, (0, 2, 1)))  # columns u, v, n
     knots = np.arange(len(pts), dtype=float)
     t = np.concatenate([i + np.arange(k) / k for i, k in enumerate(m)] + [[len(pts) - 1.0]])
@@ -157,4 +236,4 @@ def _densify(pts: np.ndarray, fr: np.ndarray, step: float) -> tuple[np.ndarray, 
     lam = (t - i0)[:, None]
     new_pts = (1 - lam) * pts[i0] + lam * pts[i0 + 1]
     new_fr = np.transpose(Slerp(knots, rots)(t).as_matrix(), (0, 2, 1))
-    return new_pts, new_fr
+    return new_pts, new_fr, t

@@ -1,0 +1,124 @@
+"""Fold-free cages: per-side fitting, shrinking, coverage and tilt against analytic references and phantoms."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from napari_unwind.datasets import hard_fish_phantom
+from napari_unwind.deformation import Deformation, parallel_transport_frames
+from napari_unwind.progress import run
+from napari_unwind.skeleton import estimate_deformation_iter
+from napari_unwind.skeleton._cage import fit_cages
+from napari_unwind.skeleton._foldfree import coverage, max_tilt, tilted_frames, unfold
+
+
+def _straight_curve(n=60):
+    pts = np.stack([np.arange(5.0, 5.0 + n), np.full(n, 20.0), np.full(n, 20.0)], axis=1)
+    frames = parallel_transport_frames(pts, up=(0, 1, 0))
+    return pts, frames
+
+
+def test_fit_cages_follows_each_side_of_an_off_centre_body():
+    # a rod whose section is the box u in [-3, 7], v in [-5, 2] about a straight curve along axis0
+    pts, frames = _straight_curve()
+    u, v = frames[0, 0], frames[0, 1]
+    mask = np.zeros((70, 40, 40), dtype=bool)
+    g = np.argwhere(np.ones(mask.shape, dtype=bool)).astype(float)
+    d = g - np.array([0.0, 20.0, 20.0])
+    x, y = d @ u, d @ v
+    inside = (g[:, 0] >= 5) & (g[:, 0] <= 64) & (x >= -3) & (x <= 7) & (y >= -5) & (y <= 2)
+    mask[tuple(g[inside].astype(int).T)] = True
+    keys = np.array([0, 20, 40, 59])
+    b = fit_cages(mask, pts, frames, keys, spacing=1.0, margin=0.0, min_margin=0.0)
+    np.testing.assert_allclose(b, np.tile([-3.0, 7.0, -5.0, 2.0], (4, 1)), atol=1e-9)
+    b2 = fit_cages(mask, pts, frames, keys, spacing=1.0, margin=0.1, min_margin=2.0)
+    np.testing.assert_allclose(b2, np.tile([-5.3, 9.7, -7.5, 4.2], (4, 1)), atol=1e-9)
+
+
+def _arc(radius, n_keys=80, arc=np.pi / 2):
+    t = np.linspace(0, arc, n_keys)
+    pos = np.stack([np.zeros_like(t), radius * np.sin(t), radius * (1 - np.cos(t))], axis=1)
+    n = np.stack([np.zeros_like(t), np.cos(t), np.sin(t)], axis=1)
+    v = np.tile([1.0, 0.0, 0.0], (n_keys, 1))
+    u = np.cross(v, n)  # towards the centre of curvature: det J = 1 - x / R
+    return Deformation.from_keyframes(pos, np.stack([u, v, n], axis=1), 1.0)
+
+
+def test_unfold_shrinks_only_the_inner_side_to_the_analytic_limit():
+    radius, eps = 10.0, 0.2
+    d = _arc(radius).set_cage(None, (-12.0, 14.0, -3.0, 3.0))
+    assert d.folds()
+    u = unfold(d, eps=eps)
+    s = np.linspace(0, u.length, 500)
+    assert u.jacobian_min(s).min() >= eps - 1e-3
+    # the outer side and the y sides are kept; the inner side is R (1 - eps) (up to the chord's n . c' < 1)
+    np.testing.assert_allclose(u.bounds[:, [0, 2, 3]], np.tile([-12.0, -3.0, 3.0], (len(u), 1)))
+    np.testing.assert_allclose(u.bounds[:, 1], radius * (1 - eps), atol=0.01)
+    # a floor keeps the tissue: the side stops there even if that folds less than eps
+    floor = np.tile([-1.0, 9.0, -1.0, 1.0], (len(d), 1))
+    np.testing.assert_allclose(unfold(d, eps=eps, floor=floor).bounds[:, 1], 9.0)
+    # nothing to do: the same object
+    ok = _arc(radius).set_cage(None, (-12.0, 5.0, -3.0, 3.0))
+    assert unfold(ok, eps=eps) is ok
+
+
+def test_coverage_counts_the_points_inside_and_locates_the_rest():
+    pts, frames = _straight_curve(41)
+    d = Deformation.from_keyframes(pts[[0, -1]], frames[[0, -1]], (4.0, 4.0))
+    rng = np.random.default_rng(0)
+    inside = np.column_stack([rng.uniform(-3.9, 3.9, 300), rng.uniform(-3.9, 3.9, 300), rng.uniform(0, 40, 300)])
+    # 100 points beyond the cage at s in [10, 20]
+    out = np.column_stack([rng.uniform(4.5, 6, 100), rng.uniform(-3, 3, 100), rng.uniform(10, 20, 100)])
+    c = coverage(d, d.forward(np.vstack([inside, out])), bin_width=2.0)
+    assert c.fraction == pytest.approx(0.75)
+    assert c.folded == 0
+    lo = min(a for a, _, _ in c.lost)
+    hi = max(b for _, b, _ in c.lost)
+    assert 8 <= lo <= 10 and 20 <= hi <= 22
+    assert sum(f for *_, f in c.lost) == pytest.approx(0.25)
+
+
+def test_tilted_frames_spread_a_kink_and_max_tilt_measures_it():
+    # a polyline with a 60 degree kink at its middle: the tangents jump there
+    a = np.stack([np.arange(0.0, 30.0), np.zeros(30), np.zeros(30)], axis=1)
+    turn = np.array([np.cos(np.pi / 3), np.sin(np.pi / 3), 0.0])
+    b = a[-1] + np.arange(1.0, 31.0)[:, None] * turn
+    pts = np.vstack([a, b])
+    frames = parallel_transport_frames(pts, up=(0, 0, 1))
+    sc = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    keys = np.array([0, 20, 29, 40, 59])
+    same = tilted_frames(frames, sc, keys, np.zeros(5))
+    np.testing.assert_array_equal(same, frames[keys])
+    tilted = tilted_frames(frames, sc, keys, np.full(5, 8.0))
+    # keyframe 20 (10 before the kink) leans towards the new direction; the frames stay rotations
+    assert 0 < np.degrees(np.arccos(tilted[1, 2] @ frames[20, 2])) < 30
+    for f in tilted:
+        np.testing.assert_allclose(f @ f.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(f) > 0
+    d = Deformation.from_keyframes(pts[keys], tilted, 2.0)
+    chord_angles = []
+    for k in range(len(keys) - 1):
+        chord = pts[keys[k + 1]] - pts[keys[k]]
+        chord /= np.linalg.norm(chord)
+        chord_angles += [np.degrees(np.arccos(np.clip(tilted[k, 2] @ chord, -1, 1))),
+                         np.degrees(np.arccos(np.clip(tilted[k + 1, 2] @ chord, -1, 1)))]
+    assert max_tilt(d) == pytest.approx(max(chord_angles), abs=0.5)
+
+
+@pytest.mark.parametrize("seed", [0, 1, pytest.param(3, marks=pytest.mark.xfail(
+    strict=True, reason="tight helix: the tilted, shrunk cages keep only about 93 % of the mask (open)"))])
+def test_hard_phantoms_do_not_fold_and_keep_the_mask(seed):
+    ph = hard_fish_phantom(seed, noise=0)
+    ends = (ph.centerline[0], ph.centerline[-1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = run(estimate_deformation_iter(ph.mask, ends, spacing=ph.spacing))
+        old = run(estimate_deformation_iter(ph.mask, ends, spacing=ph.spacing, fold_free=False))
+    s = np.linspace(0, r.deformation.length, 4000)
+    assert r.deformation.jacobian_min(s).min() > 0.15
+    assert r.min_jacobian > 0.15 and not r.deformation.folds()
+    assert r.coverage >= 0.99
+    # without the construction these bends fold (one cage for the whole body)
+    assert old.deformation.folds()
+
