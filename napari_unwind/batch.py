@@ -133,11 +133,13 @@ def _one(volume: Any, features: Any, st: Any, source: Any, outdir: Path, *, allo
     session_path = save_session(session, outdir / f"specimen-{st.id}.unwind.json", overwrite=overwrite)
     row["session"] = session_path.name
     folds = d.folds()
-    if folds and not allow_folds:
+    folded = _num(getattr(result, "folded", None))  # fraction of the mask in the folds, when the skeleton says
+    if folds and not allow_folds and folded != 0:  # a fold over empty cage corners only is no reason to stop
         where = ", ".join(f"s = {a:.4g}..{b:.4g}" for a, b in folds)
-        raise InvalidInputError(f"the deformation folds ({where} {d.unit or 'units'}); the session was saved: edit "
-                                f"it, or export it with unwind straighten --session {session_path.name} "
-                                "--allow-folds")
+        over = "" if folded is None else f", over {100 * folded:.2g} % of the specimen's mask"
+        raise InvalidInputError(f"the deformation folds ({where} {d.unit or 'units'}{over}); the session was saved: "
+                                f"edit it (--cage, --cage-margin), or export it with unwind straighten --session "
+                                f"{session_path.name} --allow-folds")
     out = outdir / f"specimen-{st.id}.zarr"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FoldWarning)
@@ -177,7 +179,8 @@ def straighten_all_iter(
     min_elongation : float
         As :func:`~napari_unwind.segmentation.specimens`.
     allow_folds : bool
-        Export a specimen whose deformation folds instead of reporting it as failed.
+        Export a specimen whose deformation folds over its mask instead of reporting it as failed (a fold over
+        no voxel of the mask, only empty cage corners, never stops the export).
     order : int
         Interpolation order of the export (0, 1 or 3).
     overwrite : bool

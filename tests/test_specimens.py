@@ -236,3 +236,19 @@ def test_every_fish_of_a_dense_tank_is_found_and_straightened(tmp_path, n_fish, 
     dices = _check_batch(tank, result, tmp_path / "out")
     print(f"{n_fish} fish (seed {seed}, gap {gap}): {result.seconds:.1f} s, Dice "
           + " ".join(f"{d:.3f}" for d in dices.values()))
+
+
+def test_run_all_checks_its_output_folder_first(tmp_path):
+    from napari_unwind.batch import straighten_all
+    from napari_unwind.errors import OutputError
+
+    missing_scan = tmp_path / "no-such-scan.zarr"  # never opened: the folder is checked first
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(OutputError, match="is a file"):
+        straighten_all(missing_scan, tmp_path / "file")
+    with pytest.raises(OutputError, match="does not exist"):
+        straighten_all(missing_scan, tmp_path / "a" / "b")
+    (tmp_path / "done").mkdir()
+    (tmp_path / "done" / "specimens.csv").write_text("")
+    with pytest.raises(OutputError, match="--overwrite"):
+        straighten_all(missing_scan, tmp_path / "done")
