@@ -279,10 +279,12 @@ def run_demo(output: Path, *, quiet: bool = False, overwrite: bool = False, n_fi
         say(f"fish {i}: clicked {_pt(click)} -> feature {', '.join(map(str, ids))} ({int(mask.sum())} voxels); "
             f"suggested head {_pt(ends.head)} ({d_head:.1f} voxels from the true head), tail {_pt(ends.tail)} "
             f"({d_tail:.1f} from the true tail){'  HEAD AND TAIL SWAPPED' if flipped else ''}")
+        folds = deformation.folds()
         for m in dict.fromkeys([*result.warnings, *(str(w.message) for w in caught
                                                     if issubclass(w.category, UserWarning))]):
-            say(f"  warning: {' '.join(m.split())}")
-        folds = deformation.folds()
+            if not (folds and m.startswith("the deformation folds")):  # said once, below
+                say(f"  warning: {' '.join(m.split())}")
+        say(f"  {result.report()}")
         if folds:
             say(f"  warning: the deformation folds at s = {', '.join(f'{a:.3g}..{b:.3g}' for a, b in folds)} "
                 f"{unit}; exported anyway")

@@ -281,3 +281,45 @@ def test_demo_runs_end_to_end(tmp_path):
     assert session.segmentation.seeds and session.deformation is not None
     straight = open_volume(tmp_path / "demo" / "fish_1.zarr")
     assert straight.shape == session.deformation.output_shape()
+
+
+def test_cage_option_sets_every_keyframe_and_the_report_has_the_fold_figures(fish, tmp_path):
+    tmp, f, mask, scan = fish
+    session = tmp_path / "cage.unwind.json"
+    code, out, err = _run("skeleton", mask, "--head", _arg(f.head), "--tail", _arg(f.tail), "--cage", "4,5",
+                          "--no-twist", "-o", session)
+    assert code == 0, err
+    d = load_session(session).deformation
+    # the given half extents everywhere; a side is only ever shrunk where a bend would fold it
+    he = d.half_extents
+    assert np.all(he <= np.array([4.0, 5.0]) + 1e-9) and np.isclose(he[:, 0].max(), 4.0) and np.isclose(
+        he[:, 1].max(), 5.0)
+    assert "cage: min Jacobian" in out and "coverage" in out and "max tilt" in out
+
+
+@pytest.mark.parametrize("bad", ["4,-1", "a,b", "1,2,3", "nan,1"])
+def test_bad_cage_is_refused_in_one_line(fish, tmp_path, capsys, bad):
+    tmp, f, mask, scan = fish
+    assert main(["skeleton", str(mask), "--cage", bad, "-o", str(tmp_path / "x.unwind.json")]) == 1
+    err = capsys.readouterr().err
+    assert _one_error_line(err) and "--cage" in err and bad in err
+
+
+def test_a_fold_over_no_specimen_voxel_is_a_warning_and_one_over_the_specimen_is_refused(capsys):
+    from napari_unwind.cli import UnwindError, _check_folds
+    from napari_unwind.deformation import Deformation
+
+    t = np.linspace(0, np.pi / 2, 40)
+    pos = np.stack([np.zeros_like(t), 10 * np.sin(t), 10 * (1 - np.cos(t))], axis=1)
+    n = np.stack([np.zeros_like(t), np.cos(t), np.sin(t)], axis=1)
+    v = np.tile([1.0, 0.0, 0.0], (len(t), 1))
+    folding = Deformation.from_keyframes(pos, np.stack([np.cross(v, n), v, n], axis=1), 12.0)
+    assert folding.folds()
+    _check_folds(folding, False, folded=0.0)
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "no voxel of the specimen" in err and "--cage" in err
+    for folded in (0.01, None):
+        with pytest.raises(UnwindError, match="--allow-folds"):
+            _check_folds(folding, False, folded=folded)
+    _check_folds(folding, True, folded=0.01)
+    assert "1 % of the specimen" in capsys.readouterr().err

@@ -122,3 +122,26 @@ def test_hard_phantoms_do_not_fold_and_keep_the_mask(seed):
     # without the construction these bends fold (one cage for the whole body)
     assert old.deformation.folds()
 
+
+
+def test_straightening_an_offset_cage_samples_where_its_origin_says():
+    from napari_unwind.warp import map_points, straighten
+
+    g = np.indices((40, 40, 60), dtype=float)
+    vol = (g[0] + 2 * g[1] + 3 * g[2]).astype(np.float32)  # linear: trilinear interpolation is exact
+    frame = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # u x v = n, n along -axis2
+    d = Deformation.from_keyframes([[20.0, 20.0, 50.0], [22.0, 18.0, 10.0]], [frame, frame], 1.0)
+    d = d.set_cage(0, (-3.0, 8.0, -6.0, 2.0)).set_cage(1, (-5.0, 4.0, -2.0, 5.0))
+    out = straighten(vol, d, spacing=1.0, order=1)
+    data = np.asarray(out.data)
+    assert data.shape == d.output_shape(1.0) == (data.shape[0], 6 + 5 + 1, 5 + 8 + 1)
+    k, i, j = np.indices(data.shape).reshape(3, -1).astype(float)
+    o = np.asarray(out.origin)
+    xys = np.column_stack([o[2] + j, o[1] + i, o[0] + k])
+    expect = d.to_voxels(d.forward(xys)) @ np.array([1.0, 2.0, 3.0])
+    np.testing.assert_allclose(data.reshape(-1), expect, atol=1e-3)
+    # points go to the straight voxel whose coordinates the origin gives, and back
+    p = d.to_voxels(d.forward(np.array([[6.0, 1.5, 12.0], [-4.0, 3.0, 30.0]])))
+    st = map_points(p, d, to="straight")
+    np.testing.assert_allclose(o[::-1][:2] + st[:, [2, 1]], [[6.0, 1.5], [-4.0, 3.0]], atol=1e-6)
+    np.testing.assert_allclose(map_points(st, d, to="scan"), p, atol=1e-6)
