@@ -1046,7 +1046,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--select", type=_triple, action="append", metavar="A0,A1,A2",
                    help="a point inside the specimen, full-resolution voxels (repeatable: several features)")
     p.add_argument("--features", type=_whole(1, 100), default=None,
-                   help="features the segmentation keeps, 1-100 (default 5)")
+                   help="features the segmentation keeps, 1-100 (default 5; with --all every feature above the noise "
+                   "level, at most 100)")
     p.add_argument("--level", type=_whole(0), default=None,
                    help="pyramid level to segment (default: every side <= 256)")
     p.add_argument("--isovalue", type=_finite, default=None,
