@@ -260,3 +260,22 @@ def test_run_all_checks_its_output_folder_first(tmp_path):
     (tmp_path / "done" / "specimens.csv").write_text("")
     with pytest.raises(OutputError, match="--overwrite"):
         straighten_all(missing_scan, tmp_path / "done")
+
+
+def test_tank_wall_and_touching_options():
+    t = tank_phantom(n_fish=2, seed=3, length=60, body_radius=5, wall_value=3000, wall_thickness=5, wall_noise=300,
+                     gap=0)
+    r_in, r_out = t.tube_radii
+    assert r_out - r_in == pytest.approx(5.0)
+    c = np.asarray(t.tube_center)
+    jj, kk = np.mgrid[: t.shape[1], : t.shape[2]]
+    rho = np.hypot(jj - c[0], kk - c[1])
+    wall = np.broadcast_to(((rho > r_in + 1) & (rho < r_out - 1))[None], t.shape)
+    outside = np.broadcast_to((rho > r_out + 2)[None], t.shape)
+    assert np.median(t.volume[wall]) == pytest.approx(3000, abs=60)
+    assert t.volume[wall].std() > 4 * t.volume[outside].std()  # the wall's own noise
+    assert t.min_distance <= 2.0  # gap 0: the fish touch (masks about one voxel apart)
+    with pytest.raises(InvalidInputError, match="wall_thickness"):
+        tank_phantom(n_fish=1, wall_thickness=0.5)
+    with pytest.raises(InvalidInputError, match="wall_noise"):
+        tank_phantom(n_fish=1, wall_noise=-1)
