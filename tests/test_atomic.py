@@ -260,3 +260,34 @@ def test_the_current_folder_is_no_output(tmp_path, monkeypatch):
             with atomic_output(bad, overwrite=True) as tmp:
                 tmp.mkdir()
     assert (tmp_path / "sub" / "keep").read_text() == "mine"
+
+
+def test_remove_path_outlasts_a_writer_that_finishes_its_chunk(tmp_path):
+    """After an interrupt, a computation's threads may still write a chunk into the folder being removed: the
+    folder must stay gone (seen as a temp left by SIGINT mid-export under load)."""
+    import threading
+    import time
+
+    from napari_unwind.io._atomic import remove_path
+
+    folder = tmp_path / ".out.zarr.tmp"
+    (folder / "c").mkdir(parents=True)
+    stop = time.monotonic() + 0.4
+
+    def writer():
+        i = 0
+        while time.monotonic() < stop:
+            try:
+                (folder / "c").mkdir(parents=True, exist_ok=True)
+                (folder / "c" / f"{i}").write_bytes(b"x" * 100)
+            except OSError:
+                pass
+            i += 1
+            time.sleep(0.01)
+
+    t = threading.Thread(target=writer)
+    t.start()
+    time.sleep(0.05)
+    remove_path(folder, settle=5.0)
+    t.join()
+    assert not folder.exists()

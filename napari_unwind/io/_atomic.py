@@ -24,6 +24,7 @@ import re
 import shutil
 import socket
 import sys
+import time
 import uuid
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -217,10 +218,21 @@ def _replace(src: Path, dst: Path) -> None:
     remove_path(old)
 
 
-def remove_path(path: Path) -> None:
-    """Remove a file or a folder tree, if it exists."""
+def remove_path(path: Path, *, settle: float = 0.0) -> None:
+    """Remove a file or a folder tree, if it exists.
+
+    With ``settle`` > 0 a folder is removed again until it stays gone for 0.1 s (for up to ``settle`` seconds):
+    after an interrupt, the threads of a computation can still finish the chunk they were writing into it.
+    """
     if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
+        deadline = time.monotonic() + settle
+        while True:
+            shutil.rmtree(path, ignore_errors=True)
+            if settle <= 0 or time.monotonic() > deadline:
+                return
+            time.sleep(0.1)
+            if not os.path.lexists(path):
+                return
     else:
         with contextlib.suppress(FileNotFoundError):
             path.unlink()
@@ -375,5 +387,5 @@ def atomic_output(path: str | os.PathLike, *, overwrite: bool = True) -> Iterato
         remove_path(tmp)
         raise OutputError(f"cannot write {path}: {exc.strerror or exc}") from None
     except BaseException:
-        remove_path(tmp)
+        remove_path(tmp, settle=5.0)  # an interrupt: running threads may still write their chunk into it
         raise
