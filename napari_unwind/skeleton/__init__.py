@@ -6,11 +6,12 @@
   plus the automatic twist, suggested endpoints and the cage and padding proposal.
 - :func:`suggest_endpoints`, :func:`snap_to_mask`: head and tail proposals, clicks moved into the mask.
 - :func:`estimate_twist`, :func:`apply_twist`: cross-section orientation along the curve.
-- :func:`propose_cage`: cage half-extents and end padding from the cross-sections.
+- :func:`propose_cage`: cage half-extents and end padding from the cross-sections; :func:`fit_cages`: each
+  keyframe's cage, per side, from the sections there.
 """
 
 from ._api import SkeletonResult, WorkingMask, estimate_deformation, estimate_deformation_iter, working_mask
-from ._cage import propose_cage
+from ._cage import fit_cages, propose_cage
 from ._curve import regularise_ends, resample_curve, select_keyframes, smooth_curve
 from ._endpoints import snap_to_mask, suggest_endpoints
 from ._harmonic import TetMesh, harmonic_field, level_set_centroids, surface_mesh, tet_mesh
@@ -24,6 +25,7 @@ __all__ = [
     "estimate_deformation",
     "estimate_deformation_iter",
     "estimate_twist",
+    "fit_cages",
     "harmonic_field",
     "level_set_centroids",
     "propose_cage",

@@ -230,6 +230,61 @@ def _border_sides(wm: WorkingMask) -> list[str]:
     return sides
 
 
+_MIN_ACROSS = 6  # working voxels across the body's thickest section, at least
+_MAX_WORKING_VOXELS = 256 ** 3  # the working mask's bounding box, at most (memory and meshing time)
+
+
+def _thin_factor(wm: WorkingMask) -> int:
+    """The working factor that keeps :data:`_MIN_ACROSS` working voxels across the body's widest section.
+
+    The widest section is twice the largest inscribed radius, measured on the occupancy (a slender body
+    averaged down to less than a voxel still shows there); the factor never drops so far that the working box
+    exceeds :data:`_MAX_WORKING_VOXELS`.
+    """
+    if wm.factor == 1:
+        return 1
+    occ = np.pad(wm.occupancy >= 0.25, 1)
+    across = 2.0 * float(ndi.distance_transform_edt(occ).max()) * wm.factor  # full-resolution voxels
+    need = max(1, int(math.floor(across / _MIN_ACROSS)))
+    box = float(np.prod(np.subtract(wm.stop, wm.start), dtype=float))
+    floor_ = max(1, math.ceil((box / _MAX_WORKING_VOXELS) ** (1 / 3)))
+    return int(min(wm.factor, max(need, floor_)))
+
+
+def _cut_face_end(mask: Any, end: np.ndarray, wm: WorkingMask, spacing: np.ndarray) -> np.ndarray:
+    """A suggested end moved to the centre of the cut face it lies at, if the mask runs off the scan there.
+
+    The longest geodesic ends on the rim of a cut face (its farthest corner), not at its centre: the curve
+    then hooks sideways. For each face of the scan that the mask touches, the mask's section on that face is
+    labelled; when the end lies within that section's radius (plus 2 working voxels) of its centroid, the end
+    becomes the centroid. Full-resolution voxels in and out.
+    """
+    import dask.array as da
+
+    data = _as_array(mask, "mask")
+    best, best_d = end, np.inf
+    for ax in range(3):
+        for at in (0, wm.shape[ax] - 1):
+            if (at == 0 and wm.start[ax] != 0) or (at > 0 and wm.stop[ax] < wm.shape[ax]):
+                continue
+            face = data[tuple(at if a == ax else slice(None) for a in range(3))] != 0
+            face = np.asarray(face.compute() if isinstance(face, da.Array) else face)
+            labels, n = ndi.label(face)
+            if n == 0:
+                continue
+            other = [a for a in range(3) if a != ax]
+            for lab in range(1, n + 1):
+                pts = np.argwhere(labels == lab).astype(float)
+                centre = np.empty(3)
+                centre[ax] = at
+                centre[other] = pts.mean(axis=0)
+                radius = math.sqrt(len(pts) * float(np.prod(spacing[other])) / math.pi)
+                dist = float(np.linalg.norm((centre - end) * spacing))
+                if dist <= radius + 2 * wm.factor * float(spacing.max()) and dist < best_d:
+                    best, best_d = centre, dist
+    return best
+
+
 def _describe_part(labels: np.ndarray, lab: int, wm: WorkingMask) -> str:
     idx = np.argwhere(labels == lab)
     lo = wm.from_working(idx.min(axis=0)).round().astype(int).tolist()
@@ -478,6 +533,9 @@ def estimate_deformation_iter(
 
     yield Progress("working mask", 0, 1, "cropping and averaging")
     wm = working_mask(mask, spacing=tuple(sp), volume=volume, max_side=max_side)
+    thin = _thin_factor(wm)
+    if thin < wm.factor:  # a slender body (an eel) keeps >= 6 working voxels across, however long it is
+        wm = working_mask(mask, spacing=tuple(sp), volume=volume, factor=thin)
     sides = _border_sides(wm)
     if sides:
         note(f"the mask touches the volume's border ({', '.join(sides)}): the specimen may be cut off by the scan's "
@@ -490,7 +548,10 @@ def estimate_deformation_iter(
     if ends is None:
         yield Progress("endpoints", 0, 1, "suggesting head and tail")
         h, tl = suggest_endpoints(wm.binary, spacing=wm.working_spacing, volume=wm.volume)
-        ends = Endpoints(head=tuple(wm.from_working(np.asarray(h))), tail=tuple(wm.from_working(np.asarray(tl))))
+        h, tl = wm.from_working(np.asarray(h)), wm.from_working(np.asarray(tl))
+        if sides:  # an end where the mask runs off the scan: the centre of the cut face, not a point of its rim
+            h, tl = _cut_face_end(mask, h, wm, sp), _cut_face_end(mask, tl, wm, sp)
+        ends = Endpoints(head=tuple(h), tail=tuple(tl))
         suggested = True
         t = _stage("endpoints", timings, t)
     tol = snap_tolerance * vox

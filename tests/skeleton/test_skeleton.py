@@ -279,3 +279,32 @@ def test_spine_mri_follows_the_manual_centreline():
     dist, _ = cKDTree(c).query(manual * spacing)  # mm from every manual point to our curve
     assert dist.mean() <= 1.5, f"mean distance {dist.mean():.2f} mm"
     assert dist.max() <= 3.0
+
+
+def test_an_end_where_the_mask_runs_off_the_scan_is_the_centre_of_the_cut_face():
+    # a bent tube of radius 5 that leaves the scan through the face axis1 = 0, centred there at (20, 0, 22)
+    g = np.indices((44, 70, 60), dtype=float)
+    t = np.linspace(0, 1, 400)
+    curve = np.stack([20 + 0 * t, 60 * t, 22 + 25 * t ** 2], axis=1)  # leaves the face axis1 = 0 at right angles
+    d, _ = cKDTree(curve).query(g.reshape(3, -1).T)
+    mask = (d <= 5.0).reshape(g.shape[1:])
+    res = _solve_quiet(mask, None, spacing=1.0)
+    ends = np.array([res.endpoints.head, res.endpoints.tail])
+    at_face = ends[np.argmin(ends[:, 1])]
+    # the rim of the face is 5 voxels from its centre; the geodesic's own tip lies on the rim
+    assert np.linalg.norm(at_face - [20.0, 0.0, 22.0]) <= 1.0, at_face
+
+
+def test_a_long_thin_body_keeps_six_working_voxels_across():
+    # an eel: 9 voxels across, 560 long; max_side 128 alone would average it by 5 (under 2 voxels across)
+    t = np.linspace(0, 1, 800)
+    curve = np.stack([20 + 560 * t, 16 + 6 * np.sin(2 * np.pi * t), 16 + 0 * t], axis=1)
+    g = np.indices((600, 32, 32), dtype=float)
+    d, _ = cKDTree(curve).query(g.reshape(3, -1).T)
+    mask = (d <= 4.5).reshape(g.shape[1:])
+    res = _solve_quiet(mask, (curve[0], curve[-1]), spacing=1.0)
+    assert 9 / res.factor >= 6
+    c, _ = res.deformation.sample(np.linspace(0, res.deformation.length, 2000))
+    dist, _ = cKDTree(c).query(curve[20:-20])
+    true_length = float(np.linalg.norm(np.diff(curve, axis=0), axis=1).sum())
+    assert dist.mean() < 1.0 and abs(res.deformation.length - true_length) / true_length < 0.02
