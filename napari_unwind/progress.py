@@ -70,7 +70,8 @@ def progress_bar(quiet: bool = False, *, stream: Any = None) -> tuple[Callable[[
 
     On a terminal, a tqdm bar per stage; a new stage closes the previous bar. Anywhere else (a log file, CI, a
     service's journal) one line per stage when it ends, with its time: ``write: 100% (12/12) in 3.4 s`` (a stage
-    that did not finish ends with ``, stopped``; one of unknown length gives ``7 steps``). With ``quiet`` the
+    followed by another is ``done``; the last one, if it did not finish, ends with ``, stopped``; one of unknown
+    length gives ``7 steps``). With ``quiet`` the
     callback does nothing.
     """
     if quiet:
@@ -112,22 +113,26 @@ def _stage_lines(stream: Any) -> tuple[Callable[[Progress], None], Callable[[], 
     """One line per stage, written when the stage ends (the next begins, or ``close``)."""
     state: dict[str, Any] = {"last": None, "t0": time.perf_counter()}
 
-    def close() -> None:
+    def close(moved_on: bool = False) -> None:
         p = state["last"]
         now = time.perf_counter()
         if p is not None:
             state["last"] = None
-            if p.total:
-                line = f"{p.stage}: {100 * p.fraction:.0f}% ({p.done}/{p.total}) in {now - state['t0']:.1f} s"
-                line += "" if p.done >= p.total else ", stopped"
+            took = f"in {now - state['t0']:.1f} s"
+            if not p.total:
+                line = f"{p.stage}: {p.done} steps {took}"
+            elif p.done >= p.total:
+                line = f"{p.stage}: 100% ({p.done}/{p.total}) {took}"
+            elif moved_on:
+                line = f"{p.stage}: done {took}"  # the next stage began: this one is over, whatever it counted
             else:
-                line = f"{p.stage}: {p.done} steps in {now - state['t0']:.1f} s"
+                line = f"{p.stage}: {100 * p.fraction:.0f}% ({p.done}/{p.total}) {took}, stopped"
             print(line, file=stream, flush=True)
         state["t0"] = now
 
     def callback(p: Progress) -> None:
         if state["last"] is not None and p.stage != state["last"].stage:
-            close()  # the stage's time runs from the end of the previous one
+            close(moved_on=True)  # the stage's time runs from the end of the previous one
         state["last"] = p
 
     return callback, close

@@ -22,7 +22,7 @@ from pathlib import Path
 UNWIND = Path(sys.executable).with_name("unwind")
 
 #: A progress line written to a log (stderr not a terminal): ``write: 100% (12/12) in 3.4 s``.
-PROGRESS_LINE = re.compile(r"^[^\r]+: (\d+% \(\d+/\d+\)|\d+ steps) in \d+\.\d s(, stopped)?$")
+PROGRESS_LINE = re.compile(r"^[^\r]+: (\d+% \(\d+/\d+\)|\d+ steps|done) in \d+\.\d s(, stopped)?$")
 
 
 @dataclass(frozen=True)

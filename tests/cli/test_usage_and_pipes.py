@@ -104,14 +104,18 @@ def test_progress_printer_one_line_per_stage(capsys):
     assert len(lines) == 2
     assert lines[0].startswith("read: 100% (3/3) in ") and lines[1].startswith("write: 100% (40/40) in ")
     assert all(PROGRESS_LINE.match(ln) for ln in lines)
-    # an unfinished stage says so; an unknown total counts steps
+    # a stage followed by another is over, whatever it counted (the skeleton's stages report 0/1 then move on);
+    # an unknown total counts steps; the last stage, unfinished, says it stopped
     callback, close = progress_bar()
     callback(Progress("verify", 2, 5))
     callback(Progress("scan", 7, 0))
+    callback(Progress("write", 1, 4))
     close()
     lines = capsys.readouterr().err.splitlines()
-    assert lines[0].startswith("verify: 40% (2/5) in ") and lines[0].endswith(", stopped")
-    assert lines[1].startswith("scan: 7 steps in ") and all(PROGRESS_LINE.match(ln) for ln in lines)
+    assert lines[0].startswith("verify: done in ") and "stopped" not in lines[0]
+    assert lines[1].startswith("scan: 7 steps in ")
+    assert lines[2].startswith("write: 25% (1/4) in ") and lines[2].endswith(", stopped")
+    assert all(PROGRESS_LINE.match(ln) for ln in lines)
     quiet_cb, quiet_close = progress_bar(quiet=True)
     quiet_cb(Progress("x", 1, 1))
     quiet_close()
