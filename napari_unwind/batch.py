@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import InvalidInputError, OutputError
+from .io._volume import unit_label
 from .progress import Progress
 
 __all__ = ["BatchResult", "CSV_NAME", "CSV_COLUMNS", "straighten_all_iter", "straighten_all"]
@@ -137,7 +138,7 @@ def _one(volume: Any, features: Any, st: Any, source: Any, outdir: Path, *, allo
     if folds and not allow_folds and folded != 0:  # a fold over empty cage corners only is no reason to stop
         where = ", ".join(f"s = {a:.4g}..{b:.4g}" for a, b in folds)
         over = "" if folded is None else f", over {100 * folded:.2g} % of the specimen's mask"
-        raise InvalidInputError(f"the deformation folds ({where} {d.unit or 'units'}{over}); the session was saved: "
+        raise InvalidInputError(f"the deformation folds ({where} {unit_label(d.unit)}{over}); the session was saved: "
                                 f"edit it (--cage, --cage-margin), or export it with unwind straighten --session "
                                 f"{session_path.name} --allow-folds")
     out = outdir / f"specimen-{st.id}.zarr"

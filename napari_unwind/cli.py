@@ -334,12 +334,14 @@ def _load_session_for(args: argparse.Namespace, input_path: str | None, outputs:
 def _check_folds(deformation, allow: bool, folded: float | None = None) -> None:
     """Refuse a folding deformation unless ``allow``; ``folded`` is the fraction of the specimen's mask where it
     folds (None: unknown, no mask). A fold over no specimen voxel (``folded == 0``) is only a warning."""
+    from .io._volume import unit_label
+
     folds = deformation.folds()
     if not folds:
         return
     where = ", ".join(f"s = {a:.4g}..{b:.4g}" for a, b in folds)
     msg = (f"the deformation folds where the cage is larger than the radius of curvature ({where} "
-           f"{deformation.unit or 'units'}); shrink the cage there: unwind skeleton/run --cage RX,RY (half extents) "
+           f"{unit_label(deformation.unit)}); shrink the cage there: unwind skeleton/run --cage RX,RY (half extents) "
            "or --cage-margin M, or edit the keyframes' cages in the session (Deformation.set_cage)")
     if folded is not None and folded == 0:
         print(f"unwind: warning: {msg}; no voxel of the specimen's mask lies in the folds (only empty cage "
@@ -630,10 +632,10 @@ def _skeleton_report(result: Any, args: argparse.Namespace) -> list[str]:
     """The lines of the skeleton summary."""
     import numpy as np
 
-    from .io._volume import UNIT_ABBREVIATIONS
+    from .io._volume import unit_label
 
     d = result.deformation
-    unit = UNIT_ABBREVIATIONS.get(d.unit or "", "px")
+    unit = unit_label(d.unit)
     he = d.half_extents
     if np.allclose(he, he[0]):
         cage = f"{he[0, 0]:.4g} x {he[0, 1]:.4g} {unit}"

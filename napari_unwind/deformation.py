@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from .errors import InvalidInputError
-from .io._volume import check_spacing, normalise_unit
+from .io._volume import check_spacing, normalise_unit, unit_label
 
 __all__ = ["Keyframe", "Deformation", "InverseResult", "parallel_transport_frames", "SCHEMA"]
 
@@ -716,7 +716,7 @@ class Deformation:
             rx, ry = self.max_half_extent
             raise InvalidInputError(
                 f"output spacing {ds!r} is absurdly small for this deformation (length {hi - lo:.6g}, cage half "
-                f"extents {rx:.6g} x {ry:.6g} {self.unit or 'units'}): the straight grid would have about "
+                f"extents {rx:.6g} x {ry:.6g} {unit_label(self.unit)}): the straight grid would have about "
                 f"{sides[0]:.3g} x {sides[1] + sides[2]:.3g} x {sides[3] + sides[4]:.3g} voxels; choose a spacing "
                 f"near the scan's ({min(self.spacing):g})"
             )
@@ -924,5 +924,5 @@ class Deformation:
         return hash(repr(self.to_dict()))
 
     def __repr__(self) -> str:
-        return (f"Deformation({len(self)} keyframes, length={self.length:.4g} {self.unit or 'units'}, "
+        return (f"Deformation({len(self)} keyframes, length={self.length:.4g} {unit_label(self.unit)}, "
                 f"pad={self.pad}, cage={self.extent})")

@@ -213,7 +213,7 @@ def run_demo(output: Path, *, quiet: bool = False, overwrite: bool = False, n_fi
     from .cli import _run_with_bar, describe, disk_usage, human_bytes
     from .datasets import tank_phantom
     from .io import import_volume_iter, write_volume
-    from .io._volume import UNIT_ABBREVIATIONS
+    from .io._volume import unit_label
     from .progress import run
     from .segmentation import refine_mask_iter, segment_iter, select, selected_ids
     from .session import Segmentation, Session, SourceInfo, save_session
@@ -245,7 +245,7 @@ def run_demo(output: Path, *, quiet: bool = False, overwrite: bool = False, n_fi
     say(describe(imported, store))
     same = bool(np.array_equal(imported.data.compute(), tank.volume)) and np.allclose(imported.spacing, tank.spacing)
     _mip_png(_inside_tube(tank), output / "tank_mip.png", axis=1)
-    unit = UNIT_ABBREVIATIONS.get(imported.unit or "", "px")
+    unit = unit_label(imported.unit)
 
     t1 = time.perf_counter()
     k = max(5, n_fish + 2)  # the fish, the tube wall and a spare

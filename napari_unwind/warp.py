@@ -85,7 +85,7 @@ from .errors import InvalidInputError, OutputError
 from .io._api import _size, open_volume, write_volume_iter
 from .io._atomic import atomic_output, check_writable
 from .io._formats import output_format
-from .io._volume import SUPPORTED_DTYPES, Volume, normalise_unit
+from .io._volume import SUPPORTED_DTYPES, Volume, normalise_unit, unit_label
 from .progress import Progress, run
 
 __all__ = [
@@ -349,7 +349,7 @@ def _input_array(volume: Any, deformation: Deformation, *, any_dtype: bool = Fal
 def _warn_folds(deformation: Deformation, what: str) -> None:
     folds = deformation.folds()
     if folds:
-        unit = deformation.unit or "units"
+        unit = unit_label(deformation.unit)
         where = ", ".join(f"[{a:.4g}, {b:.4g}]" for a, b in folds)
         warnings.warn(
             f"the deformation folds at s in {where} ({unit}): the cage is larger than the local radius of "
@@ -842,7 +842,7 @@ def _check_padding(deformation: Deformation, padded: Deformation, pad: int, ds: 
                * sp + np.asarray(padded.origin))
     diagonal = float(np.linalg.norm((np.asarray(scan_shape) - 1) * sp))
     reach = float(np.hypot(*padded.max_half_extent))
-    unit = padded.unit or "units"
+    unit = unit_label(padded.unit)
     for end, name, centre in ((0, "head", padded.positions[0]), (1, "tail", padded.positions[-1])):
         useful = float(np.linalg.norm(corners - centre, axis=1).max()) + reach
         if padded.pad[end] > useful + diagonal:
@@ -1002,7 +1002,7 @@ def straighten(
     d2 = _padded(deformation, pad, ds)
     _check_output_size("straight volume", d2.output_shape(ds), data.dtype, max_output,
                        f"check the output spacing ({ds:g}) and the padding (pad {pad} slices; the deformation's own "
-                       f"{deformation.pad[0]:g} / {deformation.pad[1]:g} {deformation.unit or 'units'})")
+                       f"{deformation.pad[0]:g} / {deformation.pad[1]:g} {unit_label(deformation.unit)})")
     _check_padding(deformation, d2, pad, ds, data.shape)
     _warn_folds(deformation, "straight volume")
     geometry = _check_coverage(d2, ds, data.shape, "straight volume")

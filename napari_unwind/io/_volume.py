@@ -32,6 +32,13 @@ _UNITS = {
 UNIT_ABBREVIATIONS = {"meter": "m", "centimeter": "cm", "millimeter": "mm", "micrometer": "um", "nanometer": "nm"}
 
 
+def unit_label(unit: str | None) -> str:
+    """How a length in ``unit`` is labelled for people: ``"um"`` for micrometer; ``"voxels"`` without a unit."""
+    if not unit:
+        return "voxels"
+    return UNIT_ABBREVIATIONS.get(unit, unit)
+
+
 def normalise_unit(unit: str | None) -> str | None:
     """Return the NGFF name of a length unit (``"mm"`` -> ``"millimeter"``), or None when unknown."""
     if unit is None:
@@ -144,8 +151,8 @@ class Volume:
 
     @property
     def unit_abbreviation(self) -> str:
-        """Short unit for display (``"um"``), or ``"px"`` when unknown."""
-        return UNIT_ABBREVIATIONS.get(self.unit or "", "px")
+        """Short unit for display (``"um"``), or ``"voxels"`` when unknown."""
+        return unit_label(self.unit)
 
     def level_for(self, max_side: int = 256) -> int:
         """Index of the finest pyramid level whose every side is ``<= max_side`` (the coarsest if none is)."""

@@ -14,7 +14,7 @@ from scipy import ndimage as ndi
 
 from ..deformation import Deformation, Keyframe, parallel_transport_frames
 from ..errors import InvalidInputError
-from ..io._volume import Volume, check_spacing, normalise_unit
+from ..io._volume import Volume, check_spacing, normalise_unit, unit_label
 from ..progress import Progress, ProgressGenerator, run
 from ..session import Endpoints
 from ._curve import arclength, regularise_ends, resample_curve, select_keyframes, smooth_curve
@@ -89,7 +89,7 @@ class SkeletonResult:
         """One line: minimum Jacobian, largest tilt, coverage and where mask is lost."""
         from ._foldfree import format_lost
 
-        unit = self.deformation.unit or "units"
+        unit = unit_label(self.deformation.unit)
         return (f"cage: min Jacobian {self.min_jacobian:.3g} ({'no fold' if self.min_jacobian > 0 else 'FOLDS'}), "
                 f"max tilt {self.max_tilt:.3g} deg, coverage {100 * self.coverage:.2f} % of the mask, lost: "
                 f"{format_lost(self.lost, unit)}")
@@ -308,7 +308,7 @@ def _snap(point_vox: np.ndarray, wm: WorkingMask, tolerance: float, what: str, u
     d = np.linalg.norm((cand - w) * wsp, axis=1)
     k = int(np.argmin(d))
     if d[k] > tolerance:
-        u = unit or "units"
+        u = unit_label(unit)
         vox = min(wm.spacing)
         raise InvalidInputError(
             f"the {what} {np.round(p, 2).tolist()} is {d[k]:.3g} {u} ({d[k] / vox:.3g} voxels) from the mask, more "
@@ -652,7 +652,7 @@ def estimate_deformation_iter(
     folds = deformation.folds()
     if folds:
         where = ", ".join(f"{a:.4g}-{b:.4g}" for a, b in folds)
-        note(f"the deformation folds (the cage is wider than the bend's radius) at s = {where} {unit or 'units'}: "
+        note(f"the deformation folds (the cage is wider than the bend's radius) at s = {where} {unit_label(unit)}: "
              "give a smaller cage (--cage RX,RY, or half_extent=) or shrink the cages of the keyframes there in the "
              "session (Deformation.set_cage)")
     t = _stage("keyframes", timings, t)
@@ -664,7 +664,7 @@ def estimate_deformation_iter(
     mask_pts = wm.from_working(np.argwhere(wm.binary)) * sp + org
     cov = coverage(deformation, mask_pts, bin_width=2 * float(max(wm.working_spacing)))
     if cov.lost and sum(f for *_, f in cov.lost) >= 1e-3:
-        lost_at = format_lost(cov.lost, unit or "units")
+        lost_at = format_lost(cov.lost, unit_label(unit))
         note(f"the cage leaves {100 * (1 - cov.fraction):.2g} % of the mask out ({lost_at}): give a larger cage "
              "(--cage RX,RY or --cage-margin), or edit the keyframes there in the session (Deformation.set_cage)")
     _stage("coverage", timings, t)

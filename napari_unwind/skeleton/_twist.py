@@ -554,9 +554,9 @@ def _choose_sign(scores: dict[str, float], cue: str) -> tuple[int, str]:
     if dens is not None and abs(dens) >= _CLEAR["density"]:
         if abs(shape) >= _CLEAR["shape"] and np.sign(shape) != np.sign(dens):
             warnings.warn(
-                f"the dense material (spine) says the dorsal side is one way (score {dens:+.2f}) and the shape of "
-                f"the cross-sections (fins) the other way (score {shape:+.2f}); following the density; check that "
-                "the dorsal side is up in the straightened volume and twist by pi if not",
+                f"the specimen's dense material says its up side is one way (score {dens:+.2f}) and the shape of its "
+                f"cross-sections the other way (score {shape:+.2f}); following the density; check that the side "
+                "you expect up (a fish's dorsal side) is up in the straightened volume and twist by pi if not",
                 UserWarning,
                 stacklevel=3,
             )
@@ -571,9 +571,9 @@ def _choose_sign(scores: dict[str, float], cue: str) -> tuple[int, str]:
 def _warn_unclear(scores: dict[str, float]) -> None:
     detail = ", ".join(f"{k} {v:+.2f} (clear from {_CLEAR[k]})" for k, v in scores.items())
     warnings.warn(
-        f"the dorsal side could not be told from the ventral one (cue scores: {detail}): "
-        "the twist aligns v with the dorsoventral axis but v may point ventral; check the straightened volume and "
-        "twist by pi if it is upside down",
+        f"the specimen's up side could not be told from its down side (cue scores: {detail}): "
+        "the twist aligns v with the cross-sections' long axis but v may point down (for a fish: ventral); check "
+        "the straightened volume and twist by pi if it is upside down",
         UserWarning,
         stacklevel=4,
     )

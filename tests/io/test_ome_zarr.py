@@ -283,3 +283,11 @@ def test_import_volume_takes_the_codec_options(tmp_path):
         assert blosc["configuration"]["cname"] == (compression or "lz4")
         assert blosc["configuration"]["clevel"] == (level or 5)
         np.testing.assert_array_equal(v.data.compute(), a)
+
+
+def test_lengths_without_a_unit_are_labelled_voxels():
+    from napari_unwind.io._volume import unit_label
+
+    assert unit_label(None) == "voxels" and unit_label("") == "voxels"
+    assert unit_label("micrometer") == "um" and unit_label("millimeter") == "mm"
+    assert unit_label("inch") == "inch"  # a unit we have no abbreviation for keeps its name

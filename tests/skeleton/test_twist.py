@@ -107,7 +107,7 @@ def test_fish_in_a_tank():
 def test_minor_axis_option():
     ph = _fish("s-bend", np.pi / 2, 1.0)
     pts, frames, v_true, _ = _truth(ph)
-    with pytest.warns(UserWarning, match="dorsal side could not be told"):  # no fin sideways
+    with pytest.warns(UserWarning, match="up side could not be told"):  # no fin sideways
         angles = estimate_twist(pts, frames, mask=ph.mask, spacing=ph.spacing, dorsal_axis="minor")
     cos = np.abs(np.sum(apply_twist(frames, angles)[:, 1] * v_true, axis=1))
     assert np.median(cos) < np.sin(np.radians(5))  # v now lies across the body, along u
@@ -131,7 +131,7 @@ def test_unclear_dorsal_side_warns():
     mask[:5] = mask[75:] = False
     pts = np.stack([np.arange(5.0, 75.0), np.full(70, 15.0), np.full(70, 15.0)], axis=1)
     frames = parallel_transport_frames(pts, up=(0, 0, 1))
-    with pytest.warns(UserWarning, match="dorsal side could not be told"):
+    with pytest.warns(UserWarning, match="up side could not be told"):
         angles = estimate_twist(pts, frames, mask=mask, spacing=1.0)
     v = apply_twist(frames, angles)[:, 1]
     assert np.abs(v[:, 1]).min() > np.cos(np.radians(3))  # along the major axis (axis1), either sign
@@ -224,7 +224,7 @@ def test_round_stretch_takes_its_angle_from_the_neighbours():
     mask[:3] = mask[-3:] = False
     pts = np.stack([k[3:-3].astype(float), np.full(n0 - 6, float(c)), np.full(n0 - 6, float(c))], axis=1)
     frames = parallel_transport_frames(pts, up=(0, 1, 0))
-    with pytest.warns(UserWarning, match="dorsal side could not be told"):  # symmetric: no dorsal cue
+    with pytest.warns(UserWarning, match="up side could not be told"):  # symmetric: no dorsal cue
         angles, info = estimate_twist(pts, frames, mask=mask, spacing=1.0, return_info=True)
     assert info["anisotropy"][(pts[:, 0] > 55) & (pts[:, 0] < 69)].max() < 0.08  # the round stretch is seen
     major = np.stack([np.zeros(n0), np.cos(alpha), np.sin(alpha)], axis=1)[3:-3]
@@ -232,3 +232,16 @@ def test_round_stretch_takes_its_angle_from_the_neighbours():
     err = np.degrees(np.arccos(np.clip(np.abs(np.sum(v * major, axis=1)), 0, 1)))  # modulo pi: no dorsal side
     assert err.max() <= 10.0 and np.median(err) <= 3.0
     assert np.abs(np.diff(angles)).max() < np.radians(5)
+
+
+def test_orientation_warnings_speak_of_the_specimen_not_of_fish_anatomy():
+    """A vessel or a spinal cord has no spine or fins: the warnings name the specimen's up side (issue 10)."""
+    import inspect
+
+    from napari_unwind.skeleton import _twist
+
+    src = inspect.getsource(_twist._warn_unclear) + inspect.getsource(_twist)
+    for call in src.split("warnings.warn(")[1:]:
+        message = call.split("UserWarning")[0].lower()
+        assert "(spine)" not in message and "(fins)" not in message
+        assert message.lstrip().startswith('f"the specimen'), message[:80]
