@@ -26,6 +26,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from ._report import describe, disk_usage, human_bytes
+from ._report import fmt_triple as _fmt_triple
+from ._report import run_with_bar as _run_with_bar
 from .errors import UnwindError
 
 __all__ = ["main", "build_parser", "parse_size"]
@@ -162,38 +165,6 @@ def _series(text: str) -> str | int:
     return int(text) if text.isdigit() else text
 
 
-def human_bytes(n: float) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if abs(n) < 1024 or unit == "TiB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n:.1f} TiB"  # pragma: no cover
-
-
-def disk_usage(path: Path) -> int:
-    """Bytes a file or folder tree takes on disk (apparent size)."""
-    if path.is_file():
-        return path.stat().st_size
-    total = 0
-    for root, _dirs, files in os.walk(path):
-        for f in files:
-            try:
-                total += (Path(root) / f).stat().st_size
-            except OSError:
-                pass
-    return total
-
-
-def _run_with_bar(gen: Any, quiet: bool) -> Any:
-    from .progress import progress_bar, run
-
-    callback, close = progress_bar(quiet)
-    try:
-        return run(gen, callback)
-    finally:
-        close()
-
-
 def _check_io(outputs: Sequence[Any], inputs: Sequence[Any]) -> None:
     """Refuse, before any work, an output that is, contains or lies inside an input (inputs are never modified)."""
     from .io._atomic import check_not_input
@@ -229,32 +200,6 @@ def _reader_options(args: argparse.Namespace, path: Any) -> dict[str, Any]:
             raise UnwindError(f"--series chooses a series of a DICOM folder; {path} is {fmt}: leave out --series")
         opts["series"] = args.series
     return opts
-
-
-def _fmt_triple(values: Sequence[float]) -> str:
-    return " x ".join(f"{v:g}" for v in values)
-
-
-def describe(volume: Any, path: Path | None = None) -> str:
-    """The ``unwind info`` report of a volume, as text."""
-    unit = volume.unit_abbreviation
-    lines = [
-        f"path:      {volume.source or path}",
-        f"format:    {volume.format}",
-        f"shape:     {_fmt_triple(volume.shape)}  (axis0 x axis1 x axis2)",
-        f"dtype:     {volume.dtype}",
-        f"spacing:   {_fmt_triple(volume.spacing)} {unit}" + ("" if volume.unit else "  (unit not recorded)"),
-        f"origin:    {_fmt_triple(volume.origin)} {unit}",
-        f"extent:    {_fmt_triple([n * s for n, s in zip(volume.shape, volume.spacing, strict=True)])} {unit}",
-        f"in memory: {human_bytes(volume.nbytes)}",
-    ]
-    if path is not None:
-        lines.append(f"on disk:   {human_bytes(disk_usage(path))}")
-    lines.append(f"levels:    {len(volume.levels)}")
-    for i, (lvl, sp) in enumerate(zip(volume.levels, volume.level_spacings, strict=True)):
-        chunks = "x".join(str(c[0]) for c in lvl.chunks)
-        lines.append(f"  {i}: {_fmt_triple(lvl.shape):<22} spacing {_fmt_triple(sp):<16} chunks {chunks}")
-    return "\n".join(lines)
 
 
 # ------------------------------------------------------------------------------------------------------------------

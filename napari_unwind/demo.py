@@ -210,7 +210,8 @@ def _distance_vox(a: Any, b: Any, spacing: Any) -> float:
 
 def run_demo(output: Path, *, quiet: bool = False, overwrite: bool = False, n_fish: int = 3, seed: int = 0) -> int:
     """Run the demo into the folder ``output``; returns 0 on success (the CLI's exit status)."""
-    from .cli import _run_with_bar, describe, disk_usage, human_bytes
+    from ._report import describe, disk_usage, human_bytes
+    from ._report import run_with_bar as _run_with_bar
     from .datasets import tank_phantom
     from .io import import_volume_iter, write_volume
     from .io._volume import unit_label
