@@ -128,4 +128,4 @@ def test_a_tiny_output_from_a_large_numpy_scan_has_no_large_fixed_cost():
         t0 = time.perf_counter()
         straighten(vol, d).data.compute()
         best = min(best, time.perf_counter() - t0)
-    assert best < 0.03, f"a {d.output_shape(1.0)} output took {1e3 * best:.1f} ms"
+    assert best < 0.04, f"a {d.output_shape(1.0)} output took {1e3 * best:.1f} ms"

@@ -314,10 +314,10 @@ def import_volume(
     labels : bool
         The source holds labels: downsample by nearest.
     compression : {"lz4", "zstd", "none"}, optional
-        Blosc compressor of the chunks (default lz4: straightening from the store is bound by decompression,
-        which lz4 does 3-4x faster than zstd, for files about 1.5x larger; the table is in
-        ``benchmarks/RESULTS.md``). Every chunk carries a crc32c checksum. Stores written before (blosc zstd)
-        stay readable.
+        Blosc compressor of the chunks (default lz4: straightening from the store waits mostly for
+        decompression, which lz4 does more than twice as fast as zstd, for files 1.1-1.3x larger on CT data; the
+        table is in ``benchmarks/RESULTS.md``). Every chunk carries a crc32c checksum. Stores written before
+        (blosc zstd) stay readable.
     compression_level : int, optional
         Blosc level 1-9 (default 5 for lz4, 3 for zstd).
     progress : callable, optional
