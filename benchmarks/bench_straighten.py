@@ -493,7 +493,7 @@ def throughput(work: Path, repeat: int) -> None:
 
 def small(repeat: int) -> None:
     """The small job: 128 x 97 x 97 from a 320^3 numpy volume, end to end, against scipy in the same process."""
-    r = run_isolated(SMALL.format(n=320, ns=128, half=48, repeat=max(repeat, 5)))
+    r = run_isolated(SMALL.format(n=320, ns=128, half=48, repeat=max(repeat, 15)))
     shape = " x ".join(map(str, r["shape"]))
     rows = [["job (output " + shape + " uint16 from a 320^3 numpy volume, order 1)", "seconds (best)",
              "seconds (median)", "x scipy (best)", "max |diff|"],
@@ -501,7 +501,7 @@ def small(repeat: int) -> None:
              f"{r['scipy_median']:.4f}", "1.00", ""],
             ["straighten(vol, d).data.compute(), end to end (threads)", f"{r['ours']:.4f}",
              f"{r['ours_median']:.4f}", f"{r['scipy'] / r['ours']:.2f}", str(r["max_diff"])]]
-    print(f"\nsmall job, best and median of {max(repeat, 5)} alternating runs\n")
+    print(f"\nsmall job, best and median of {max(repeat, 15)} alternating runs\n")
     print(table(rows))
 
 
