@@ -43,7 +43,7 @@ start)
   done
   for w in 1 2; do wait_for_line "$run/worker-$w.log" "Registered to" 60; done
   # shellcheck disable=SC2086
-  "$PYTHON" -u -m napari_unwind._cli_remote serve --data-root "$root" --port "${UNWIND_PORT:-50051}" \
+  "$PYTHON" -u -m napari_unwind.cli serve --data-root "$root" --port "${UNWIND_PORT:-50051}" \
     --scheduler "$sched" ${UNWIND_ARGS:-} >"$run/server.out" 2>"$run/server.log" &
   echo $! >"$run/server.pid"
   wait_for_line "$run/server.out" "listening on" 120

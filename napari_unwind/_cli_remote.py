@@ -1,8 +1,9 @@
 """The remote commands of ``unwind``: ``serve``, ``submit``, ``jobs`` and ``run --server``.
 
 :func:`add_remote_commands` adds the subcommands to the ``unwind`` parser; :func:`run_remote` runs ``unwind run``
-on a server. ``python -m napari_unwind._cli_remote ...`` is a thin entry with the same subcommands (for scripts
-and tests). Needs the ``server`` extra.
+on a server. The entry is ``unwind`` (or ``python -m napari_unwind.cli``): this module imports no part of
+:mod:`napari_unwind.cli` (their shared argument types live in :mod:`napari_unwind._cliargs`). Needs the ``server``
+extra.
 """
 
 from __future__ import annotations
@@ -12,13 +13,12 @@ import json
 import logging
 import os
 import sys
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from .errors import InvalidInputError, UnwindError
 
-__all__ = ["add_remote_commands", "run_remote", "main"]
+__all__ = ["add_remote_commands", "run_remote"]
 
 
 def _add_client_options(p: argparse.ArgumentParser, server_required: bool = False) -> None:
@@ -227,7 +227,7 @@ def run_remote(args: argparse.Namespace) -> int:
     """
     import time
 
-    from .cli import _check_io, _check_session_path, _default_session_path, _endpoints_from_args, _reader_options
+    from ._cliargs import _check_io, _check_session_path, _default_session_path, _endpoints_from_args, _reader_options
     from .io import open_volume
     from .io._atomic import check_writable
     from .io._formats import output_format
@@ -286,7 +286,7 @@ def run_remote(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------------------------------
 def add_remote_commands(subparsers: Any) -> None:
     """Add ``serve``, ``submit`` and ``jobs`` to the ``unwind`` parser's subparsers."""
-    from .cli import _triple
+    from ._cliargs import _triple
 
     p = subparsers.add_parser("serve", help="run the gRPC server: every service in one process by default")
     p.add_argument("--data-root", default=None, metavar="DIR",
@@ -360,41 +360,3 @@ def add_run_server_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--server", default=None, metavar="HOST:PORT",
                    help="run the pipeline on this server (upload, job, download) instead of here")
     _add_token_options(p)
-
-
-def _parse_run(argv: Sequence[str]) -> argparse.Namespace:
-    """``run ... --server ADDR``: the options of ``unwind run`` plus the server's."""
-    from .cli import build_parser
-
-    args, rest = build_parser().parse_known_args(list(argv))
-    extra = argparse.ArgumentParser(prog="unwind run")
-    add_run_server_options(extra)
-    extra.parse_args(rest, namespace=args)
-    if not args.server:
-        extra.error("the remote entry runs `run` on a server: give --server HOST:PORT")
-    args.func = run_remote
-    return args
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m napari_unwind._cli_remote serve|submit|jobs|run ...``."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["run"]:
-        args = _parse_run(argv)
-    else:
-        parser = argparse.ArgumentParser(prog="unwind", description="napari-unwind remote commands")
-        sub = parser.add_subparsers(dest="command", required=True)
-        add_remote_commands(sub)
-        args = parser.parse_args(argv)
-    try:
-        return args.func(args)
-    except (UnwindError, OSError) as exc:
-        print(f"unwind: error: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("unwind: interrupted", file=sys.stderr)
-        return 130
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -44,9 +44,8 @@ def _pairs() -> list[tuple[str, str]]:
                   if a < b and a in graph.get(b, set()) and not (b.startswith(a + ".") or a.startswith(b + ".")))
 
 
-#: Left, and said so in the issue's note: the remote commands reuse the command line's argument helpers inside
-#: functions (no import-time cycle); moving those helpers below both is the fix.
-KNOWN = [("napari_unwind._cli_remote", "napari_unwind.cli")]
+#: None left: the command line's argument helpers moved down to _cliargs, below cli and _cli_remote.
+KNOWN: list[tuple[str, str]] = []
 
 
 def test_no_two_modules_import_each_other():

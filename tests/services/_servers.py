@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 class ServerProcess:
-    """``python -m napari_unwind._cli_remote serve`` in a child process; restartable on the same port."""
+    """``python -m napari_unwind.cli serve`` in a child process; restartable on the same port."""
 
     def __init__(self, data_root: Path, *args: str, port: int = 0, log: Path | None = None):
         self.data_root, self.args = Path(data_root), [str(a) for a in args]
@@ -31,7 +31,7 @@ class ServerProcess:
         return f"127.0.0.1:{self.port}"
 
     def start(self, timeout: float = 90.0) -> None:
-        cmd = [sys.executable, "-m", "napari_unwind._cli_remote", "serve", "--data-root", str(self.data_root),
+        cmd = [sys.executable, "-m", "napari_unwind.cli", "serve", "--data-root", str(self.data_root),
                "--port", str(self.port), *self.args]
         logf = open(self.log, "a")
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=logf, text=True, cwd=ROOT,

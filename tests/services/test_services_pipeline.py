@@ -16,7 +16,7 @@ from _servers import ServerProcess
 from scipy.spatial import cKDTree
 
 from napari_unwind import cli
-from napari_unwind._cli_remote import main as remote_main
+from napari_unwind.cli import main as remote_main
 from napari_unwind.client import BatchItem, Client
 from napari_unwind.datasets import tank_phantom
 from napari_unwind.deformation import Deformation

@@ -10,7 +10,7 @@ import grpc
 import pytest
 
 from napari_unwind._cli_remote import add_remote_commands
-from napari_unwind._cli_remote import main as remote_main
+from napari_unwind.cli import main as remote_main
 from napari_unwind.client import Client, RemoteError
 from napari_unwind.errors import InvalidInputError
 from unwind_services.server import ServerConfig, UnwindServer
