@@ -19,7 +19,8 @@ def test_core_runs_without_gui_or_server_packages(tmp_path):
         import numpy as np
         import napari_unwind
         from napari_unwind import open_volume, write_volume, import_volume
-        from napari_unwind import cli, demo, datasets, _compat, _layers, _reader, _sample_data
+        from napari_unwind import cli, demo, datasets, _compat
+        from napari_unwind._napari import _layers, _reader, _sample_data, _writer
         a = (np.arange(24 * 20 * 18) % 251).astype(np.uint8).reshape(24, 20, 18)
         write_volume(a, r"{tmp_path}/a.zarr", spacing=(2, 1, 1))
         v = import_volume(r"{tmp_path}/a.zarr", r"{tmp_path}/b.zarr", max_side=8)

@@ -6,8 +6,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from .errors import UnknownFormatError
-from .io import detect_format, open_volume
+from ..errors import UnknownFormatError
+from ..io import detect_format, open_volume
 
 __all__ = ["get_reader"]
 

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from .io import Volume
+from ..io import Volume
 
 __all__ = ["image_layer", "labels_layer"]
 
