@@ -1,0 +1,275 @@
+"""The Qt-free editing model: every edit against geometry computed here, undo/redo bit for bit over 1000 random
+edits, one event per edit, gestures as one step, and the cross-section against scipy on the same plane."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from napari_unwind.deformation import Deformation
+from napari_unwind.editing import EditModel, cross_section
+from napari_unwind.errors import InvalidInputError
+
+
+def arc_deformation(n_keys=6, radius=40.0, cage=(4.0, 6.0), spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0)):
+    """Keyframes on a quarter circle in the axis0-axis1 plane (frames: n the tangent, u = axis2)."""
+    t = np.linspace(0, np.pi / 2, n_keys)
+    pos = np.stack([radius * np.sin(t), radius * (1 - np.cos(t)), np.zeros_like(t)], axis=1) + [10.0, 10.0, 30.0]
+    n = np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], axis=1)
+    u = np.tile([0.0, 0.0, 1.0], (n_keys, 1))
+    v = np.cross(n, u)
+    return Deformation.from_keyframes(pos, np.stack([u, v, n], axis=1), cage, spacing=spacing, origin=origin)
+
+
+def state(d: Deformation) -> str:
+    """Bit-exact fingerprint: the float64 bytes of every number."""
+    return json.dumps(d.to_dict(), sort_keys=True, default=lambda x: float(x).hex()) + "|" + "".join(
+        np.asarray(k.position).tobytes().hex() + np.asarray(k.frame).tobytes().hex() for k in d.keyframes)
+
+
+class Counter:
+    def __init__(self, model: EditModel):
+        self.changed, self.history, self.position = 0, 0, 0
+        model.deformation_changed.connect(lambda *_: self._inc("changed"))
+        model.history_changed.connect(lambda *_: self._inc("history"))
+        model.position_changed.connect(lambda *_: self._inc("position"))
+
+    def _inc(self, name):
+        setattr(self, name, getattr(self, name) + 1)
+
+
+def test_move_shifts_the_keyframe_by_the_amount_along_u_and_v():
+    d = arc_deformation()
+    m = EditModel(d)
+    m.select_keyframe(2)
+    k = d.keyframes[2]
+    m.move(1.5, -2.0)
+    got = m.deformation.keyframes[2].position
+    np.testing.assert_allclose(got, k.position + 1.5 * k.frame[0] - 2.0 * k.frame[1], atol=1e-12)
+    # the other keyframes did not move; the position follows the moved keyframe
+    for j in (0, 1, 3, 4, 5):
+        np.testing.assert_array_equal(m.deformation.keyframes[j].position, d.keyframes[j].position)
+    assert m.keyframe == 2 and m.s == pytest.approx(m.deformation.knots[2])
+
+
+def test_twist_and_tilt_rotate_the_frame_by_the_angle_about_the_right_axis():
+    d = arc_deformation()
+    m = EditModel(d)
+    m.select_keyframe(3)
+    u, v, n = d.keyframes[3].frame
+    m.twist(np.radians(30))
+    u2, v2, n2 = m.deformation.keyframes[3].frame
+    np.testing.assert_allclose(n2, n, atol=1e-12)
+    np.testing.assert_allclose(u2, np.cos(np.radians(30)) * u + np.sin(np.radians(30)) * v, atol=1e-12)
+    m.undo()
+    m.tilt(np.radians(1), axis="u")
+    u3, v3, n3 = m.deformation.keyframes[3].frame
+    np.testing.assert_allclose(u3, u, atol=1e-12)
+    assert np.degrees(np.arccos(np.clip(n3 @ n, -1, 1))) == pytest.approx(1.0, abs=1e-9)
+    m.undo()
+    m.tilt(np.radians(-1), axis="v")
+    u4, v4, n4 = m.deformation.keyframes[3].frame
+    np.testing.assert_allclose(v4, v, atol=1e-12)
+    assert np.degrees(np.arccos(np.clip(n4 @ n, -1, 1))) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_set_cage_gives_the_sides_and_keeps_the_centre():
+    d = arc_deformation()
+    m = EditModel(d)
+    m.select_keyframe(1)
+    m.set_cage((-3.0, 5.0, -7.0, 2.0))
+    k = m.deformation.keyframes[1]
+    assert k.bounds == pytest.approx((-3.0, 5.0, -7.0, 2.0))
+    np.testing.assert_array_equal(k.position, d.keyframes[1].position)
+    with pytest.raises(InvalidInputError, match="x_lo < x_hi"):
+        m.set_cage((2.0, 1.0, -1.0, 1.0))
+
+
+def test_an_edit_between_keyframes_adds_one_there_in_the_same_step_and_keeps_the_map():
+    d = arc_deformation()
+    m = EditModel(d)
+    s = 0.5 * (d.knots[1] + d.knots[2])
+    m.set_s(s)
+    assert m.keyframe is None
+    m.add_keyframe()
+    assert len(m.deformation) == len(d) + 1 and m.keyframe == 2
+    rng = np.random.default_rng(0)
+    xys = np.column_stack([rng.uniform(-4, 4, 50), rng.uniform(-6, 6, 50), rng.uniform(0, d.length, 50)])
+    np.testing.assert_allclose(m.deformation.forward(xys), d.forward(xys), atol=1e-9)
+    m.undo()
+    m.set_s(s)
+    m.move(0.0, 1.0)  # adds the keyframe and moves it: one step
+    assert len(m.deformation) == len(d) + 1 and len(m.history) == 1
+    m.undo()
+    assert state(m.deformation) == state(d)
+
+
+def test_delete_and_pad_and_their_errors():
+    d = arc_deformation(n_keys=3)
+    m = EditModel(d)
+    m.select_keyframe(1)
+    m.delete_keyframe()
+    assert len(m.deformation) == 2
+    with pytest.raises(InvalidInputError, match="at least 2 keyframes"):
+        m.delete_keyframe(0)
+    m.set_pad(3.0, 4.5)
+    assert m.deformation.pad == (3.0, 4.5)
+    with pytest.raises(InvalidInputError, match=">= 0"):
+        m.set_pad(-1.0, 0.0)
+    with pytest.raises(InvalidInputError, match="no deformation"):
+        EditModel().move(1.0, 0.0)
+    with pytest.raises(InvalidInputError, match="finite"):
+        m.twist(float("nan"))
+
+
+def test_events_fire_once_per_edit_undo_and_redo():
+    m = EditModel(arc_deformation())
+    c = Counter(m)
+    m.select_keyframe(2)
+    c.changed = c.history = 0
+    edits = [lambda: m.move(1.0, 0.0), lambda: m.twist(0.1), lambda: m.tilt(0.02, axis="v"),
+             lambda: m.set_cage((-2.0, 2.0, -3.0, 3.0)), lambda: m.set_pad(1.0, 1.0), lambda: m.undo(),
+             lambda: m.redo()]
+    for k, edit in enumerate(edits, start=1):
+        edit()
+        assert (c.changed, c.history) == (k, k), f"edit {k}"
+    assert m.undo() and m.undo() and c.changed == len(edits) + 2
+    # nothing to redo after a fresh edit: the branch is dropped
+    m.move(0.5, 0.5)
+    assert not m.can_redo and m.redo() is False
+
+
+def test_a_gesture_is_one_step_with_totals_not_increments():
+    d = arc_deformation()
+    m = EditModel(d)
+    m.select_keyframe(4)
+    c = Counter(m)
+    k = d.keyframes[4]
+    with m.gesture("move"):
+        for t in np.linspace(0.1, 3.0, 30):
+            m.move(t, 0.0)
+    assert c.changed == 30 and len(m.history) == 1
+    np.testing.assert_allclose(m.deformation.keyframes[4].position, k.position + 3.0 * k.frame[0], atol=1e-12)
+    m.undo()
+    assert state(m.deformation) == state(d)
+    # a cancelled gesture leaves nothing behind: the state and the history (the redo included) as they were
+    m.begin_gesture("twist")
+    m.twist(0.5)
+    m.cancel_gesture()
+    assert state(m.deformation) == state(d) and m.can_redo and len(m.history) == 0
+
+
+def test_undo_redo_over_1000_random_edits_restores_every_state_bit_for_bit():
+    rng = np.random.default_rng(12)
+    d0 = arc_deformation(n_keys=5)
+    m = EditModel(d0)
+    states = [state(d0)]
+    n_edits = 0
+    while n_edits < 1000:
+        d = m.deformation
+        op = rng.integers(0, 8)
+        try:
+            if op == 0:
+                m.set_s(rng.uniform(0, d.length))
+                continue  # moving along the curve is not an edit
+            if op == 1:
+                m.select_keyframe(int(rng.integers(0, len(d))))
+                continue
+            if op == 2:
+                m.move(*rng.normal(0, 0.3, 2))
+            elif op == 3:
+                m.twist(rng.normal(0, 0.1))
+            elif op == 4:
+                m.tilt(np.radians(rng.choice([-1.0, 1.0])), axis=str(rng.choice(["u", "v"])))
+            elif op == 5:
+                b = rng.uniform(1.0, 6.0, 4) * [-1, 1, -1, 1]
+                m.set_cage(b)
+            elif op == 6:
+                if len(d) > 3 and m.keyframe is not None:
+                    m.delete_keyframe()
+                else:
+                    continue
+            else:
+                m.set_pad(*rng.uniform(0, 5, 2))
+        except InvalidInputError:
+            continue  # e.g. two keyframes moved onto each other: refused, nothing changed
+        n_edits += 1
+        states.append(state(m.deformation))
+    assert len(set(states)) > 900  # the edits did change things
+    for k in range(len(states) - 1, 0, -1):
+        assert state(m.deformation) == states[k]
+        assert m.undo()
+    assert state(m.deformation) == states[0] and not m.can_undo
+    for k in range(1, len(states)):
+        assert m.redo()
+        assert state(m.deformation) == states[k]
+    assert not m.can_redo
+
+
+def test_set_deformation_clears_or_records_the_history():
+    a, b = arc_deformation(), arc_deformation(cage=(2.0, 2.0))
+    m = EditModel(a)
+    m.select_keyframe(1)
+    m.move(1.0, 0.0)
+    m.set_deformation(b)
+    assert not m.can_undo and m.deformation is b
+    m.set_deformation(a, keep_history=True)
+    assert m.undo() and m.deformation is b
+
+
+def test_next_and_previous_keyframe():
+    d = arc_deformation()
+    m = EditModel(d)
+    m.set_s(0.5 * (d.knots[2] + d.knots[3]))
+    m.next_keyframe()
+    assert m.keyframe == 3
+    m.previous_keyframe()
+    m.previous_keyframe()
+    assert m.keyframe == 1
+    m.select_keyframe(-1)
+    m.next_keyframe()
+    assert m.keyframe == len(d) - 1
+
+
+def test_cross_section_of_a_straight_deformation_is_the_scan_slice():
+    """Along axis0 with v = axis1 (u = v x n = -axis2), the plane at s = k is slice k of the scan, exactly."""
+    rng = np.random.default_rng(1)
+    vol = rng.random((40, 30, 20)).astype(np.float32)
+    frame = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    d = Deformation.from_keyframes(np.array([[2.0, 15.0, 10.0], [37.0, 15.0, 10.0]]), np.stack([frame, frame]),
+                                   (4.0, 5.0))
+    sec = cross_section(vol, d, 11.0, half_size=(4.0, 5.0), pixel=1.0)
+    assert sec.image.shape == (11, 9)
+    np.testing.assert_allclose(sec.image, vol[13, 10:21, 14:5:-1], atol=1e-6)
+    assert sec.bounds == pytest.approx((-4.0, 4.0, -5.0, 5.0))
+    col, row = sec.to_pixel(0.0, 0.0)
+    assert (col, row) == (4.0, 5.0)
+
+
+def test_cross_section_matches_scipy_on_the_tilted_plane_with_spacing_and_origin():
+    rng = np.random.default_rng(2)
+    sp, org = (2.0, 1.0, 0.5), (5.0, -3.0, 1.0)
+    vol = ndimage.gaussian_filter(rng.random((60, 80, 100)), 2).astype(np.float32)
+    d = arc_deformation(spacing=sp, origin=org).tilt_keyframe(2, np.radians(8), axis="v")
+    s = 0.4 * d.length
+    sec = cross_section(vol, d, s, pixel=0.7)
+    h, w = sec.image.shape
+    yy, xx = np.meshgrid(sec.y0 + 0.7 * np.arange(h), sec.x0 + 0.7 * np.arange(w), indexing="ij")
+    xys = np.column_stack([xx.ravel(), yy.ravel(), np.full(xx.size, s)])
+    vox = (d.forward(xys) - np.asarray(org)) / np.asarray(sp)
+    ref = ndimage.map_coordinates(vol, vox.T, order=1, mode="constant", cval=0.0).reshape(h, w)
+    inside = ((vox > 0.5) & (vox < np.asarray(vol.shape) - 1.5)).all(axis=1).reshape(h, w)
+    assert inside.mean() > 0.3
+    np.testing.assert_allclose(sec.image[inside], ref[inside], atol=1e-5)
+    assert (sec.image[~((vox > -1) & (vox < np.asarray(vol.shape))).all(axis=1).reshape(h, w)] == 0).all()
+
+
+def test_cross_section_errors():
+    d = arc_deformation()
+    with pytest.raises(InvalidInputError, match="3D"):
+        cross_section(np.zeros((4, 4)), d, 1.0)
+    with pytest.raises(InvalidInputError, match="range"):
+        cross_section(np.zeros((4, 4, 4)), d, d.length + 10)
