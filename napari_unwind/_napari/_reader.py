@@ -1,4 +1,17 @@
-"""napari reader contribution: every format :func:`napari_unwind.io.open_volume` knows."""
+"""napari reader contributions: every scan format :func:`napari_unwind.io.open_volume` knows, and sessions.
+
+A session (``*.unwind.json``, :mod:`napari_unwind.session`) opens as the layers that restore the work on its scan:
+
+- the scan (Image, lazy, with the session's spacing and unit and the deformation's origin);
+- the selection (Labels, the selected features of the segmentation the session records, recomputed from the scan);
+- the ends (Points named ``"ends"``: head and tail, or every part's start and end for a specimen in pieces);
+- the curve of the deformation (a Shapes path named ``"curve"``).
+
+Every coordinate is a world coordinate (physical units: voxel index x spacing + origin), the frame the deformation
+lives in. Each layer's ``metadata["napari_unwind"]`` holds ``session_path`` and what the layer restores;
+the curve's holds ``deformation`` (:meth:`~napari_unwind.deformation.Deformation.to_dict`) for the Unwind dock.
+No napari import: the layers are napari's plain ``(data, meta, type)`` tuples.
+"""
 
 from __future__ import annotations
 
@@ -6,18 +19,29 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..errors import UnknownFormatError
 from ..io import detect_format, open_volume
+from ..session import SESSION_SUFFIX, Session, SourceChangedError, SourceMissingError, load_session
 
-__all__ = ["get_reader"]
+__all__ = ["get_reader", "get_session_reader", "read", "read_session", "session_layers"]
+
+#: Most points of the curve path drawn (the deformation itself is in the metadata, exact).
+_CURVE_POINTS = 512
+
+
+def _single(path: str | list[str]) -> str | None:
+    if isinstance(path, (list, tuple)):
+        return str(path[0]) if len(path) == 1 else None  # a list of files is a stack napari handles itself
+    return str(path)
 
 
 def get_reader(path: str | list[str]) -> Callable[[Any], list] | None:
     """Return a reader function when napari-unwind can open ``path``, else None (napari then asks others)."""
-    if isinstance(path, list):
-        if len(path) != 1:
-            return None  # a list of files is a stack napari handles itself
-        path = path[0]
+    path = _single(path)
+    if path is None:
+        return None
     try:
         detect_format(Path(path))
     except (UnknownFormatError, FileNotFoundError):
@@ -32,3 +56,121 @@ def read(path: str | list[str]) -> list:
     if isinstance(path, list):
         path = path[0]
     return [image_layer(open_volume(path))]
+
+
+def get_session_reader(path: str | list[str]) -> Callable[[Any], list] | None:
+    """Return :func:`read_session` for a ``*.unwind.json`` file, else None."""
+    path = _single(path)
+    if path is None or not path.lower().endswith(SESSION_SUFFIX):
+        return None
+    return read_session
+
+
+def read_session(path: str | list[str]) -> list:
+    """Open a session file as the layers that restore it (see the module docstring).
+
+    Raises
+    ------
+    InvalidInputError
+        The file is not a valid session (:func:`~napari_unwind.session.load_session` says why).
+    SourceMissingError
+        The session's scan is not where the session says.
+    SourceChangedError
+        The scan there has another shape or voxel type than the session's.
+    """
+    if isinstance(path, list):
+        path = path[0]
+    session_path = Path(path).expanduser().absolute()
+    return session_layers(load_session(session_path), session_path=session_path)
+
+
+def session_layers(session: Session, *, session_path: str | Path | None = None) -> list:
+    """The layer-data tuples restoring ``session``: scan, selection (when recorded), ends and curve (when present).
+
+    Parameters
+    ----------
+    session : Session
+        A loaded session.
+    session_path : str or path, optional
+        Where it was read from; recorded in every layer's metadata and named in errors.
+
+    Returns
+    -------
+    list of (data, meta, layer type)
+        In this order: ``image``, ``labels`` (when the session records selected features), ``points`` (when it
+        records ends), ``shapes`` (when it holds a deformation).
+    """
+    from ._layers import image_layer
+
+    src = session.source
+    named = f"the session {session_path}" if session_path else "the session"
+    scan_path = Path(src.path)
+    if not scan_path.exists():
+        raise SourceMissingError(
+            f"the scan of {named} is missing: expected at {scan_path}. Put the scan back there, or correct "
+            "\"source\" -> \"path\" in the session file to its new location, then open the session again"
+        )
+    volume = open_volume(scan_path)
+    if tuple(volume.shape) != src.shape or np.dtype(volume.dtype).name != src.dtype:
+        raise SourceChangedError(
+            f"the scan at {scan_path} is not the one {named} was made from: it holds {tuple(volume.shape)} voxels "
+            f"of {np.dtype(volume.dtype).name}, the session's scan {src.shape} of {src.dtype}. Point the session's "
+            "\"source\" -> \"path\" at the original scan"
+        )
+    spacing = np.asarray(src.spacing, dtype=float)  # the session's: it may have been given by hand
+    deformation = session.deformation
+    origin = np.asarray(deformation.origin if deformation is not None else volume.origin, dtype=float)
+    unit = src.unit
+    units = {"units": (unit,) * 3} if unit else {}
+    common = {"session_path": None if session_path is None else str(session_path), "source": src.path}
+
+    image = image_layer(volume, name=scan_path.name,
+                        scale=tuple(spacing), translate=tuple(origin), **units)
+    image[1]["metadata"]["napari_unwind"].update(common, spacing=tuple(spacing), unit=unit)
+    layers: list = [image]
+
+    seg = session.segmentation
+    if seg is not None and seg.k is not None and (seg.selected or seg.seeds):
+        layers.append(_selection_layer(volume, session, spacing, origin, units, common))
+
+    if session.endpoints is not None:
+        ends = session.endpoints
+        if ends.chain:
+            voxels = [p for pair in ends.chain for p in pair]
+            roles = ["head" if i == 0 else "tail" if i == len(voxels) - 1 else
+                     f"part {i // 2 + 1} {'start' if i % 2 == 0 else 'end'}" for i in range(len(voxels))]
+        else:
+            voxels, roles = [ends.head, ends.tail], ["head", "tail"]
+        world = np.asarray(voxels, dtype=float) * spacing + origin
+        layers.append((world, {
+            "name": "ends", "features": {"end": roles}, "face_color": "yellow", "size": float(4 * spacing.max()),
+            "metadata": {"napari_unwind": {**common, "endpoints": ends.to_dict()}}, **units,
+        }, "points"))
+
+    if deformation is not None:
+        lo, hi = 0.0, deformation.length
+        n = int(min(_CURVE_POINTS, max(2, np.ceil((hi - lo) / spacing.min()) + 1)))
+        centres, _ = deformation.sample(np.linspace(lo, hi, n))
+        layers.append(([centres], {
+            "name": "curve", "shape_type": "path", "edge_color": "cyan", "edge_width": float(spacing.max()),
+            "metadata": {"napari_unwind": {**common, "deformation": deformation.to_dict()}}, **units,
+        }, "shapes"))
+    return layers
+
+
+def _selection_layer(volume: Any, session: Session, spacing: np.ndarray, origin: np.ndarray, units: dict,
+                     common: dict) -> tuple[Any, dict[str, Any], str]:
+    """The selected features, recomputed from the scan as the session's segmentation did (labels = feature ids)."""
+    from ..segmentation import segment, selected_ids
+
+    seg = session.segmentation
+    features = segment(volume, features=seg.k, level=seg.level)
+    # the recorded ids are the choice; seeds only when no id was recorded (a seed may sit in a basin, off the labels)
+    ids = selected_ids(features, ids=list(seg.selected)) if seg.selected else selected_ids(features, seeds=seg.seeds)
+    labels = np.where(np.isin(features.labels, ids), features.labels, 0).astype(features.labels.dtype)
+    scale = np.asarray(features.scale, dtype=float) * spacing  # working voxels in the session's spacing
+    translate = origin + (scale - spacing) / 2  # a working voxel's centre is the centre of the block it covers
+    meta = {"name": "selection", "scale": tuple(scale), "translate": tuple(translate), "opacity": 0.5,
+            "metadata": {"napari_unwind": {**common, "segmentation": seg.to_dict(), "selected": ids,
+                                           "level": features.level}}, **units}
+    return labels, meta, "labels"
