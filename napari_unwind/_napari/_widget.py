@@ -1,0 +1,1046 @@
+"""The Unwind dock: the whole workflow in one widget, from a scan to an exported straight specimen.
+
+Steps (pages of a tool box, revisitable in any order; each says what it still needs):
+
+Scan
+    An Image layer of the viewer, or a file opened with :func:`napari_unwind.io.open_volume`; shape, spacing and
+    unit, and a warning when the spacing is missing (no unit and 1 x 1 x 1: lengths are then in voxels).
+Segment
+    The join tree is built once in a worker; the feature-count slider re-simplifies it live (no rebuild). The
+    features are a Labels layer; a click on one (2D or 3D) selects it, shift-click adds it; the table lists their
+    statistics and shows the selection, which is also a Labels layer ``"selection"``.
+Ends
+    Suggested head and tail (:func:`napari_unwind.skeleton.suggest_endpoints`) in a Points layer ``"ends"``:
+    drag them in select mode, place more in add mode. Two points are head and tail; more are read in order as a
+    chain (start and end of each part, head to tail) for a specimen in pieces.
+Skeleton
+    :func:`napari_unwind.skeleton.estimate_deformation_iter` in a worker with progress and Cancel; the result's
+    report and warnings are shown, and the deformation goes to the editing model.
+Refine
+    The cross-section editor (:class:`napari_unwind._napari._refine.RefinePanel`) on the same model.
+Export
+    Format, spacing, order, padding and path; :func:`napari_unwind.warp.export_iter` in a worker with progress and
+    Cancel; the result opens as a layer. Saving is explicit; an existing file is replaced only after confirmation.
+Session
+    Save and load (:mod:`napari_unwind.session`) at any step.
+
+The dock only calls the core and the :class:`~napari_unwind.editing.EditModel`; every long job runs in a
+``thread_worker`` (:mod:`._workers`), so the UI never waits on one.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Generator
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import dask.array as da
+import numpy as np
+from qtpy.QtCore import Qt
+from qtpy.QtWidgets import (
+    QAbstractItemView,
+    QComboBox,
+    QDoubleSpinBox,
+    QFileDialog,
+    QFormLayout,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QMessageBox,
+    QPlainTextEdit,
+    QPushButton,
+    QSlider,
+    QSpinBox,
+    QTableWidget,
+    QTableWidgetItem,
+    QToolBox,
+    QVBoxLayout,
+    QWidget,
+)
+
+from ..editing import EditModel
+from ..errors import InvalidInputError, UnwindError
+from ..io import Volume, open_volume
+from ..io._volume import normalise_unit, unit_label
+from ..progress import Progress
+from ._workers import Job, JobCancelled, start_job
+
+__all__ = ["UnwindWidget", "volume_from_layer"]
+
+#: Export formats offered: (label, suffix); any suffix write_volume knows may also be typed.
+EXPORT_FORMATS = (("OME-Zarr", ".ome.zarr"), ("NRRD", ".nrrd"), ("NIfTI", ".nii.gz"), ("TIFF", ".tif"))
+#: The dock's own shortcuts (the editor's come from RefinePanel.SHORTCUTS).
+DOCK_SHORTCUTS = (
+    ("click", "Segment: select the feature under the mouse (2D or 3D)"),
+    ("shift-click", "Segment: add the feature to the selection"),
+    ("drag a point", "Ends: move a head/tail (points layer in select mode)"),
+    ("click (add mode)", "Ends: place another end (more than two: a chain, start and end of each part)"),
+)
+_TABLE_COLUMNS = ("id", "voxels", "elongation", "persistence", "threshold", "border", "container")
+
+
+def volume_from_layer(layer: Any) -> Volume:
+    """The :class:`~napari_unwind.io.Volume` behind a napari Image layer: its data (lazy), scale as spacing,
+    translate as origin, its unit; the pyramid when it is multiscale.
+
+    Raises
+    ------
+    InvalidInputError
+        Not a 3D single-channel image, or a voxel type a Volume cannot hold.
+    """
+    if getattr(layer, "rgb", False) or getattr(layer, "ndim", 0) != 3:
+        raise InvalidInputError(f"the layer {layer.name!r} is not a 3D grey-value image (ndim "
+                                f"{getattr(layer, 'ndim', '?')}, rgb {getattr(layer, 'rgb', False)}); pick a 3D scan")
+    meta = (layer.metadata or {}).get("napari_unwind", {})
+    raw = list(layer.data) if layer.multiscale else [layer.data]
+    levels = tuple(a if isinstance(a, da.Array) else da.from_array(a, chunks="auto") for a in raw)
+    spacing = tuple(float(s) for s in layer.scale)
+    origin = tuple(float(t) for t in layer.translate)
+    unit = meta.get("unit")
+    if unit is None and getattr(layer, "units", None) is not None:
+        names = {str(u) for u in layer.units}
+        if len(names) == 1:
+            try:
+                unit = normalise_unit(names.pop())
+            except InvalidInputError:
+                unit = None
+    full = np.asarray(levels[0].shape, dtype=float)
+    level_spacings, level_origins = [], []
+    for lvl in levels:
+        sp = np.asarray(spacing) * full / np.asarray(lvl.shape, dtype=float)
+        level_spacings.append(tuple(float(v) for v in sp))
+        level_origins.append(tuple(float(v) for v in np.asarray(origin) + (sp - np.asarray(spacing)) / 2))
+    return Volume(levels[0], spacing=spacing, unit=unit, origin=origin, levels=levels if len(levels) > 1 else (),
+                  level_spacings=tuple(level_spacings) if len(levels) > 1 else (),
+                  level_origins=tuple(level_origins) if len(levels) > 1 else (),
+                  source=meta.get("source"), format=meta.get("format"))
+
+
+def _with_geometry(volume: Volume, spacing: Any, origin: Any) -> Volume:
+    """``volume`` with another spacing and origin (a session's), its pyramid levels scaled alike."""
+    sp0, sp = np.asarray(volume.spacing, dtype=float), np.asarray(spacing, dtype=float)
+    ratio = sp / sp0
+    level_spacings = tuple(tuple(float(v) for v in np.asarray(ls) * ratio) for ls in volume.level_spacings)
+    level_origins = tuple(tuple(float(v) for v in np.asarray(origin, dtype=float) + (np.asarray(ls) - sp) / 2)
+                          for ls in level_spacings)
+    return replace(volume, spacing=tuple(float(v) for v in sp), origin=tuple(float(v) for v in origin),
+                   level_spacings=level_spacings, level_origins=level_origins)
+
+
+def _spacing_missing(volume: Volume) -> bool:
+    return volume.unit is None and all(s == 1.0 for s in volume.spacing)
+
+
+def _fmt(values: Any, digits: int = 4) -> str:
+    return " x ".join(f"{float(v):.{digits}g}" for v in values)
+
+
+class UnwindWidget(QWidget):
+    """The Unwind dock (see the module docstring).
+
+    Parameters
+    ----------
+    napari_viewer : napari.Viewer
+        The viewer whose layers the dock reads and writes.
+    """
+
+    def __init__(self, napari_viewer: Any, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.viewer = napari_viewer
+        self.model = EditModel()
+        self.volume: Volume | None = None
+        self.scan_layer: Any = None
+        self.tree: Any = None  # JoinTree
+        self.features: Any = None  # Features
+        self.selected: list[int] = []
+        self.seeds: dict[int, tuple[float, float, float]] = {}  # feature id -> the full-resolution voxel clicked
+        self.result: Any = None  # SkeletonResult
+        self.exported: Path | None = None
+        self.job: Job | None = None
+        self._source_info: Any = None  # SourceInfo of the scan (its checksum is computed once)
+        self._features_layer: Any = None
+        self._selection_layer: Any = None
+        self._ends_layer: Any = None
+        self._pending_segmentation: Any = None  # a loaded session's Segmentation, applied when the tree is built
+        self._syncing = False
+
+        self.toolbox = QToolBox()
+        self.toolbox.addItem(self._scan_page(), "1. Scan")
+        self.toolbox.addItem(self._segment_page(), "2. Segment")
+        self.toolbox.addItem(self._ends_page(), "3. Ends")
+        self.toolbox.addItem(self._skeleton_page(), "4. Skeleton")
+        self.toolbox.addItem(self._refine_page(), "5. Refine")
+        self.toolbox.addItem(self._export_page(), "6. Export")
+        self.toolbox.addItem(self._session_page(), "7. Session")
+        self.toolbox.addItem(self._shortcuts_page(), "Shortcuts")
+        self.status = QLabel("")
+        self.status.setWordWrap(True)
+        layout = QVBoxLayout(self)
+        layout.addWidget(self.toolbox)
+        layout.addWidget(self.status)
+
+        self.viewer.layers.events.inserted.connect(self._on_layers_changed)
+        self.viewer.layers.events.removed.connect(self._on_layers_changed)
+        self.model.deformation_changed.connect(self._on_deformation_changed)
+        self._refresh_layer_combo()
+        self._update_needs()
+
+    # ==============================================================================================================
+    # pages
+    # ==============================================================================================================
+    def _scan_page(self) -> QWidget:
+        w = QWidget()
+        lay = QVBoxLayout(w)
+        row = QHBoxLayout()
+        self.layer_combo = QComboBox()
+        self.layer_combo.setToolTip("The 3D Image layer to straighten")
+        self.layer_combo.activated.connect(self._on_layer_chosen)
+        self.open_button = QPushButton("Open file...")
+        self.open_button.clicked.connect(self._open_dialog)
+        row.addWidget(self.layer_combo, 1)
+        row.addWidget(self.open_button)
+        lay.addLayout(row)
+        self.scan_info = QLabel("no scan: pick an Image layer or open a file")
+        self.scan_info.setWordWrap(True)
+        self.scan_warning = QLabel("")
+        self.scan_warning.setWordWrap(True)
+        self.scan_warning.setStyleSheet("color: #ff8c00")
+        self.scan_warning.hide()
+        lay.addWidget(self.scan_info)
+        lay.addWidget(self.scan_warning)
+        lay.addStretch(1)
+        return w
+
+    def _segment_page(self) -> QWidget:
+        w = QWidget()
+        lay = QVBoxLayout(w)
+        self.segment_need = QLabel("")
+        self.segment_need.setWordWrap(True)
+        lay.addWidget(self.segment_need)
+        self.segment_button = QPushButton("Build the join tree")
+        self.segment_button.clicked.connect(self.segment)
+        lay.addWidget(self.segment_button)
+        row = QHBoxLayout()
+        row.addWidget(QLabel("features"))
+        self.count_slider = QSlider(Qt.Orientation.Horizontal)
+        self.count_slider.setRange(1, 5)
+        self.count_slider.setValue(5)
+        self.count_slider.setEnabled(False)
+        self.count_slider.valueChanged.connect(self.set_feature_count)
+        self.count_label = QLabel("5")
+        row.addWidget(self.count_slider, 1)
+        row.addWidget(self.count_label)
+        lay.addLayout(row)
+        self.table = QTableWidget(0, len(_TABLE_COLUMNS))
+        self.table.setHorizontalHeaderLabels(_TABLE_COLUMNS)
+        self.table.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
+        self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.table.itemSelectionChanged.connect(self._on_table_selection)
+        lay.addWidget(self.table, 1)
+        self.selection_label = QLabel("selected: none (click a feature; shift-click adds)")
+        self.selection_label.setWordWrap(True)
+        lay.addWidget(self.selection_label)
+        return w
+
+    def _ends_page(self) -> QWidget:
+        w = QWidget()
+        lay = QVBoxLayout(w)
+        self.ends_need = QLabel("")
+        self.ends_need.setWordWrap(True)
+        lay.addWidget(self.ends_need)
+        self.suggest_button = QPushButton("Suggest head and tail")
+        self.suggest_button.clicked.connect(self.suggest_ends)
+        lay.addWidget(self.suggest_button)
+        lay.addWidget(QLabel("Drag the points of the \"ends\" layer (select mode) or place them (add mode). Two "
+                             "points: head, tail. More: a chain, start and end of each part, head to tail."))
+        lay.itemAt(lay.count() - 1).widget().setWordWrap(True)
+        self.ends_info = QLabel("")
+        self.ends_info.setWordWrap(True)
+        lay.addWidget(self.ends_info)
+        lay.addStretch(1)
+        return w
+
+    def _skeleton_page(self) -> QWidget:
+        w = QWidget()
+        lay = QVBoxLayout(w)
+        self.skeleton_need = QLabel("")
+        self.skeleton_need.setWordWrap(True)
+        lay.addWidget(self.skeleton_need)
+        row = QHBoxLayout()
+        self.skeleton_button = QPushButton("Compute the skeleton")
+        self.skeleton_button.clicked.connect(self.run_skeleton)
+        self.skeleton_cancel = QPushButton("Cancel")
+        self.skeleton_cancel.clicked.connect(self.cancel)
+        self.skeleton_cancel.setEnabled(False)
+        row.addWidget(self.skeleton_button, 1)
+        row.addWidget(self.skeleton_cancel)
+        lay.addLayout(row)
+        self.skeleton_report = QPlainTextEdit()
+        self.skeleton_report.setReadOnly(True)
+        self.skeleton_report.setPlaceholderText("the skeleton's report and warnings appear here")
+        lay.addWidget(self.skeleton_report, 1)
+        return w
+
+    def _refine_page(self) -> QWidget:
+        try:
+            from ._refine import RefinePanel
+        except ImportError:
+            self.refine_panel = None
+            label = QLabel("The cross-section editor is not available in this build (napari_unwind._napari._refine "
+                           "is missing); the deformation can still be exported as the skeleton made it.")
+            label.setWordWrap(True)
+            return label
+        self.refine_panel = RefinePanel(self.viewer, self.model, lambda: self.volume)
+        return self.refine_panel
+
+    def _export_page(self) -> QWidget:
+        w = QWidget()
+        lay = QVBoxLayout(w)
+        self.export_need = QLabel("")
+        self.export_need.setWordWrap(True)
+        lay.addWidget(self.export_need)
+        form = QFormLayout()
+        self.format_combo = QComboBox()
+        for label, suffix in EXPORT_FORMATS:
+            self.format_combo.addItem(f"{label} ({suffix})", suffix)
+        self.format_combo.activated.connect(self._on_format_chosen)
+        form.addRow("format", self.format_combo)
+        self.spacing_box = QDoubleSpinBox()
+        self.spacing_box.setDecimals(4)
+        self.spacing_box.setRange(0.0, 1e6)
+        self.spacing_box.setSpecialValueText("finest scan spacing")
+        self.spacing_box.setToolTip("Isotropic output voxel size (physical units); 0: the scan's finest spacing")
+        form.addRow("spacing", self.spacing_box)
+        self.order_combo = QComboBox()
+        for order, label in ((1, "1 linear"), (3, "3 cubic"), (0, "0 nearest (labels)")):
+            self.order_combo.addItem(label, order)
+        form.addRow("order", self.order_combo)
+        self.pad_box = QSpinBox()
+        self.pad_box.setRange(0, 100000)
+        self.pad_box.setToolTip("Extra slices at each end beyond the deformation's own padding")
+        form.addRow("padding (slices)", self.pad_box)
+        row = QHBoxLayout()
+        self.path_edit = QLineEdit()
+        self.path_edit.setPlaceholderText("straight.ome.zarr")
+        self.path_edit.textChanged.connect(self._on_path_edited)
+        browse = QPushButton("...")
+        browse.clicked.connect(self._export_dialog)
+        row.addWidget(self.path_edit, 1)
+        row.addWidget(browse)
+        form.addRow("path", row)
+        lay.addLayout(form)
+        row = QHBoxLayout()
+        self.export_button = QPushButton("Export")
+        self.export_button.clicked.connect(lambda: self.export(self.path_edit.text()))
+        self.export_cancel = QPushButton("Cancel")
+        self.export_cancel.clicked.connect(self.cancel)
+        self.export_cancel.setEnabled(False)
+        row.addWidget(self.export_button, 1)
+        row.addWidget(self.export_cancel)
+        lay.addLayout(row)
+        self.export_info = QLabel("")
+        self.export_info.setWordWrap(True)
+        lay.addWidget(self.export_info)
+        lay.addStretch(1)
+        return w
+
+    def _session_page(self) -> QWidget:
+        w = QWidget()
+        lay = QVBoxLayout(w)
+        row = QHBoxLayout()
+        save = QPushButton("Save session...")
+        save.clicked.connect(self._save_dialog)
+        load = QPushButton("Open session...")
+        load.clicked.connect(self._load_dialog)
+        row.addWidget(save)
+        row.addWidget(load)
+        lay.addLayout(row)
+        self.session_info = QLabel("A session (*.unwind.json) keeps the scan, the selection, the ends and the "
+                                   "deformation; save it at any step.")
+        self.session_info.setWordWrap(True)
+        lay.addWidget(self.session_info)
+        lay.addStretch(1)
+        return w
+
+    def _shortcuts_page(self) -> QWidget:
+        rows = list(DOCK_SHORTCUTS)
+        panel_cls = type(self.refine_panel) if self.refine_panel is not None else None
+        editor = getattr(panel_cls, "SHORTCUTS", None)
+        if isinstance(editor, dict):
+            editor = list(editor.items())
+        rows += [(str(k), f"Refine: {v}") for k, v in (editor or ())]
+        table = QTableWidget(len(rows), 2)
+        table.setHorizontalHeaderLabels(("key / mouse", "action"))
+        table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        for i, (key, action) in enumerate(rows):
+            table.setItem(i, 0, QTableWidgetItem(key))
+            table.setItem(i, 1, QTableWidgetItem(action))
+        table.resizeColumnsToContents()
+        self.shortcuts_table = table
+        return table
+
+    # ==============================================================================================================
+    # jobs and messages
+    # ==============================================================================================================
+    def _start(self, make: Callable[[], Generator[Progress, None, Any]], label: str,
+               on_returned: Callable[[Any], Any], cancel_buttons: tuple = ()) -> Job | None:
+        if self.job is not None and self.job.running:
+            self._fail(InvalidInputError(f"{self.job.label} is still running: wait for it or cancel it first"))
+            return None
+        for b in cancel_buttons:
+            b.setEnabled(True)
+
+        def returned(value: Any) -> None:
+            try:
+                on_returned(value)
+            except Exception as exc:  # noqa: BLE001 - shown in the dock, never a traceback dialog
+                self._fail(exc)
+
+        def finished() -> None:
+            for b in cancel_buttons:
+                b.setEnabled(False)
+            self._update_needs()
+
+        self._say(f"{label}...")
+        self.job = start_job(make, label=label, on_returned=returned, on_error=self._fail, on_finished=finished)
+        return self.job
+
+    def cancel(self) -> None:
+        """Cancel the running job (it stops at its next progress step)."""
+        if self.job is not None and self.job.running:
+            self.job.cancel()
+            self._say(f"cancelling {self.job.label}...")
+
+    def _say(self, text: str) -> None:
+        self.status.setStyleSheet("")
+        self.status.setText(text)
+
+    def _fail(self, exc: BaseException) -> None:
+        if isinstance(exc, JobCancelled):
+            self._say(f"{self.job.label if self.job else 'the job'} was cancelled")
+            return
+        text = str(exc) if isinstance(exc, (UnwindError, FileNotFoundError)) else f"{type(exc).__name__}: {exc}"
+        self.status.setStyleSheet("color: #ff5050")
+        self.status.setText(f"error: {text}")
+
+    # ==============================================================================================================
+    # scan
+    # ==============================================================================================================
+    def _image_layers(self) -> list:
+        from napari.layers import Image
+
+        return [lyr for lyr in self.viewer.layers if isinstance(lyr, Image) and lyr.ndim == 3 and not lyr.rgb]
+
+    def _on_layers_changed(self, event: Any = None) -> None:
+        self._refresh_layer_combo()
+        layer = getattr(event, "value", None)
+        if event is not None and getattr(event, "type", "") == "removed":
+            if layer is self.scan_layer:
+                self.scan_layer = None
+            for name in ("_features_layer", "_selection_layer", "_ends_layer"):
+                if getattr(self, name) is layer:
+                    setattr(self, name, None)
+            self._update_needs()
+        elif layer is not None:
+            self._adopt(layer)
+
+    def _adopt(self, layer: Any) -> None:
+        """Pick up what a session opened by napari's reader restores (ends, deformation) when the dock has none."""
+        meta = (getattr(layer, "metadata", None) or {}).get("napari_unwind", {})
+        if "deformation" in meta and self.model.deformation is None:
+            from ..deformation import Deformation
+
+            try:
+                self.model.set_deformation(Deformation.from_dict(meta["deformation"]))
+            except UnwindError as exc:
+                self._fail(exc)
+        if "endpoints" in meta and self._ends_layer is None:
+            self._ends_layer = layer
+        if self.scan_layer is None and "session_path" in meta and layer in self._image_layers():
+            self.use_layer(layer)
+
+    def _refresh_layer_combo(self) -> None:
+        layers = self._image_layers()
+        self.layer_combo.blockSignals(True)
+        self.layer_combo.clear()
+        self.layer_combo.addItem("(choose an Image layer)", None)
+        for lyr in layers:
+            self.layer_combo.addItem(lyr.name, lyr)
+        if self.scan_layer is not None and self.scan_layer in layers:
+            self.layer_combo.setCurrentIndex(layers.index(self.scan_layer) + 1)
+        self.layer_combo.blockSignals(False)
+
+    def _on_layer_chosen(self, index: int) -> None:
+        layer = self.layer_combo.itemData(index)
+        if layer is not None and layer is not self.scan_layer:
+            self.use_layer(layer)
+
+    def use_layer(self, layer: Any) -> None:
+        """Make an Image layer the scan."""
+        try:
+            volume = volume_from_layer(layer)
+        except UnwindError as exc:
+            self._fail(exc)
+            return
+        self._set_scan(volume, layer)
+
+    def _set_scan(self, volume: Volume, layer: Any) -> None:
+        changed = self.volume is None or volume.source != self.volume.source or volume.shape != self.volume.shape
+        self.volume, self.scan_layer = volume, layer
+        if changed:
+            self.tree = self.features = self.result = None
+            self.selected, self.seeds = [], {}
+            self._source_info = None
+        self._refresh_layer_combo()
+        unit = unit_label(volume.unit)
+        levels = f", {len(volume.levels)} pyramid levels" if len(volume.levels) > 1 else ""
+        self.scan_info.setText(f"{layer.name}: {_fmt(volume.shape, 6)} voxels of {volume.dtype}{levels}\n"
+                               f"spacing {_fmt(volume.spacing)} {unit}, unit {volume.unit or 'not recorded'}\n"
+                               f"source {volume.source or '(not from a file: saving a session needs one)'}")
+        if _spacing_missing(volume):
+            self.scan_warning.setText("Spacing missing: the scan records no voxel size, 1 x 1 x 1 is assumed and "
+                                      "every length is in voxels. Open a format that stores it (OME-Zarr, NRRD, "
+                                      "NIfTI) or set the layer's scale before segmenting.")
+            self.scan_warning.show()
+        else:
+            self.scan_warning.hide()
+        self._say(f"scan: {layer.name}")
+        self._update_needs()
+
+    def _open_dialog(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Open a scan")
+        if path:
+            self.open_scan(path)
+
+    def open_scan(self, path: str | os.PathLike, *, then: Callable[[], Any] | None = None) -> Job | None:
+        """Open a scan file (lazily, in a worker) and add it as an Image layer; it becomes the scan."""
+        from ._layers import image_layer
+
+        def make() -> Generator[Progress, None, Volume]:
+            yield Progress("open", 0, 1, str(path))
+            volume = open_volume(path)
+            yield Progress("open", 1, 1)
+            return volume
+
+        def done(volume: Volume) -> None:
+            layer = self._add_layer(image_layer(volume))
+            self._set_scan(volume, layer)
+            if then is not None:
+                then()
+
+        return self._start(make, "opening the scan", done)
+
+    def _add_layer(self, layer_tuple: tuple) -> Any:
+        from napari.layers import Layer
+
+        layer = Layer.create(*layer_tuple)
+        self.viewer.add_layer(layer)
+        return layer
+
+    def _put_layer(self, attr: str, layer_tuple: tuple) -> Any:
+        """Update the dock's layer ``attr`` with new data and geometry, or add it when it is gone."""
+        data, meta, _ = layer_tuple
+        layer = getattr(self, attr)
+        if layer is not None and layer in self.viewer.layers:
+            layer.data = data
+            for key in ("scale", "translate"):
+                if key in meta:
+                    setattr(layer, key, meta[key])
+        else:
+            layer = self._add_layer(layer_tuple)
+            setattr(self, attr, layer)
+        return layer
+
+    # ==============================================================================================================
+    # segment
+    # ==============================================================================================================
+    def segment(self) -> Job | None:
+        """Build the join tree of the scan in a worker; then show the features (slider value)."""
+        if self.volume is None:
+            self._fail(InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)"))
+            return None
+        from ..segmentation import join_tree_iter
+
+        volume = self.volume
+        return self._start(lambda: join_tree_iter(volume), "building the join tree", self._tree_ready)
+
+    def _tree_ready(self, tree: Any) -> None:
+        from ..segmentation import MAX_FEATURES
+
+        self.tree = tree
+        top = max(1, min(MAX_FEATURES, int(tree.n_maxima)))
+        pending = self._pending_segmentation
+        k = pending.k if pending is not None and pending.k else min(self.count_slider.value(), top)
+        self.count_slider.blockSignals(True)
+        self.count_slider.setRange(1, top)
+        self.count_slider.setValue(min(k, top))
+        self.count_slider.blockSignals(False)
+        self.count_slider.setEnabled(True)
+        self.set_feature_count(min(k, top))
+        if pending is not None:
+            self._pending_segmentation = None
+            seeds = [tuple(p) for p in pending.seeds]
+            ids = list(pending.selected)
+            if ids:
+                self.select_features(ids, seeds=dict(zip(ids, seeds)) if len(seeds) == len(ids) else None)
+            elif seeds:
+                self.select_features(list(self.features.ids_at(seeds)), seeds=None)
+
+    def set_feature_count(self, k: int) -> None:
+        """Re-simplify the tree to ``k`` features (milliseconds, no rebuild); the selection follows its clicks."""
+        self.count_label.setText(str(int(k)))
+        if self.tree is None:
+            return
+        try:
+            self.features = self.tree.simplify(int(k))
+        except UnwindError as exc:
+            self._fail(exc)
+            return
+        f = self.features
+        self._put_layer("_features_layer", self._labels_tuple(f.labels, "features", opacity=0.4))
+        self._features_layer.metadata["napari_unwind"] = {"features": True}
+        if self._on_features_click not in self._features_layer.mouse_drag_callbacks:
+            self._features_layer.mouse_drag_callbacks.append(self._on_features_click)
+        self._fill_table()
+        # the clicked points choose again among the new features
+        seeds = dict(self.seeds)
+        ids: list[int] = []
+        new_seeds: dict[int, tuple] = {}
+        for p in seeds.values():
+            i = int(self.features.ids_at([p])[0])
+            if i:
+                ids.append(i)
+                new_seeds[i] = p
+        self.select_features(ids, seeds=new_seeds)
+        self._say(f"{f.k} features (level {f.level}, {_fmt(f.shape, 6)} working voxels)")
+
+    def _labels_tuple(self, labels: np.ndarray, name: str, **kwargs: Any) -> tuple:
+        from ._layers import labels_layer
+
+        f = self.features
+        return labels_layer(labels, spacing=f.spacing, unit=f.unit, name=name,
+                            translate=tuple(float(o) for o in f.working_origin), **kwargs)
+
+    def _fill_table(self) -> None:
+        f = self.features
+        self._syncing = True
+        self.table.setRowCount(len(f.stats))
+        for row, st in enumerate(f.stats):
+            values = (st.id, st.voxel_count, f"{st.elongation:.2f}", f"{st.persistence:.4g}", f"{st.threshold:.4g}",
+                      "yes" if st.touches_border else "", "yes" if st.container else "")
+            for col, v in enumerate(values):
+                item = QTableWidgetItem(str(v))
+                item.setData(Qt.ItemDataRole.UserRole, int(st.id))
+                self.table.setItem(row, col, item)
+        self.table.resizeColumnsToContents()
+        self._syncing = False
+
+    def _on_features_click(self, layer: Any, event: Any) -> Generator[None, None, None]:
+        """Mouse callback of the features layer: a click (no drag) selects the feature under it; shift adds."""
+        if event.type != "mouse_press":
+            return
+        yield
+        dragged = False
+        while event.type == "mouse_move":
+            dragged = True
+            yield
+        if not dragged:
+            self.pick(event.position, view_direction=getattr(event, "view_direction", None),
+                      dims_displayed=getattr(event, "dims_displayed", None),
+                      add="Shift" in {str(getattr(m, "name", m)) for m in (event.modifiers or ())})
+
+    def pick(self, position: Any, *, view_direction: Any = None, dims_displayed: Any = None,
+             add: bool = False) -> int:
+        """Select the feature at a world position (2D: the point; 3D: along the view ray); return its id (0: none)."""
+        layer = self._features_layer
+        if self.features is None or layer is None:
+            return 0
+        ndisp = 0 if dims_displayed is None else len(dims_displayed)
+        value = layer.get_value(position, view_direction=view_direction if ndisp == 3 else None,
+                                dims_displayed=list(dims_displayed) if ndisp == 3 else None, world=True)
+        fid = int(value) if value is not None else 0
+        if fid == 0:
+            self._say("no feature there (background): click on a coloured feature")
+            return 0
+        st = self.features.stat(fid)
+        if ndisp == 3:  # the ray's hit is not a point: take the feature's maximum as its seed
+            seed = tuple(float(c) for c in st.max_position_full)
+        else:
+            vox = (np.asarray(position, dtype=float)[-3:] - np.asarray(self.volume.origin)) / np.asarray(
+                self.volume.spacing)
+            seed = tuple(float(c) for c in vox)
+        ids = list(self.selected) if add else []
+        seeds = {i: self.seeds[i] for i in ids if i in self.seeds}
+        if fid not in ids:
+            ids.append(fid)
+        seeds[fid] = seed
+        self.select_features(ids, seeds=seeds)
+        return fid
+
+    def select_features(self, ids: list[int], *, seeds: dict[int, tuple] | None = None) -> None:
+        """Set the selection (feature ids of the current segmentation); shown in the table and the layer."""
+        f = self.features
+        if f is None:
+            return
+        ids = sorted({int(i) for i in ids if int(i) != 0})
+        for i in ids:
+            f.stat(i)  # raises for an unknown id
+        if seeds is None:
+            seeds = {i: tuple(float(c) for c in f.stat(i).max_position_full) for i in ids}
+        self.selected = ids
+        self.seeds = {i: seeds.get(i, tuple(float(c) for c in f.stat(i).max_position_full)) for i in ids}
+        labels = np.where(np.isin(f.labels, ids), f.labels, 0).astype(f.labels.dtype)
+        self._put_layer("_selection_layer", self._labels_tuple(labels, "selection", opacity=0.8, blending="additive"))
+        self._syncing = True
+        self.table.clearSelection()
+        self.table.setSelectionMode(QAbstractItemView.SelectionMode.MultiSelection)
+        for row in range(self.table.rowCount()):
+            if self.table.item(row, 0).data(Qt.ItemDataRole.UserRole) in ids:
+                self.table.selectRow(row)
+        self.table.setSelectionMode(QAbstractItemView.SelectionMode.ExtendedSelection)
+        self._syncing = False
+        self.selection_label.setText(f"selected: {', '.join(map(str, ids))}" if ids else
+                                     "selected: none (click a feature; shift-click adds)")
+        if self._features_layer is not None and self._features_layer in self.viewer.layers:
+            self.viewer.layers.selection.active = self._features_layer  # clicks keep reaching its callback
+        self._update_needs()
+
+    def _on_table_selection(self) -> None:
+        if self._syncing or self.features is None:
+            return
+        rows = {i.row() for i in self.table.selectedItems()}
+        ids = [self.table.item(r, 0).data(Qt.ItemDataRole.UserRole) for r in rows]
+        self.select_features(ids, seeds={i: s for i, s in self.seeds.items() if i in ids})
+
+    def mask(self) -> Any:
+        """The selected features at full resolution (lazy dask bool array)."""
+        from ..segmentation import refine_mask, select
+
+        if self.features is None or not self.selected:
+            raise InvalidInputError("no feature is selected: segment the scan and click the specimen (step 2)")
+        working = select(self.features, ids=self.selected)
+        return refine_mask(self.volume, working, features=self.features)
+
+    # ==============================================================================================================
+    # ends
+    # ==============================================================================================================
+    def suggest_ends(self) -> Job | None:
+        """Suggest head and tail on the selection's mask (in a worker) and show them in the "ends" layer."""
+        from ..skeleton import suggest_endpoints
+
+        try:
+            mask = self.mask()
+        except UnwindError as exc:
+            self._fail(exc)
+            return None
+        volume = self.volume
+
+        def make() -> Generator[Progress, None, tuple]:
+            yield Progress("mask", 0, 1, "full resolution")
+            full = np.asarray(mask.compute())
+            yield Progress("ends", 0, 1, "longest geodesic")
+            ends = suggest_endpoints(full, spacing=volume.spacing, volume=volume.data)
+            yield Progress("ends", 1, 1)
+            return ends
+
+        return self._start(make, "suggesting the ends", lambda ends: self.set_ends(list(ends)))
+
+    def set_ends(self, voxels: list, roles: list[str] | None = None) -> Any:
+        """Show ends (full-resolution voxel coordinates, head first) in the "ends" Points layer."""
+        pts = np.asarray(voxels, dtype=float).reshape(-1, 3)
+        world = pts * np.asarray(self.volume.spacing) + np.asarray(self.volume.origin)
+        if roles is None:
+            roles = ["head" if i == 0 else "tail" if i == len(pts) - 1 else f"point {i + 1}" for i in range(len(pts))]
+        size = float(4 * max(self.volume.spacing))
+        if self._ends_layer is not None and self._ends_layer in self.viewer.layers:
+            self._ends_layer.data = world
+            self._ends_layer.features = {"end": roles}
+        else:
+            self._ends_layer = self._add_layer((world, {"name": "ends", "features": {"end": roles}, "size": size,
+                                                        "face_color": "yellow", "text": {"string": "{end}"}},
+                                                "points"))
+        self._ends_layer.mode = "select"
+        self.viewer.layers.selection.active = self._ends_layer
+        self._update_needs()
+        return self._ends_layer
+
+    def endpoints(self) -> Any:
+        """The ends layer's points as an :class:`~napari_unwind.session.Endpoints` (None: no ends layer).
+
+        Two points are head and tail; more are read in order as a chain: the start and end of each part.
+        """
+        from ..session import Endpoints
+
+        layer = self._ends_layer
+        if layer is None or layer not in self.viewer.layers or len(layer.data) == 0:
+            return None
+        world = np.asarray(layer.data, dtype=float)[:, -3:]
+        vox = [tuple(float(c) for c in p) for p in
+               (world - np.asarray(self.volume.origin)) / np.asarray(self.volume.spacing)]
+        if len(vox) == 2:
+            return Endpoints(head=vox[0], tail=vox[1])
+        if len(vox) < 2 or len(vox) % 2:
+            raise InvalidInputError(f"the ends layer has {len(vox)} point(s); give 2 (head, tail) or, for a specimen "
+                                    "in pieces, an even number: the start and end of each part, head to tail")
+        chain = tuple((vox[i], vox[i + 1]) for i in range(0, len(vox), 2))
+        return Endpoints(head=vox[0], tail=vox[-1], chain=chain)
+
+    # ==============================================================================================================
+    # skeleton
+    # ==============================================================================================================
+    def run_skeleton(self) -> Job | None:
+        """Estimate the deformation of the selection in a worker (progress, Cancel); the model gets it."""
+        from ..skeleton import estimate_deformation_iter
+
+        try:
+            mask = self.mask()
+            ends = self.endpoints()
+        except UnwindError as exc:
+            self._fail(exc)
+            return None
+        volume = self.volume
+        self.skeleton_report.setPlainText("computing...")
+
+        def make() -> Generator[Progress, None, Any]:
+            return estimate_deformation_iter(mask, ends, spacing=volume.spacing, origin=volume.origin,
+                                             unit=volume.unit, volume=volume.data)
+
+        return self._start(make, "computing the skeleton", self._skeleton_ready, (self.skeleton_cancel,))
+
+    def _skeleton_ready(self, result: Any) -> None:
+        self.result = result
+        d = result.deformation
+        lines = [f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes"
+                 + (" (suggested ends)" if result.suggested else ""), result.report()]
+        folds = d.folds()
+        if folds:
+            lines.append("FOLDS at s = " + ", ".join(f"{a:.4g}..{b:.4g}" for a, b in folds)
+                         + f" ({100 * result.folded:.2g} % of the mask): edit the keyframes there (Refine)")
+        lines += [f"warning: {w}" for w in result.warnings]
+        self.skeleton_report.setPlainText("\n".join(lines))
+        if result.endpoints is not None and self._ends_layer is None:
+            self._show_session_ends(result.endpoints)
+        self.model.set_deformation(d)
+        self._say("skeleton done" + (" with warnings (see Skeleton)" if result.warnings or folds else ""))
+
+    def _show_session_ends(self, ends: Any) -> None:
+        if ends.chain:
+            pts = [p for pair in ends.chain for p in pair]
+        else:
+            pts = [ends.head, ends.tail]
+        self.set_ends(pts)
+
+    def _on_deformation_changed(self, d: Any) -> None:
+        self._update_needs()
+
+    # ==============================================================================================================
+    # export
+    # ==============================================================================================================
+    def _on_format_chosen(self, index: int) -> None:
+        from ..io._formats import _suffix
+
+        suffix = self.format_combo.itemData(index)
+        text = self.path_edit.text().strip() or "straight"
+        path = Path(text)
+        try:
+            old = _suffix(path)
+        except Exception:  # noqa: BLE001 - any name without a known suffix
+            old = ""
+        stem = path.name[: len(path.name) - len(old)] if old and path.name.lower().endswith(old) else path.name
+        self.path_edit.setText(str(path.with_name(stem + suffix)))
+
+    def _on_path_edited(self, text: str) -> None:
+        for i in range(self.format_combo.count()):
+            if text.lower().endswith(self.format_combo.itemData(i)):
+                self.format_combo.setCurrentIndex(i)
+                return
+
+    def _export_dialog(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Export the straight volume", self.path_edit.text(),
+                                              options=QFileDialog.Option.DontConfirmOverwrite)
+        if path:
+            self.path_edit.setText(path)
+
+    def confirm_overwrite(self, path: Path) -> bool:
+        """Ask before replacing an existing file (saving is explicit, never on close)."""
+        answer = QMessageBox.question(self, "Replace?", f"{path} exists. Replace it with the new export?",
+                                      QMessageBox.StandardButton.Yes | QMessageBox.StandardButton.No,
+                                      QMessageBox.StandardButton.No)
+        return answer == QMessageBox.StandardButton.Yes
+
+    def export(self, path: str | os.PathLike) -> Job | None:
+        """Straighten the scan with the model's deformation and write ``path`` (worker, progress, Cancel); the
+        written file opens as a layer."""
+        from ..io._formats import output_format
+        from ..warp import export_iter
+
+        try:
+            if self.volume is None:
+                raise InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)")
+            if self.model.deformation is None:
+                raise InvalidInputError("there is no deformation yet: compute the skeleton (step 4) or open a session")
+            if not str(path).strip():
+                raise InvalidInputError("give the export's path (its suffix names the format, e.g. straight.nrrd)")
+            target = Path(path).expanduser()
+            output_format(target)
+        except UnwindError as exc:
+            self._fail(exc)
+            return None
+        overwrite = False
+        if target.exists():
+            if not self.confirm_overwrite(target):
+                self._say(f"not exported: {target} was kept")
+                return None
+            overwrite = True
+        volume, d = self.volume, self.model.deformation
+        spacing = self.spacing_box.value() or None
+        order = int(self.order_combo.currentData())
+        pad = int(self.pad_box.value())
+        session = self._session_dict()
+
+        def make() -> Generator[Progress, None, Any]:
+            return export_iter(volume, d, target, order=order, spacing=spacing, pad=pad, overwrite=overwrite,
+                               session=session)
+
+        def done(written: Any) -> None:
+            from ._layers import image_layer
+
+            self.exported = Path(written)
+            self._add_layer(image_layer(open_volume(written), name=f"straight {self.exported.name}"))
+            self.export_info.setText(f"written: {self.exported}")
+            self._say(f"exported to {self.exported}")
+
+        return self._start(make, "exporting", done, (self.export_cancel,))
+
+    # ==============================================================================================================
+    # session
+    # ==============================================================================================================
+    def _session_dict(self) -> dict | None:
+        if self._source_info is None:
+            return None
+        try:
+            return self._session(self._source_info).to_dict()
+        except UnwindError:
+            return None
+
+    def _session(self, source: Any) -> Any:
+        from ..session import Segmentation, Session
+
+        seg = None
+        if self.features is not None and self.selected:
+            seg = Segmentation(k=self.features.k, level=self.features.level, selected=tuple(self.selected),
+                               seeds=tuple(self.seeds[i] for i in self.selected))
+        return Session(source=source, deformation=self.model.deformation, segmentation=seg,
+                       endpoints=self.endpoints(), notes="napari-unwind dock")
+
+    def _save_dialog(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Save the session", "", "Sessions (*.unwind.json)")
+        if path:
+            self.save_session(path)
+
+    def _load_dialog(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Open a session", "", "Sessions (*.unwind.json)")
+        if path:
+            self.load_session(path)
+
+    def save_session(self, path: str | os.PathLike) -> Job | None:
+        """Save the current state as a session (the scan's checksum is computed once, in a worker)."""
+        from ..session import SourceInfo, save_session
+
+        volume = self.volume
+        try:
+            if volume is None:
+                raise InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)")
+            if not volume.source or not Path(volume.source).exists():
+                raise InvalidInputError(f"the scan {self.scan_layer.name!r} was not opened from a file, and a session "
+                                        "records the scan's file: save the layer (File > Save Selected Layers), "
+                                        "then open that file here")
+            self._session(SourceInfo(path=volume.source, shape=volume.shape, dtype=volume.dtype.name,
+                                     spacing=volume.spacing))  # checks selection and ends before hashing
+        except UnwindError as exc:
+            self._fail(exc)
+            return None
+        known = self._source_info
+
+        def make() -> Generator[Progress, None, Any]:
+            if known is not None:
+                return known
+            yield Progress("checksum", 0, 1, volume.source)
+            info = SourceInfo.from_path(volume.source, volume=volume)  # reads every byte once
+            yield Progress("checksum", 1, 1)
+            return info
+
+        def done(source: Any) -> None:
+            self._source_info = source
+            written = save_session(self._session(source), path)
+            self.session_info.setText(f"saved: {written}")
+            self._say(f"session saved to {written}")
+
+        return self._start(make, "saving the session", done)
+
+    def load_session(self, path: str | os.PathLike) -> Job | None:
+        """Open a session: its scan (a layer), the ends, the deformation, and the selection (the join tree is
+        rebuilt in a worker, then the recorded features are selected)."""
+        from ..session import load_session
+
+        try:
+            session = load_session(path)
+        except (UnwindError, FileNotFoundError) as exc:
+            self._fail(exc)
+            return None
+        src = session.source
+
+        def make() -> Generator[Progress, None, Volume]:
+            yield Progress("open", 0, 1, src.path)
+            if not Path(src.path).exists():
+                raise InvalidInputError(f"the session's scan is missing: expected at {src.path}; put it back or "
+                                        "correct \"source\" -> \"path\" in the session file")
+            volume = open_volume(src.path)
+            if volume.shape != tuple(src.shape):
+                raise InvalidInputError(f"the scan at {src.path} holds {volume.shape} voxels, the session's scan "
+                                        f"{tuple(src.shape)}: it is not the scan the session was made from")
+            yield Progress("open", 1, 1)
+            origin = session.deformation.origin if session.deformation is not None else volume.origin
+            return _with_geometry(volume, src.spacing, origin)
+
+        def done(volume: Volume) -> None:
+            from ._layers import image_layer
+
+            layer = self._add_layer(image_layer(volume))
+            self.volume = None
+            self._set_scan(volume, layer)
+            self._source_info = src if src.checksum else None
+            if session.endpoints is not None:
+                self._show_session_ends(session.endpoints)
+            if session.deformation is not None:
+                self.model.set_deformation(session.deformation)
+            seg = session.segmentation
+            if seg is not None and seg.k is not None and (seg.selected or seg.seeds):
+                self._pending_segmentation = seg
+                self.job = None
+                self.segment()
+            self.session_info.setText(f"opened: {Path(path).absolute()}")
+
+        return self._start(make, "opening the session", done)
+
+    # ==============================================================================================================
+    # what each step needs
+    # ==============================================================================================================
+    def _update_needs(self) -> None:
+        scan = self.volume is not None
+        self.segment_need.setText("" if scan else "Needs a scan (step 1).")
+        self.segment_button.setEnabled(scan)
+        sel = bool(self.selected)
+        self.ends_need.setText("" if sel else "Needs a selected feature (step 2).")
+        self.suggest_button.setEnabled(sel)
+        ends = self._ends_layer is not None and self._ends_layer in self.viewer.layers
+        self.ends_info.setText(f"{len(self._ends_layer.data)} point(s) in \"ends\"" if ends else "no ends yet")
+        self.skeleton_need.setText("" if sel else "Needs a selected feature (step 2); the ends (step 3) are "
+                                                  "suggested when there are none.")
+        self.skeleton_button.setEnabled(sel)
+        d = self.model.deformation
+        self.export_need.setText("Needs a scan and a deformation (step 4 or a session)." if d is None or not scan
+                                 else f"deformation: length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes")
+        self.export_button.setEnabled(d is not None and scan)
