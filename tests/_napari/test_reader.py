@@ -131,6 +131,16 @@ def test_session_with_only_a_scan_and_a_chain_of_ends(fish_session, tmp_path):
     np.testing.assert_allclose(_by_type(_read_session(pieces))["image"][1]["translate"], ORIGIN)
 
 
+def test_session_layers_without_the_selection_keep_its_record(fish_session):
+    from napari_unwind._napari._reader import session_layers
+
+    p, path = fish_session
+    session = load_session(path)
+    layers = session_layers(session, session_path=path, selection=False)
+    assert [t for *_, t in layers] == ["image", "points", "shapes"]
+    assert layers[0][1]["metadata"]["napari_unwind"]["segmentation"] == session.segmentation.to_dict()
+
+
 def _moved_source(path, tmp_path, new_source):
     d = json.loads(path.read_text())
     d["source"]["path"] = str(new_source)
