@@ -88,3 +88,17 @@ def test_the_session_reader_is_chosen_for_sessions(manifest, tmp_path):
     readers = [r.command for r in npe2.PluginManager.instance().iter_compatible_readers([str(session)])
                if r.command.startswith("napari-unwind.")]
     assert readers == ["napari-unwind.get_session_reader"]
+
+
+@pytest.mark.gui
+def test_sample_data_opens_the_phantom_and_its_truth(make_napari_viewer):
+    import numpy as np
+
+    from napari_unwind.datasets import fish_phantom
+
+    viewer = make_napari_viewer()
+    viewer.open_sample("napari-unwind", "fish")
+    assert [type(layer).__name__ for layer in viewer.layers] == ["Image", "Labels"]
+    p = fish_phantom()
+    np.testing.assert_array_equal(np.asarray(viewer.layers[0].data), p.volume)
+    np.testing.assert_array_equal(np.asarray(viewer.layers[1].data) > 0, p.mask)
