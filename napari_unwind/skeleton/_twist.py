@@ -10,8 +10,10 @@ Method
 ------
 1. Cross-sections. At each curve point (or at a subset of them, about one per voxel, when the curve is denser)
    the mask is sampled with bilinear interpolation (``scipy.ndimage.map_coordinates``, order 1) on a disc of
-   ``(x, y)`` positions in the plane spanned by ``u`` and ``v``. Samples whose nearest curve point lies farther
-   along the curve than the disc radius belong to another part of the body (a curled specimen) and are dropped.
+   ``(x, y)`` positions in the plane spanned by ``u`` and ``v``. A section is the part of the body connected to
+   its centre: samples whose nearest curve point is not (about) the section's own belong to another part of the
+   body curling through the plane and are dropped, and so is every part of the disc not connected to the centre
+   (another turn of a coil, the tail beside the head), which, far from the centre, would dominate the moments.
    Only the bounding box of the discs is read from the mask, and only that of the samples inside the mask from
    the volume, which is never converted to float as a whole. (With ``radius=None`` the mask's voxels are
    listed once to find the default radius.)
@@ -393,6 +395,37 @@ def _disc(radius: float, vox: float) -> tuple[np.ndarray, np.ndarray, float]:
     return gx[keep], gy[keep], float(g[1] - g[0]) ** 2
 
 
+def _centre_part(w: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """Keep, in each section, only the part of the mask connected to the centre (with its partial-volume rim).
+
+    Other parts of the body that cross the plane (another turn of a coil, the head beside the tail) are not this
+    cross-section, whatever curve point they are nearest to; far from the centre they would dominate the second
+    moments. The part kept is the 8-connected component of ``w >= 0.5`` at the centre, or the one nearest it.
+    """
+    g = np.unique(gx)
+    ix = np.searchsorted(g, gx)
+    iy = np.searchsorted(g, gy)
+    n = len(g)
+    grid = np.zeros((len(w), n, n))
+    grid[:, ix, iy] = w
+    core = grid >= 0.5
+    struct = np.zeros((3, 3, 3), dtype=bool)
+    struct[1] = True  # 8-connected within a section, never across sections
+    labels, count = ndimage.label(core, structure=struct)
+    if count == 0:
+        return w
+    # per section, the label nearest the centre
+    d2 = (g[:, None] ** 2 + g[None, :] ** 2)
+    lab = labels.reshape(len(w), -1)
+    dist = np.where(lab > 0, np.broadcast_to(d2.reshape(1, -1), lab.shape), np.inf)
+    best = np.argmin(dist, axis=1)
+    keep_label = lab[np.arange(len(w)), best]
+    keep = labels == keep_label[:, None, None]
+    keep &= (keep_label > 0)[:, None, None]
+    keep = ndimage.binary_dilation(keep, structure=struct)  # the partial-volume rim around the part
+    return np.where(keep[:, ix, iy], w, 0.0)
+
+
 def _bbox(coords: np.ndarray, shape: Sequence[int]) -> tuple[tuple[slice, ...], np.ndarray] | None:
     """The slices of the voxels a bilinear interpolation at ``coords`` (N, 3) (index units) reads."""
     lo = np.maximum(np.floor(coords.min(axis=0)).astype(int), 0)
@@ -435,12 +468,17 @@ def _sample_sections(
         block = _as_uint8(mask[slices])
         w = ndimage.map_coordinates(block, (flat - lo).T, order=1, mode="constant", cval=0.0, output=np.float32)
         w = w.astype(float).reshape(n_sec, n_smp)
-    # samples nearer another part of the curve (a curled specimen) do not belong to this section
+    # A sample belongs to this section only when this section's curve point is (about) its nearest: within the
+    # radius of curvature every point of the plane is, while a part of the body that curls back through the plane
+    # (a tight coil, a fold of the tail), even a short way along, is nearer its own curve points.
     hit = np.flatnonzero(w.reshape(-1) > 0)
     if len(hit):
         _, j = tree.query(flat[hit] * sp, workers=-1)
-        far = np.abs(s_all[j] - np.repeat(s_all[sec], n_smp)[hit]) > radius
+        step = float(np.median(np.diff(s_all))) if len(s_all) > 1 else 0.0
+        own = max(2.0 * float(sp.max()), 2.0 * step)
+        far = np.abs(s_all[j] - np.repeat(s_all[sec], n_smp)[hit]) > min(own, radius)
         w.reshape(-1)[hit[far]] = 0.0
+    w = _centre_part(w, gx, gy)
     inside = w >= 0.5
     dense = None
     if volume is not None and inside.any():
