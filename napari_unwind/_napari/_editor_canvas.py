@@ -85,6 +85,7 @@ class EditorCanvas:
         self._drawn: tuple[Any, float] | None = None
         self._drag: dict[str, Any] | None = None
         self._fitted = False
+        self._last_scan: Any = None
         self.canvas.events.mouse_press.connect(self._on_press)
         self.canvas.events.mouse_move.connect(self._on_move)
         self.canvas.events.mouse_release.connect(self._on_release)
@@ -152,6 +153,8 @@ class EditorCanvas:
             self.cross, self._drawn = None, None
             self.canvas.update()
             return
+        if scan is not self._last_scan:  # another scan: its own contrast, framed anew
+            self._last_scan, self.clim, self._fitted = scan, None, False
         key = (d, self.model.s)
         if self._drawn is not None and self._drawn[0] is d and self._drawn[1] == key[1] and not force:
             return

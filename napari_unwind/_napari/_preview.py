@@ -63,6 +63,12 @@ class StraightPreview:
         self.computed = 0            # workers run (fewer than requests when edits are coalesced)
         self._worker: Any = None
         self._pending: tuple[int, Any, Deformation] | None = None
+        self._closed = False
+
+    def close(self) -> None:
+        """Stop for good (the dock is going away): queued requests are dropped and a running worker's result too."""
+        self._closed = True
+        self._pending = None
 
     @property
     def idle(self) -> bool:
@@ -78,7 +84,7 @@ class StraightPreview:
         """Recompute for ``deformation`` (the newest request wins)."""
         self.generation += 1
         scan = self._scan()
-        if not self.enabled or deformation is None or scan is None:
+        if self._closed or not self.enabled or deformation is None or scan is None:
             self._pending = None
             return
         job = (self.generation, scan, deformation)
@@ -98,7 +104,7 @@ class StraightPreview:
 
     def _on_returned(self, result: tuple[int, Any, Any, Any, str | None]) -> None:
         gen, array, ds, origin, error = result
-        if gen != self.generation:
+        if gen != self.generation or self._closed:
             return  # stale: a newer edit is queued or running
         if error is not None:
             self.status.emit(f"straight preview: {error}")
