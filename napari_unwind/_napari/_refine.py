@@ -2,9 +2,10 @@
 the bent-view wireframes and the straight preview, all on one :class:`~napari_unwind.editing.EditModel`.
 
 The panel only translates buttons, keys and the strip into model calls; every model event redraws the plane
-(:class:`EditorCanvas`), the bent view's layers (:class:`BentOverlays`) and requests the preview
-(:class:`StraightPreview`). A refused edit (deleting one of the last two keyframes...) shows its one-line message
-under the buttons.
+(:class:`EditorCanvas`) at once, requests the preview (:class:`StraightPreview`, off the UI thread), and updates the
+bent view's layers (:class:`BentOverlays`) and the strip's fold marks as soon as the event loop is free (the updates
+of a drag that arrive in between are drawn once: napari's layer bookkeeping costs ~10 ms per layer update).
+A refused edit (deleting one of the last two keyframes...) shows its one-line message under the buttons.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from qtpy.QtCore import QPointF, QRectF, Qt, Signal
+from qtpy.QtCore import QPointF, QRectF, Qt, QTimer, Signal
 from qtpy.QtGui import QColor, QKeySequence, QPainter, QPen
 from qtpy.QtWidgets import (
     QCheckBox,
@@ -168,6 +169,11 @@ class RefinePanel(QWidget):
             "cancel the drag": self.editor.cancel_drag,
         }
         self._shown: tuple[Any, float, int | None] | None = None
+        self._folds: tuple[Any, list[tuple[float, float]]] = (None, [])
+        self._slow = QTimer(self)
+        self._slow.setSingleShot(True)
+        self._slow.setInterval(0)
+        self._slow.timeout.connect(self._update_slow)
         self._build()
         self._shortcuts = []
         for key, action in self.SHORTCUTS:
@@ -320,6 +326,7 @@ class RefinePanel(QWidget):
     def _on_position(self, *_: Any) -> None:
         d, m = self.model.deformation, self.model
         if d is None:
+            self._slow.stop()
             self.strip.set_state(0.0, 0.0, [], [], None)
             self.position_label.setText("")
             self.overlays.update(None)
@@ -329,14 +336,33 @@ class RefinePanel(QWidget):
         if self._shown is not None and self._shown[0] is d and self._shown[1:] == key[1:]:
             return  # a gesture update sends both events: draw once
         self._shown = key
-        self.strip.set_state(d.length, m.s, d.knots, m.folds(), m.keyframe)
-        unit = unit_label(d.unit)
-        where = f"keyframe {m.keyframe + 1} of {len(d)}" if m.keyframe is not None else "between keyframes"
-        folds = f"; folds at {len(m.folds())} place(s), in red" if m.folds() else ""
-        self.position_label.setText(f"s = {m.s:.4g} of {d.length:.4g} {unit}, {where}{folds}")
+        folds = self._folds[1] if self._folds[0] is d else self.strip.folds
+        self.strip.set_state(d.length, m.s, d.knots, folds, m.keyframe)
+        self._label(d, folds)
         self.delete_button.setEnabled(m.keyframe is not None and len(d) > 2)
         self.add_button.setEnabled(m.keyframe is None)
+        self._slow.start()  # the folds and the wireframes once the event loop is free (a drag's updates coalesce)
+
+    @property
+    def pending(self) -> bool:
+        """True while the folds and the bent-view wireframes wait for the event loop."""
+        return self._slow.isActive()
+
+    def _update_slow(self) -> None:
+        d, m = self.model.deformation, self.model
+        if d is None:
+            return
+        if self._folds[0] is not d:
+            self._folds = (d, m.folds())
+            self.strip.set_state(d.length, m.s, d.knots, self._folds[1], m.keyframe)
+            self._label(d, self._folds[1])
         self.overlays.update(d, m.s, m.keyframe)
+
+    def _label(self, d: Any, folds: list[tuple[float, float]]) -> None:
+        m = self.model
+        where = f"keyframe {m.keyframe + 1} of {len(d)}" if m.keyframe is not None else "between keyframes"
+        text = f"; folds at {len(folds)} place(s), in red" if folds else ""
+        self.position_label.setText(f"s = {m.s:.4g} of {d.length:.4g} {unit_label(d.unit)}, {where}{text}")
 
     def _on_history(self, can_undo: bool, can_redo: bool) -> None:
         self.undo_button.setEnabled(bool(can_undo))

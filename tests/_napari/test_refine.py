@@ -77,6 +77,7 @@ def test_the_bent_view_layers_follow_every_edit(panel, qtbot):
     for name in (CURVE, FRAMES, CAGE):
         assert name in viewer.layers
     model.move(2.0, -1.5)
+    qtbot.waitUntil(lambda: not p.pending)  # the wireframes follow once the event loop is free
     k = model.deformation.keyframes[2]
     # the cage's wireframe holds the moved keyframe's corners (computed here from its position, frame and bounds)
     starts = viewer.layers[CAGE].data[:, 0]
