@@ -195,3 +195,38 @@ def test_render_shows_the_cage_where_the_model_says(editor, qtbot):
     for r in (r_lo, r_hi):
         seen = (amber & near_row(r)).any(axis=0)[int(c_lo) + 3:int(c_hi) - 3]
         assert seen.all()
+
+
+def test_the_chunk_cache_reads_what_numpy_slicing_reads():
+    import dask.array as da
+
+    from napari_unwind._napari._editor_canvas import _ChunkCache
+
+    rng = np.random.default_rng(5)
+    a = rng.integers(0, 60000, (37, 41, 29)).astype(np.uint16)
+    reader = _ChunkCache(da.from_array(a, chunks=((10, 20, 7), (5, 30, 6), (29,))), max_bytes=3 * 10 * 30 * 29 * 2)
+    for _ in range(60):
+        lo = rng.integers(0, (36, 40, 28))
+        hi = lo + 1 + rng.integers(0, np.array(a.shape) - lo)
+        box = tuple(slice(int(x), int(y)) for x, y in zip(lo, hi, strict=True))
+        got = reader[box]
+        assert got.dtype == a.dtype
+        np.testing.assert_array_equal(got, a[box])
+    assert reader._bytes <= reader.max_bytes or len(reader._blocks) == 1
+
+
+def test_the_plane_of_a_lazy_scan_is_the_plane_of_the_array(qtbot):
+    import dask.array as da
+
+    from napari_unwind.editing import cross_section
+    from napari_unwind.io import Volume
+
+    rng = np.random.default_rng(6)
+    scan = ndimage.gaussian_filter(rng.random((72, 72, 64)).astype(np.float32), 2.0) * 100
+    model = EditModel(bent_deformation())
+    model.select_keyframe(3)
+    ed = EditorCanvas(model, lambda: Volume(da.from_array(scan, chunks=(20, 33, 17))), size=(200, 200))
+    qtbot.addWidget(ed.native)
+    for angle in (0.0, 0.4, 1.1):
+        model.twist(angle)
+        np.testing.assert_array_equal(ed.cross.image, cross_section(scan, model.deformation, model.s).image)
