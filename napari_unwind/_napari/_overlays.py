@@ -100,8 +100,11 @@ class BentOverlays:
             layer.data = data
             layer.edge_color = colors
         else:
+            active = layers.selection.active  # adding a layer selects it: keep the user's selection
             self.viewer.add_vectors(data, name=name, edge_color=colors, edge_width=width, vector_style="line",
                                     metadata={"napari_unwind": {"overlay": True}})
+            if active is not None and active in layers:
+                layers.selection.active = active
 
     def update(self, d: Deformation | None, s: float | None = None, keyframe: int | None = None) -> None:
         """Redraw for deformation ``d`` at position ``s`` with keyframe ``keyframe`` selected (None: remove)."""

@@ -123,8 +123,12 @@ class StraightPreview:
         layer = self.layer
         scale = (ds, ds, ds)
         if layer is None:
+            layers = self.viewer.layers
+            active = layers.selection.active  # adding a layer selects it: keep the user's selection
             self.viewer.add_image(array, name=PREVIEW_NAME, scale=scale, translate=origin,
                                   metadata={"napari_unwind": {"preview": True}})
+            if active is not None and active in layers:
+                layers.selection.active = active
             return
         layer.data = array
         layer.scale = scale

@@ -179,3 +179,18 @@ def test_every_action_of_the_shortcut_list_exists():
     keys = [k for k, _ in RefinePanel.SHORTCUTS if "drag" not in k]
     assert len(keys) == len(set(keys))
     assert "undo" in names and "redo" in names and mouse
+
+
+def test_the_wireframes_and_preview_leave_the_users_layer_selected(make_napari_viewer, qtbot):
+    rng = np.random.default_rng(3)
+    scan = ndimage.gaussian_filter(rng.random((72, 72, 64)).astype(np.float32), 2.0) * 100
+    viewer = make_napari_viewer()
+    viewer.add_image(scan, name="scan")
+    ends = viewer.add_points(np.array([[12.0, 10.0, 30.0]]), name="ends")
+    model = EditModel()
+    p = RefinePanel(viewer, model, lambda: Volume(da.from_array(scan)))
+    p.preview.min_across = 4
+    qtbot.addWidget(p)
+    model.set_deformation(bent_deformation())
+    qtbot.waitUntil(lambda: not p.pending and p.preview.idle and p.preview.layer is not None, timeout=20000)
+    assert CAGE in viewer.layers and viewer.layers.selection.active is ends
