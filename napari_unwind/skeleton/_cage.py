@@ -41,6 +41,7 @@ __all__ = ["propose_cage", "fit_cages"]
 
 _STRUCT26 = np.ones((3, 3, 3), dtype=bool)
 _SPECK_FRACTION = 1e-3  # parts smaller than this fraction of the mask are ignored
+_OTHER_FRACTION = 0.1  # a separate part the curve misses, this large against the specimen, is another specimen
 
 
 def _nonneg(name: str, value: Any) -> float:
@@ -125,7 +126,7 @@ def _sections(arr: np.ndarray, pts: np.ndarray, fr: np.ndarray, sp: np.ndarray
     Returns ``t`` (the curve parameter of each dense point: original index, fractional between points), ``j``
     (each voxel's dense point), ``x, y, z`` and the index of the last dense point.
     """
-    vox_idx = _boundary_voxels(arr)
+    vox_idx = _boundary_voxels(arr, pts / sp)
     if len(vox_idx) == 0:
         raise InvalidInputError("the mask is empty: there is no specimen to fit a cage around; check the segmentation")
     p = vox_idx * sp
@@ -200,8 +201,14 @@ def fit_cages(
     return out * (1.0 + margin) + sign * min_margin
 
 
-def _boundary_voxels(mask: np.ndarray) -> np.ndarray:
-    """Index coordinates (N, 3) of the mask voxels with a face neighbour outside, specks removed."""
+def _boundary_voxels(mask: np.ndarray, curve_vox: np.ndarray | None = None) -> np.ndarray:
+    """Index coordinates (N, 3) of the mask voxels with a face neighbour outside, specks removed.
+
+    With ``curve_vox`` (curve points, voxel indices), a separate part of the mask that the curve does not run through
+    (nor, for a stretch of curve outside the mask, lies nearest to) is dropped when it holds at least 10 % as many
+    voxels as the parts the curve runs through: that is another specimen, not this one's cross-section, whichever
+    curve point it is nearest to. Smaller separate parts (a fin the segmentation broke off) are kept.
+    """
     sl = []
     for ax in range(3):
         other = tuple(a for a in range(3) if a != ax)
@@ -214,9 +221,30 @@ def _boundary_voxels(mask: np.ndarray) -> np.ndarray:
     if n > 1:
         sizes = np.bincount(labels.reshape(-1), minlength=n + 1)
         sizes[0] = 0
-        small = sizes < _SPECK_FRACTION * sizes.sum()
-        small[0] = True
-        crop = ~small[labels]
+        drop = sizes < _SPECK_FRACTION * sizes.sum()
+        if curve_vox is not None and len(curve_vox):
+            lo = np.array([x.start for x in sl])
+            idx = np.round(np.asarray(curve_vox, dtype=float)).astype(int) - lo
+            ok = ((idx >= 0) & (idx < np.asarray(crop.shape))).all(axis=1)
+            on = labels[tuple(idx[ok].T)] if ok.any() else np.zeros(0, dtype=labels.dtype)
+            touched = np.unique(on[on > 0])
+            if len(touched) == 0 or (~ok).any() or (on == 0).any():
+                # parts of the curve outside the mask (a gap, an end snapped beside it): the part nearest them
+                _, near = ndimage.distance_transform_edt(labels == 0, return_indices=True)
+                off = idx[ok][on == 0] if ok.any() else np.zeros((0, 3), dtype=int)
+                clipped = np.clip(idx[~ok], 0, np.asarray(crop.shape) - 1)
+                pts = np.concatenate([off, clipped]) if len(clipped) else off
+                if len(pts):
+                    nearest = labels[tuple(near[:, pts[:, 0], pts[:, 1], pts[:, 2]])]
+                    touched = np.union1d(touched, nearest[nearest > 0])
+            keep = np.zeros(n + 1, dtype=bool)
+            keep[touched] = True
+            # a detached part much smaller than the specimen (a fin the segmentation broke off) is kept; one of
+            # comparable size is another specimen
+            keep |= sizes < _OTHER_FRACTION * sizes[touched].sum()
+            drop |= ~keep
+        drop[0] = True
+        crop = ~drop[labels]
     inner = ndimage.binary_erosion(np.pad(crop, 1))[1:-1, 1:-1, 1:-1]
     edge = crop & ~inner
     return np.argwhere(edge) + np.array([s.start for s in sl])

@@ -118,3 +118,23 @@ def test_validation():
         propose_cage(ph.mask, pts, frames, spacing=ph.spacing, end_margin=float("nan"))
     with pytest.raises(InvalidInputError, match="spacing"):
         propose_cage(ph.mask, pts, frames, spacing=(1.0, 1.0))
+
+
+def test_another_specimen_in_the_mask_does_not_widen_the_cage():
+    """Issue 10: the cage holds the body the curve runs through, not a neighbouring specimen the mask also holds
+    (its voxels are nearest to this curve's points all the same)."""
+    ph = _fish("s-bend")
+    pts, frames = ph.centerline_physical[::2], ph.frames[::2]
+    clean = propose_cage(ph.mask, pts, frames, spacing=ph.spacing)
+    # a second specimen: the fish's own body, 40 % of it, moved beside it along axis2, touching nothing
+    other = np.zeros_like(ph.mask)
+    body = np.argwhere(ph.mask)
+    part = body[body[:, 0] < np.percentile(body[:, 0], 40)]
+    shift = int(part[:, 2].max() - body[:, 2].min()) + 3
+    pad = np.zeros((ph.mask.shape[0], ph.mask.shape[1], shift + 3), dtype=bool)
+    both = np.concatenate([ph.mask, pad], axis=2)
+    other = np.zeros_like(both)
+    other[part[:, 0], part[:, 1], part[:, 2] + shift] = True
+    assert not (other & both).any() and other.sum() > 0.1 * ph.mask.sum()
+    with_other = propose_cage(both | other, pts, frames, spacing=ph.spacing)
+    assert (*with_other[0], *with_other[1]) == pytest.approx((*clean[0], *clean[1]))
