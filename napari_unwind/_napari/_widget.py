@@ -65,7 +65,7 @@ from ..errors import InvalidInputError, UnwindError
 from ..io import Volume, open_volume
 from ..io._volume import normalise_unit, unit_label
 from ..progress import Progress
-from ._workers import Job, JobCancelled, start_job
+from ._workers import Job, JobCancelled, start_job, start_process_job
 
 __all__ = ["UnwindWidget", "volume_from_layer"]
 
@@ -384,8 +384,10 @@ class UnwindWidget(QWidget):
     # ==============================================================================================================
     # jobs and messages
     # ==============================================================================================================
-    def _start(self, make: Callable[[], Generator[Progress, None, Any]], label: str,
-               on_returned: Callable[[Any], Any], cancel_buttons: tuple = ()) -> Job | None:
+    def _start(self, make: Callable[[], Generator[Progress, None, Any]] | None, label: str,
+               on_returned: Callable[[Any], Any], cancel_buttons: tuple = (), *,
+               process: tuple | None = None) -> Job | None:
+        """Start a job: ``make()`` in a thread worker, or ``process = (fn, args, kwargs)`` in a child process."""
         if self.job is not None and self.job.running:
             self._fail(InvalidInputError(f"{self.job.label} is still running: wait for it or cancel it first"))
             return None
@@ -404,7 +406,11 @@ class UnwindWidget(QWidget):
             self._update_needs()
 
         self._say(f"{label}...")
-        self.job = start_job(make, label=label, on_returned=returned, on_error=self._fail, on_finished=finished)
+        callbacks = dict(label=label, on_returned=returned, on_error=self._fail, on_finished=finished)
+        if process is not None:
+            self.job = start_process_job(*process, **callbacks)
+        else:
+            self.job = start_job(make, **callbacks)
         return self.job
 
     def cancel(self) -> None:
@@ -802,12 +808,11 @@ class UnwindWidget(QWidget):
             return None
         volume = self.volume
         self.skeleton_report.setPlainText("computing...")
-
-        def make() -> Generator[Progress, None, Any]:
-            return estimate_deformation_iter(mask, ends, spacing=volume.spacing, origin=volume.origin,
-                                             unit=volume.unit, volume=volume.data)
-
-        return self._start(make, "computing the skeleton", self._skeleton_ready, (self.skeleton_cancel,))
+        # in a child process: the tet mesher holds the GIL for seconds, which would freeze a thread worker's UI
+        return self._start(None, "computing the skeleton", self._skeleton_ready, (self.skeleton_cancel,),
+                           process=(estimate_deformation_iter, (mask, ends),
+                                    dict(spacing=volume.spacing, origin=volume.origin, unit=volume.unit,
+                                         volume=volume.data)))
 
     def _skeleton_ready(self, result: Any) -> None:
         self.result = result

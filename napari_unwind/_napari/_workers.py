@@ -7,21 +7,33 @@ The core's long jobs are generators that yield :class:`~napari_unwind.progress.P
 blocks and the atomic writers' clean-up run) and the job ends with :class:`JobCancelled`. The shape follows
 stardist-napari's ``plugin_function_generator``: the worker yields progress, the widget connects ``yielded`` /
 ``returned`` / ``errored``.
+
+Some core steps call compiled extensions that hold the GIL for seconds (fTetWild's tet mesh in the skeleton solve
+stalls a thread-based worker's UI by about 2 s on the fish phantom). :func:`start_process_job` runs such a job in a
+child process (spawned: no Qt in it) and relays its progress through a queue from a thread worker, so the UI thread
+only ever waits on the queue; Cancel terminates the child.
 """
 
 from __future__ import annotations
 
+import multiprocessing
+import pickle
+import queue as queue_module
 import threading
+import time
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from typing import Any
 
-from napari.qt.threading import GeneratorWorker, thread_worker
-from napari.utils import progress as napari_progress
-
 from ..progress import Progress
 
-__all__ = ["Job", "JobCancelled", "start_job"]
+# napari and Qt are imported where a worker starts, not here: the spawned child of start_process_job imports this
+# module to find its entry point and must stay free of Qt (importing napari there costs seconds, or worse).
+
+__all__ = ["Job", "JobCancelled", "start_job", "start_process_job"]
+
+#: Seconds the relay waits on the child's queue before checking Cancel and the child's health again.
+_POLL = 0.05
 
 
 class JobCancelled(Exception):
@@ -32,11 +44,13 @@ class JobCancelled(Exception):
 class Job:
     """A running job: its worker and its cancel flag."""
 
-    worker: GeneratorWorker
+    worker: Any  # napari's GeneratorWorker
     label: str
     _cancel: threading.Event
     #: Set on the UI thread once the job is over (returned, failed or cancelled) and its callbacks have run.
     done: bool = False
+    #: ``time.perf_counter()`` when the result reached the UI thread (None before; for the stall measurements).
+    returned_at: float | None = None
 
     def cancel(self) -> None:
         """Stop the job at the generator's next yield."""
@@ -75,6 +89,7 @@ def start_job(
     on_error: Callable[[BaseException], Any],
     on_finished: Callable[[], Any] | None = None,
     on_progress: Callable[[Progress], Any] | None = None,
+    _cancel: threading.Event | None = None,
 ) -> Job:
     """Run the progress generator ``make()`` in a worker thread; return the started :class:`Job`.
 
@@ -92,7 +107,10 @@ def start_job(
     on_progress : callable, optional
         Called on the UI thread with every :class:`Progress` record.
     """
-    cancel = threading.Event()
+    from napari.qt.threading import thread_worker
+    from napari.utils import progress as napari_progress
+
+    cancel = threading.Event() if _cancel is None else _cancel
     worker = thread_worker(_relay, start_thread=False)(make, cancel)
     bar = napari_progress(total=0, desc=label)
     state = {"stage": None}
@@ -120,8 +138,84 @@ def start_job(
 
     job = Job(worker, label, cancel)
     worker.yielded.connect(show)
-    worker.returned.connect(on_returned)
+    def returned(value: Any) -> None:
+        job.returned_at = time.perf_counter()
+        on_returned(value)
+
+    worker.returned.connect(returned)
     worker.errored.connect(on_error)
     worker.finished.connect(finished)
     worker.start()
     return job
+
+
+def _child(fn: Callable[..., Generator[Progress, None, Any]], args: tuple, kwargs: dict, out: Any) -> None:
+    """In the child process: drive the generator, send ("progress", p), then ("result", value) or ("error", exc)."""
+    try:
+        gen = fn(*args, **kwargs)
+        while True:
+            try:
+                p = next(gen)
+            except StopIteration as stop:
+                out.put(("result", stop.value))
+                return
+            out.put(("progress", p))
+    except BaseException as exc:  # noqa: BLE001 - every failure goes back to the dock
+        try:
+            pickle.dumps(exc)
+            out.put(("error", exc))
+        except Exception:  # noqa: BLE001 - an exception that does not pickle goes back as its text
+            out.put(("error", RuntimeError(f"{type(exc).__name__}: {exc}")))
+
+
+def _in_process(fn: Callable[..., Generator[Progress, None, Any]], args: tuple, kwargs: dict,
+                cancel: threading.Event) -> Generator[Progress, None, Any]:
+    ctx = multiprocessing.get_context("spawn")
+    out = ctx.Queue()
+    proc = ctx.Process(target=_child, args=(fn, args, kwargs, out), daemon=True, name="napari-unwind job")
+    proc.start()
+    try:
+        while True:
+            if cancel.is_set():
+                raise JobCancelled("cancelled")
+            try:
+                kind, value = out.get(timeout=_POLL)
+            except queue_module.Empty:
+                if proc.is_alive():
+                    continue
+                try:  # the child may have ended right after its last message
+                    kind, value = out.get(timeout=1.0)
+                except queue_module.Empty:
+                    raise RuntimeError(f"the worker process ended without a result (exit code {proc.exitcode}); "
+                                       "it may have run out of memory") from None
+            if kind == "progress":
+                yield value
+            elif kind == "result":
+                return value
+            else:
+                raise value
+    finally:
+        if proc.is_alive():
+            proc.terminate()
+        proc.join(timeout=5)
+        out.close()
+
+
+def start_process_job(
+    fn: Callable[..., Generator[Progress, None, Any]],
+    args: tuple = (),
+    kwargs: dict | None = None,
+    **callbacks: Any,
+) -> Job:
+    """:func:`start_job` for ``fn(*args, **kwargs)`` run in a spawned child process.
+
+    ``fn`` must be importable by name (a module-level function of the core) and its arguments and result
+    picklable (numpy arrays, lazy dask arrays of a file, the core's dataclasses). Cancel terminates the child.
+    The keyword arguments are those of :func:`start_job`.
+    """
+    cancel = threading.Event()
+
+    def make() -> Generator[Progress, None, Any]:
+        return _in_process(fn, args, dict(kwargs or {}), cancel)
+
+    return start_job(make, _cancel=cancel, **callbacks)
