@@ -18,6 +18,7 @@ Drags (each one gesture of the model: the amounts are totals since the press, un
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import time
@@ -28,6 +29,7 @@ from typing import Any
 import dask.array as da
 import numpy as np
 from vispy import scene
+from vispy.gloo.context import forget_canvas
 from vispy.visuals.transforms import MatrixTransform, STTransform
 
 from ..editing import CrossSection, EditModel, cross_section
@@ -138,6 +140,22 @@ class EditorCanvas:
         model.deformation_changed.connect(self._on_deformation)
         model.position_changed.connect(self._on_position)
         self.redraw()
+
+    def close(self) -> None:
+        """Close the canvas (its widget still alive) and :meth:`release` it."""
+        self.canvas.close()
+        self.release()
+
+    def release(self) -> None:
+        """Stop listening to the model and drop the canvas from vispy's list, without touching Qt (for when the
+        widget is already gone). vispy keeps a list of canvases and napari takes the newest for its GL queries
+        (``get_gl_extensions`` when the first Image layer is added): a canvas left there whose widget is gone makes
+        those queries fail."""
+        for sig, slot in ((self.model.deformation_changed, self._on_deformation),
+                          (self.model.position_changed, self._on_position)):
+            with contextlib.suppress(Exception):
+                sig.disconnect(slot)
+        forget_canvas(self.canvas)
 
     # --------------------------------------------------------------------------------------------------------------
     # geometry

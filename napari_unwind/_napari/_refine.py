@@ -374,6 +374,7 @@ class RefinePanel(QWidget):
 
     def _disconnect(self, model: EditModel) -> None:
         self.preview.close()
+        self.editor.release()  # the Qt widgets are gone already
         for sig, slot in ((model.deformation_changed, self._on_deformation),
                           (model.position_changed, self._on_position),
                           (model.history_changed, self._on_history)):

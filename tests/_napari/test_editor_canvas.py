@@ -79,7 +79,8 @@ def editor(qtbot):
     qtbot.wait(20)
     # the test's mapping is the canvas's (a check of the set-up, not of the code under test)
     np.testing.assert_allclose(ed.scene_at(to_canvas(3.0, -4.0)), (3.0, -4.0), atol=1e-6)
-    return ed, model, d
+    yield ed, model, d
+    ed.close()
 
 
 def drag(qtbot, widget, start, end, *, steps=4, modifier=Qt.KeyboardModifier.NoModifier):
@@ -230,3 +231,4 @@ def test_the_plane_of_a_lazy_scan_is_the_plane_of_the_array(qtbot):
     for angle in (0.0, 0.4, 1.1):
         model.twist(angle)
         np.testing.assert_array_equal(ed.cross.image, cross_section(scan, model.deformation, model.s).image)
+    ed.close()

@@ -127,3 +127,60 @@ def test_preview_of_a_box_outside_the_scan_is_refused():
         3, 1e4, 0).move_keyframe(4, 1e4, 0)
     with pytest.raises(InvalidInputError):
         preview_volume(np.zeros((64, 64, 64), np.float32), far)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# the layer in napari: latest edit wins
+# ------------------------------------------------------------------------------------------------------------------
+@pytest.mark.gui
+def test_quick_edits_end_on_the_last_deformation_and_drop_stale_results(make_napari_viewer, qtbot):
+    pytest.importorskip("napari")
+    from napari_unwind._napari._preview import PREVIEW_NAME, StraightPreview
+    from napari_unwind.editing import EditModel
+
+    scan = smooth_scan((80, 72, 64), seed=3)
+    vol = Volume(da.from_array(scan, chunks=32))
+    viewer = make_napari_viewer(show=True)  # a GL context of its own (a closed editor canvas may be current)
+    model = EditModel(bent_deformation())
+    preview = StraightPreview(viewer, lambda: vol, min_across=4)
+    shown = []
+    model.deformation_changed.connect(preview.request)
+    model.select_keyframe(2)
+    preview.request(model.deformation)
+    for k in range(6):  # quick edits while the first worker runs
+        model.move(0.7, -0.4 * k)
+    qtbot.waitUntil(lambda: preview.idle and preview.layer is not None, timeout=20000)
+    qtbot.wait(50)
+    layer = viewer.layers[PREVIEW_NAME]
+    layer.events.data.connect(lambda e: shown.append(1))
+    ref, ds = preview_volume(vol, model.deformation, min_across=4)
+    np.testing.assert_array_equal(layer.data, ref)
+    np.testing.assert_allclose(layer.scale, (ds, ds, ds))
+    # the layer shows the newest request; the queued edits were coalesced (fewer workers than requests)
+    assert preview.shown_generation == preview.generation == 7
+    assert preview.computed < 7
+    # one more edit: exactly one more worker and one more data update
+    n = preview.computed
+    model.twist(0.2)
+    qtbot.waitUntil(lambda: preview.idle and preview.shown_generation == preview.generation, timeout=20000)
+    assert preview.computed == n + 1 and len(shown) == 1
+    np.testing.assert_array_equal(layer.data, preview_volume(vol, model.deformation, min_across=4)[0])
+
+
+@pytest.mark.gui
+def test_a_stale_result_is_dropped(make_napari_viewer, qtbot):
+    from napari_unwind._napari._preview import StraightPreview
+
+    scan = smooth_scan((80, 72, 64), seed=4)
+    viewer = make_napari_viewer(show=True)  # a GL context of its own (a closed editor canvas may be current)
+    d = bent_deformation()
+    preview = StraightPreview(viewer, lambda: scan, min_across=4)
+    shows = []
+    original = preview._show
+    preview._show = lambda *a: (shows.append(a), original(*a))  # a spy: counts what reaches the layer
+    preview.request(d)
+    preview.request(d.twist_keyframe(2, 0.3))  # queued while the first runs
+    qtbot.waitUntil(lambda: preview.idle and preview.layer is not None, timeout=20000)
+    # the first result came back while the second was the newest: it was never shown
+    assert preview.computed == 2 and preview.shown_generation == 2 and len(shows) == 1
+    np.testing.assert_array_equal(preview.layer.data, preview_volume(scan, d.twist_keyframe(2, 0.3), min_across=4)[0])
