@@ -413,6 +413,12 @@ class UnwindWidget(QWidget):
             self.job = start_job(make, **callbacks)
         return self.job
 
+    @property
+    def idle(self) -> bool:
+        """No job running, and the Refine panel's straight preview (when there is one) has nothing to compute."""
+        preview = getattr(self.refine_panel, "preview", None)
+        return (self.job is None or self.job.done) and bool(getattr(preview, "idle", True))
+
     def cancel(self) -> None:
         """Cancel the running job (it stops at its next progress step)."""
         if self.job is not None and self.job.running:

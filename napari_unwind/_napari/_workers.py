@@ -111,7 +111,7 @@ def start_job(
     from napari.utils import progress as napari_progress
 
     cancel = threading.Event() if _cancel is None else _cancel
-    worker = thread_worker(_relay, start_thread=False)(make, cancel)
+    worker = thread_worker(_relay, start_thread=False, ignore_errors=True)(make, cancel)  # errors: on_error
     bar = napari_progress(total=0, desc=label)
     state = {"stage": None}
 

@@ -161,3 +161,4 @@ def test_whole_workflow(make_napari_viewer, qtbot, tmp_path, fish, scan_path):
     pixels = np.array([[image.pixel(x, y) for x in range(0, image.width(), 7)] for y in range(0, image.height(), 7)])
     assert image.width() > 100 and image.height() > 100
     assert len(np.unique(pixels)) > 10, "the dock rendered blank"
+    qtbot.waitUntil(lambda: w.idle and w2.idle, timeout=60_000)  # the Refine panels' previews

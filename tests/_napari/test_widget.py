@@ -1,0 +1,149 @@
+"""The Unwind dock, step by step: the scan from a layer, the spacing warning, the layer list, ends as chains,
+explicit saving, Cancel, clear errors, a session opened by napari's reader (napari, Qt, Xvfb)."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("napari")
+
+from napari_unwind._napari._widget import DOCK_SHORTCUTS, UnwindWidget, volume_from_layer  # noqa: E402
+from napari_unwind.deformation import Deformation  # noqa: E402
+from napari_unwind.io import write_volume  # noqa: E402
+from napari_unwind.session import Endpoints, Session, SourceInfo, save_session  # noqa: E402
+
+pytestmark = pytest.mark.gui
+
+
+def rod(shape=(48, 32, 32)):
+    """A bright bent rod (a specimen the segmentation finds as one feature) in a dim noisy volume."""
+    rng = np.random.default_rng(0)
+    a = (rng.random(shape) * 200).astype(np.uint16)
+    z, y, x = np.indices(shape)
+    cy = 16 + 5 * np.sin(z / shape[0] * np.pi)
+    a[(z > 6) & (z < shape[0] - 6) & ((y - cy) ** 2 + (x - 16) ** 2 < 16)] = 3000
+    return a
+
+
+def wait(qtbot, job, timeout=60_000):
+    assert job is not None
+    qtbot.waitUntil(lambda: job.done, timeout=timeout)
+
+
+def test_volume_from_layer_keeps_geometry(make_napari_viewer):
+    viewer = make_napari_viewer()
+    data = rod()
+    layer = viewer.add_image(data, scale=(2.0, 0.5, 0.5), translate=(10.0, -3.0, 1.0), units="micrometer")
+    v = volume_from_layer(layer)
+    assert v.shape == data.shape and v.spacing == (2.0, 0.5, 0.5) and v.origin == (10.0, -3.0, 1.0)
+    assert v.unit == "micrometer"
+    np.testing.assert_array_equal(np.asarray(v.data), data)
+    pyramid = viewer.add_image([data, data[::2, ::2, ::2]], scale=(2.0, 0.5, 0.5), multiscale=True)
+    vp = volume_from_layer(pyramid)
+    assert len(vp.levels) == 2
+    assert vp.level_spacings[1] == pytest.approx((4.0, 1.0, 1.0))  # twice level 0's voxel size
+    assert vp.level_origins[1] == pytest.approx((1.0, 0.25, 0.25))  # the centre of the 2x2x2 block it covers
+    rgb = viewer.add_image(np.zeros((8, 8, 3), np.uint8), rgb=True)
+    with pytest.raises(Exception, match="not a 3D grey-value image"):
+        volume_from_layer(rgb)
+
+
+def test_scan_step_lists_layers_and_warns_of_missing_spacing(make_napari_viewer):
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    plain = viewer.add_image(rod(), name="plain")
+    scaled = viewer.add_image(rod(), name="scaled", scale=(1.5, 1.0, 1.0), units="micrometer")
+    names = [w.layer_combo.itemText(i) for i in range(w.layer_combo.count())]
+    assert names[1:] == ["plain", "scaled"]
+    w.layer_combo.setCurrentIndex(1)
+    w.layer_combo.activated.emit(1)
+    assert w.scan_layer is plain and not w.scan_warning.isHidden()
+    assert "Spacing missing" in w.scan_warning.text()
+    w.use_layer(scaled)
+    assert w.scan_layer is scaled and w.scan_warning.isHidden()
+    assert "1.5 x 1 x 1" in w.scan_info.text()
+    viewer.layers.remove(plain)
+    names = [w.layer_combo.itemText(i) for i in range(w.layer_combo.count())]
+    assert names[1:] == ["scaled"]
+
+
+def test_every_step_says_what_it_needs(make_napari_viewer):
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    assert "Needs a scan" in w.segment_need.text() and not w.segment_button.isEnabled()
+    assert "Needs a selected feature" in w.ends_need.text() and not w.suggest_button.isEnabled()
+    assert "Needs a scan and a deformation" in w.export_need.text() and not w.export_button.isEnabled()
+    w.export("somewhere.nrrd")
+    assert w.status.text() == "error: there is no scan yet: pick an Image layer or open a file (step 1)"
+    rows = [w.shortcuts_table.item(i, 0).text() for i in range(w.shortcuts_table.rowCount())]
+    assert rows[: len(DOCK_SHORTCUTS)] == [k for k, _ in DOCK_SHORTCUTS]
+
+
+def test_ends_more_than_two_points_are_a_chain(make_napari_viewer):
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    w.use_layer(viewer.add_image(rod(), scale=(2.0, 1.0, 1.0), translate=(4.0, 0.0, 0.0)))
+    w.set_ends([(8, 16, 16), (30, 16, 16)])
+    assert w.endpoints() == Endpoints(head=(8, 16, 16), tail=(30, 16, 16))
+    np.testing.assert_allclose(w._ends_layer.data[0], (8 * 2.0 + 4.0, 16, 16))  # world = voxel * spacing + origin
+    w.set_ends([(8, 16, 16), (18, 16, 16), (22, 16, 16), (40, 16, 16)])
+    ends = w.endpoints()
+    assert ends.head == (8, 16, 16) and ends.tail == (40, 16, 16)
+    assert ends.chain == (((8, 16, 16), (18, 16, 16)), ((22, 16, 16), (40, 16, 16)))
+    w._ends_layer.data = w._ends_layer.data[:3]
+    with pytest.raises(Exception, match="has 3 point"):
+        w.endpoints()
+
+
+def test_export_never_replaces_a_file_without_confirmation(make_napari_viewer, qtbot, tmp_path, monkeypatch):
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    w.use_layer(viewer.add_image(rod()))
+    w.model.set_deformation(Deformation.from_polyline(np.array([[8.0, 16, 16], [24, 16, 16], [40, 16, 16]]),
+                                                      spacing=1.0, cage_half_extent=6.0))
+    target = tmp_path / "kept.nrrd"
+    target.write_bytes(b"the user's file")
+    asked = []
+    monkeypatch.setattr(w, "confirm_overwrite", lambda path: asked.append(path) or False)
+    assert w.export(target) is None
+    assert asked == [target] and target.read_bytes() == b"the user's file"
+    assert "was kept" in w.status.text()
+    qtbot.waitUntil(lambda: w.idle, timeout=60_000)  # the Refine panel's preview of the deformation
+
+
+def test_cancel_stops_the_skeleton(make_napari_viewer, qtbot):
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    w.use_layer(viewer.add_image(rod()))
+    wait(qtbot, w.segment())
+    w.select_features([int(w.features.labels[24, 21, 16])])
+    job = w.run_skeleton()
+    assert w.skeleton_cancel.isEnabled()
+    w.cancel()
+    wait(qtbot, job)
+    assert w.status.text() == "computing the skeleton was cancelled"
+    assert w.model.deformation is None and not w.skeleton_cancel.isEnabled()
+
+
+def test_saving_a_session_needs_the_scan_file(make_napari_viewer):
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    w.use_layer(viewer.add_image(rod(), name="in memory"))
+    assert w.save_session("x.unwind.json") is None
+    assert w.status.text().startswith("error: the scan 'in memory' was not opened from a file")
+
+
+def test_a_session_opened_by_napari_gives_the_dock_its_deformation(make_napari_viewer, qtbot, tmp_path):
+    scan = tmp_path / "rod.nrrd"
+    write_volume(rod(), scan, spacing=(1.0, 1.0, 1.0), unit="micrometer")
+    d = Deformation.from_polyline(np.array([[8.0, 16, 16], [24, 16, 16], [40, 16, 16]]), spacing=1.0,
+                                  cage_half_extent=6.0, unit="micrometer")
+    ends = Endpoints(head=(8.0, 16.0, 16.0), tail=(40.0, 16.0, 16.0))
+    path = save_session(Session(source=SourceInfo.from_path(scan), deformation=d, endpoints=ends),
+                        tmp_path / "rod.unwind.json")
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    viewer.open(str(path), plugin="napari-unwind")
+    assert w.model.deformation.to_dict() == d.to_dict()
+    assert w.scan_layer is not None and w.volume.shape == (48, 32, 32)
+    assert w.endpoints() == ends
+    qtbot.waitUntil(lambda: w.idle, timeout=60_000)
