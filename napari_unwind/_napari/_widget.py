@@ -164,6 +164,8 @@ class UnwindWidget(QWidget):
         self._selection_layer: Any = None
         self._ends_layer: Any = None
         self._pending_segmentation: Any = None  # a loaded session's Segmentation, applied when the tree is built
+        self._simplify_worker: Any = None
+        self._simplify_pending: int | None = None
         self._syncing = False
 
         self.toolbox = QToolBox()
@@ -415,9 +417,10 @@ class UnwindWidget(QWidget):
 
     @property
     def idle(self) -> bool:
-        """No job running, and the Refine panel's straight preview (when there is one) has nothing to compute."""
+        """No job running, no re-simplification, and nothing left for the Refine panel's straight preview."""
         preview = getattr(self.refine_panel, "preview", None)
-        return (self.job is None or self.job.done) and bool(getattr(preview, "idle", True))
+        return ((self.job is None or self.job.done) and self._simplify_worker is None
+                and bool(getattr(preview, "idle", True)))
 
     def cancel(self) -> None:
         """Cancel the running job (it stops at its next progress step)."""
@@ -591,41 +594,58 @@ class UnwindWidget(QWidget):
         self.count_slider.blockSignals(False)
         self.count_slider.setEnabled(True)
         self.set_feature_count(min(k, top))
-        if pending is not None:
-            self._pending_segmentation = None
-            seeds = [tuple(p) for p in pending.seeds]
-            ids = list(pending.selected)
-            if ids:
-                self.select_features(ids, seeds=dict(zip(ids, seeds)) if len(seeds) == len(ids) else None)
-            elif seeds:
-                self.select_features(list(self.features.ids_at(seeds)), seeds=None)
 
     def set_feature_count(self, k: int) -> None:
-        """Re-simplify the tree to ``k`` features (milliseconds, no rebuild); the selection follows its clicks."""
+        """Re-simplify the tree to ``k`` features (no rebuild), off the UI thread; while the slider moves only the
+        latest value waits. The selection follows its clicks."""
         self.count_label.setText(str(int(k)))
         if self.tree is None:
             return
-        try:
-            self.features = self.tree.simplify(int(k))
-        except UnwindError as exc:
-            self._fail(exc)
+        self._simplify_pending = int(k)
+        if self._simplify_worker is None:
+            self._next_simplify()
+
+    def _next_simplify(self) -> None:
+        from napari.qt.threading import create_worker
+
+        k, self._simplify_pending = self._simplify_pending, None
+        if k is None or self.tree is None:
+            self._simplify_worker = None
             return
-        f = self.features
+        worker = create_worker(self.tree.simplify, k, _start_thread=False, _ignore_errors=True)
+        worker.returned.connect(self._features_ready)
+        worker.errored.connect(self._fail)
+        worker.finished.connect(self._next_simplify)
+        self._simplify_worker = worker
+        worker.start()
+
+    def _features_ready(self, features: Any) -> None:
+        if features.tree is not self.tree:
+            return  # from a tree replaced meanwhile (another scan)
+        self.features = f = features
         self._put_layer("_features_layer", self._labels_tuple(f.labels, "features", opacity=0.4))
         self._features_layer.metadata["napari_unwind"] = {"features": True}
         if self._on_features_click not in self._features_layer.mouse_drag_callbacks:
             self._features_layer.mouse_drag_callbacks.append(self._on_features_click)
         self._fill_table()
-        # the clicked points choose again among the new features
-        seeds = dict(self.seeds)
-        ids: list[int] = []
-        new_seeds: dict[int, tuple] = {}
-        for p in seeds.values():
-            i = int(self.features.ids_at([p])[0])
-            if i:
-                ids.append(i)
-                new_seeds[i] = p
-        self.select_features(ids, seeds=new_seeds)
+        pending = self._pending_segmentation
+        if pending is not None and pending.k == f.k:  # a loaded session's selection
+            self._pending_segmentation = None
+            seeds = [tuple(p) for p in pending.seeds]
+            ids = list(pending.selected)
+            if ids:
+                self.select_features(ids, seeds=dict(zip(ids, seeds)) if len(seeds) == len(ids) else None)
+            else:
+                self.select_features(list(f.ids_at(seeds)))
+        else:  # the clicked points choose again among the new features
+            ids: list[int] = []
+            new_seeds: dict[int, tuple] = {}
+            for p in self.seeds.values():
+                i = int(f.ids_at([p])[0])
+                if i:
+                    ids.append(i)
+                    new_seeds[i] = p
+            self.select_features(ids, seeds=new_seeds)
         self._say(f"{f.k} features (level {f.level}, {_fmt(f.shape, 6)} working voxels)")
 
     def _labels_tuple(self, labels: np.ndarray, name: str, **kwargs: Any) -> tuple:

@@ -58,7 +58,7 @@ def test_no_long_stall_during_skeleton_and_export(make_napari_viewer, qtbot, tmp
     job = w.open_scan(scan)
     qtbot.waitUntil(lambda: job.done, timeout=60_000)
     job = w.segment()
-    qtbot.waitUntil(lambda: job.done, timeout=60_000)
+    qtbot.waitUntil(lambda: job.done and w.idle, timeout=60_000)
     p = np.round(fish.centerline[len(fish.centerline) // 2]).astype(int)
     w.select_features([int(w.features.labels[tuple(p)])])
 

@@ -115,6 +115,7 @@ def test_cancel_stops_the_skeleton(make_napari_viewer, qtbot):
     w = UnwindWidget(viewer)
     w.use_layer(viewer.add_image(rod()))
     wait(qtbot, w.segment())
+    qtbot.waitUntil(lambda: w.idle, timeout=30_000)
     w.select_features([int(w.features.labels[24, 21, 16])])
     job = w.run_skeleton()
     assert w.skeleton_cancel.isEnabled()

@@ -77,11 +77,15 @@ def test_whole_workflow(make_napari_viewer, qtbot, tmp_path, fish, scan_path):
 
     # segment: the tree once, then live re-simplification (the same tree)
     wait(qtbot, w, w.segment())
+    qtbot.waitUntil(lambda: w.idle, timeout=30_000)
     tree = w.tree
     w.count_slider.setValue(2)
-    assert w.features.k == 2 and w.tree is tree
-    w.count_slider.setValue(5)
-    assert w.features.k == 5 and w.tree is tree
+    qtbot.waitUntil(lambda: w.idle and w.features.k == 2, timeout=30_000)
+    assert w.tree is tree
+    for k in (3, 4, 5):  # a slider drag: only the latest value needs computing
+        w.count_slider.setValue(k)
+    qtbot.waitUntil(lambda: w.idle and w.features.k == 5, timeout=30_000)
+    assert w.tree is tree
     assert w.table.rowCount() == 5
 
     # pick the fish in 3D (a ray along axis0 through a fish voxel), then in 2D; shift-click adds
@@ -148,6 +152,7 @@ def test_whole_workflow(make_napari_viewer, qtbot, tmp_path, fish, scan_path):
     w2 = UnwindWidget(viewer2)
     wait(qtbot, w2, w2.load_session(session_path))
     wait(qtbot, w2, w2.job)  # the join tree of the recorded selection
+    qtbot.waitUntil(lambda: w2.idle and bool(w2.selected), timeout=30_000)
     assert w2.model.deformation.to_dict() == d0.to_dict()
     assert w2.endpoints() == ends
     assert w2.selected == [fid]
