@@ -182,6 +182,7 @@ class UnwindWidget(QWidget):
         layout = QVBoxLayout(self)
         layout.addWidget(self.toolbox)
         layout.addWidget(self.status)
+        self.setMinimumWidth(400)  # the feature table and the reports need room; napari's docks start narrow
 
         self.viewer.layers.events.inserted.connect(self._on_layers_changed)
         self.viewer.layers.events.removed.connect(self._on_layers_changed)
