@@ -223,7 +223,7 @@ class UnwindWidget(QWidget):
         self.segment_need.setWordWrap(True)
         lay.addWidget(self.segment_need)
         self.segment_button = QPushButton("Build the join tree")
-        self.segment_button.clicked.connect(self.segment)
+        self.segment_button.clicked.connect(lambda: self.segment())
         lay.addWidget(self.segment_button)
         row = QHBoxLayout()
         row.addWidget(QLabel("features"))
@@ -572,15 +572,16 @@ class UnwindWidget(QWidget):
     # ==============================================================================================================
     # segment
     # ==============================================================================================================
-    def segment(self) -> Job | None:
-        """Build the join tree of the scan in a worker; then show the features (slider value)."""
+    def segment(self, *, level: int | None = None) -> Job | None:
+        """Build the join tree of the scan in a worker (at pyramid ``level``, default the finest with every side
+        <= 256); then show the features (slider value)."""
         if self.volume is None:
             self._fail(InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)"))
             return None
         from ..segmentation import join_tree_iter
 
         volume = self.volume
-        return self._start(lambda: join_tree_iter(volume), "building the join tree", self._tree_ready)
+        return self._start(lambda: join_tree_iter(volume, level=level), "building the join tree", self._tree_ready)
 
     def _tree_ready(self, tree: Any) -> None:
         from ..segmentation import MAX_FEATURES
@@ -1052,7 +1053,7 @@ class UnwindWidget(QWidget):
             if seg is not None and seg.k is not None and (seg.selected or seg.seeds):
                 self._pending_segmentation = seg
                 self.job = None
-                self.segment()
+                self.segment(level=seg.level)
             self.session_info.setText(f"opened: {Path(path).absolute()}")
 
         return self._start(make, "opening the session", done)

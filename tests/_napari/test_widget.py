@@ -148,3 +148,34 @@ def test_a_session_opened_by_napari_gives_the_dock_its_deformation(make_napari_v
     assert w.scan_layer is not None and w.volume.shape == (48, 32, 32)
     assert w.endpoints() == ends
     qtbot.waitUntil(lambda: w.idle, timeout=60_000)
+
+
+def test_cancel_stops_an_export_and_leaves_no_file(make_napari_viewer, qtbot, tmp_path):
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    w.use_layer(viewer.add_image(rod()))
+    w.model.set_deformation(Deformation.from_polyline(np.array([[8.0, 16, 16], [24, 16, 16], [40, 16, 16]]),
+                                                      spacing=1.0, cage_half_extent=6.0))
+    target = tmp_path / "cancelled.nrrd"
+    job = w.export(target)
+    w.cancel()
+    wait(qtbot, job)
+    assert w.status.text() == "exporting was cancelled"
+    assert not target.exists() and list(tmp_path.iterdir()) == []  # nothing half-written left behind
+    assert w.exported is None
+    qtbot.waitUntil(lambda: w.idle, timeout=60_000)
+
+
+def test_a_failed_skeleton_says_why_in_the_dock(make_napari_viewer, qtbot):
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    w.use_layer(viewer.add_image(rod()))
+    wait(qtbot, w.segment())
+    qtbot.waitUntil(lambda: w.idle, timeout=30_000)
+    w.select_features([int(w.features.labels[24, 21, 16])])
+    w.set_ends([(0, 0, 0), (47, 31, 31)])  # the volume's corners: far from the rod
+    wait(qtbot, w.run_skeleton())
+    text = w.status.text()
+    assert text.startswith("error: ") and "\n" not in text and "Traceback" not in text
+    assert "the head [0.0, 0.0, 0.0]" in text and "from the mask" in text, text  # the core's message, as is
+    assert w.model.deformation is None
