@@ -65,7 +65,7 @@ from ..errors import InvalidInputError, UnwindError
 from ..io import Volume, open_volume
 from ..io._volume import normalise_unit, unit_label
 from ..progress import Progress
-from ._workers import Job, JobCancelled, start_job, start_process_job
+from ._workers import Job, JobCancelled, prewarm, start_job, start_process_job
 
 __all__ = ["UnwindWidget", "volume_from_layer"]
 
@@ -78,6 +78,8 @@ DOCK_SHORTCUTS = (
     ("drag a point", "Ends: move a head/tail (points layer in select mode)"),
     ("click (add mode)", "Ends: place another end (more than two: a chain, start and end of each part)"),
 )
+#: The skeleton solve, run in a child process by name (the UI process need not import the mesher).
+_SKELETON = "napari_unwind.skeleton:estimate_deformation_iter"
 _TABLE_COLUMNS = ("id", "voxels", "elongation", "persistence", "threshold", "border", "container")
 
 
@@ -578,10 +580,14 @@ class UnwindWidget(QWidget):
         if self.volume is None:
             self._fail(InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)"))
             return None
-        from ..segmentation import join_tree_iter
-
         volume = self.volume
-        return self._start(lambda: join_tree_iter(volume, level=level), "building the join tree", self._tree_ready)
+
+        def make() -> Generator[Progress, None, Any]:
+            from ..segmentation import join_tree_iter
+
+            return join_tree_iter(volume, level=level)
+
+        return self._start(make, "building the join tree", self._tree_ready)
 
     def _tree_ready(self, tree: Any) -> None:
         from ..segmentation import MAX_FEATURES
@@ -737,6 +743,8 @@ class UnwindWidget(QWidget):
         self._syncing = False
         self.selection_label.setText(f"selected: {', '.join(map(str, ids))}" if ids else
                                      "selected: none (click a feature; shift-click adds)")
+        if ids:
+            prewarm(_SKELETON)  # the skeleton's child process imports the core while the ends are placed
         if self._features_layer is not None and self._features_layer in self.viewer.layers:
             self.viewer.layers.selection.active = self._features_layer  # clicks keep reaching its callback
         self._update_needs()
@@ -762,8 +770,6 @@ class UnwindWidget(QWidget):
     # ==============================================================================================================
     def suggest_ends(self) -> Job | None:
         """Suggest head and tail on the selection's mask (in a worker) and show them in the "ends" layer."""
-        from ..skeleton import suggest_endpoints
-
         try:
             mask = self.mask()
         except UnwindError as exc:
@@ -772,6 +778,8 @@ class UnwindWidget(QWidget):
         volume = self.volume
 
         def make() -> Generator[Progress, None, tuple]:
+            from ..skeleton import suggest_endpoints
+
             yield Progress("mask", 0, 1, "full resolution")
             full = np.asarray(mask.compute())
             yield Progress("ends", 0, 1, "longest geodesic")
@@ -826,8 +834,6 @@ class UnwindWidget(QWidget):
     # ==============================================================================================================
     def run_skeleton(self) -> Job | None:
         """Estimate the deformation of the selection in a worker (progress, Cancel); the model gets it."""
-        from ..skeleton import estimate_deformation_iter
-
         try:
             mask = self.mask()
             ends = self.endpoints()
@@ -838,7 +844,7 @@ class UnwindWidget(QWidget):
         self.skeleton_report.setPlainText("computing...")
         # in a child process: the tet mesher holds the GIL for seconds, which would freeze a thread worker's UI
         return self._start(None, "computing the skeleton", self._skeleton_ready, (self.skeleton_cancel,),
-                           process=(estimate_deformation_iter, (mask, ends),
+                           process=(_SKELETON, (mask, ends),
                                     dict(spacing=volume.spacing, origin=volume.origin, unit=volume.unit,
                                          volume=volume.data)))
 
@@ -907,7 +913,6 @@ class UnwindWidget(QWidget):
         """Straighten the scan with the model's deformation and write ``path`` (worker, progress, Cancel); the
         written file opens as a layer."""
         from ..io._formats import output_format
-        from ..warp import export_iter
 
         try:
             if self.volume is None:
@@ -934,6 +939,8 @@ class UnwindWidget(QWidget):
         session = self._session_dict()
 
         def make() -> Generator[Progress, None, Any]:
+            from ..warp import export_iter
+
             return export_iter(volume, d, target, order=order, spacing=spacing, pad=pad, overwrite=overwrite,
                                session=session)
 

@@ -11,11 +11,13 @@ stardist-napari's ``plugin_function_generator``: the worker yields progress, the
 Some core steps call compiled extensions that hold the GIL for seconds (fTetWild's tet mesh in the skeleton solve
 stalls a thread-based worker's UI by about 2 s on the fish phantom). :func:`start_process_job` runs such a job in a
 child process (spawned: no Qt in it) and relays its progress through a queue from a thread worker, so the UI thread
-only ever waits on the queue; Cancel terminates the child.
+only ever waits on the queue; Cancel terminates the child. A fresh interpreter spends seconds importing the
+core, so one spare child per job kind waits ready, its imports done (:func:`prewarm`; one job per child).
 """
 
 from __future__ import annotations
 
+import importlib
 import multiprocessing
 import pickle
 import queue as queue_module
@@ -30,7 +32,7 @@ from ..progress import Progress
 # napari and Qt are imported where a worker starts, not here: the spawned child of start_process_job imports this
 # module to find its entry point and must stay free of Qt (importing napari there costs seconds, or worse).
 
-__all__ = ["Job", "JobCancelled", "start_job", "start_process_job"]
+__all__ = ["Job", "JobCancelled", "prewarm", "start_job", "start_process_job"]
 
 #: Seconds the relay waits on the child's queue before checking Cancel and the child's health again.
 _POLL = 0.05
@@ -149,10 +151,21 @@ def start_job(
     return job
 
 
-def _child(fn: Callable[..., Generator[Progress, None, Any]], args: tuple, kwargs: dict, out: Any) -> None:
+def _resolve(fn: Callable[..., Any] | str) -> Callable[..., Any]:
+    if callable(fn):
+        return fn
+    module, _, name = fn.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def _module(fn: Callable[..., Any] | str) -> str:
+    return fn.partition(":")[0] if isinstance(fn, str) else fn.__module__
+
+
+def _child(fn: Callable[..., Generator[Progress, None, Any]] | str, args: tuple, kwargs: dict, out: Any) -> None:
     """In the child process: drive the generator, send ("progress", p), then ("result", value) or ("error", exc)."""
     try:
-        gen = fn(*args, **kwargs)
+        gen = _resolve(fn)(*args, **kwargs)
         while True:
             try:
                 p = next(gen)
@@ -168,12 +181,48 @@ def _child(fn: Callable[..., Generator[Progress, None, Any]], args: tuple, kwarg
             out.put(("error", RuntimeError(f"{type(exc).__name__}: {exc}")))
 
 
-def _in_process(fn: Callable[..., Generator[Progress, None, Any]], args: tuple, kwargs: dict,
+def _child_loop(module: str, jobs: Any, out: Any) -> None:
+    """A spare child: import the job's module while idle (seconds: scipy, numba, the mesher), then run one job."""
+    importlib.import_module(module)
+    task = jobs.get()
+    if task is not None:
+        _child(*task, out)
+
+
+#: One idle child per module, ready for the next job (see :func:`prewarm`).
+_SPARES: dict[str, tuple[Any, Any, Any]] = {}
+_SPARES_LOCK = threading.Lock()
+
+
+def prewarm(fn: Callable[..., Any] | str) -> None:
+    """Start an idle child process that imports ``fn``'s module (a function or ``"module:name"``), so the next
+    :func:`start_process_job` of it skips the seconds of a fresh interpreter's imports. Does nothing when one is
+    ready already."""
+    module = _module(fn)
+    with _SPARES_LOCK:
+        spare = _SPARES.get(module)
+        if spare is not None and spare[0].is_alive():
+            return
+        ctx = multiprocessing.get_context("spawn")
+        jobs, out = ctx.Queue(), ctx.Queue()
+        proc = ctx.Process(target=_child_loop, args=(module, jobs, out), daemon=True, name="napari-unwind job")
+        proc.start()
+        _SPARES[module] = (proc, jobs, out)
+
+
+def _take_spare(fn: Callable[..., Any] | str) -> tuple[Any, Any, Any]:
+    while True:
+        prewarm(fn)
+        with _SPARES_LOCK:
+            proc, jobs, out = _SPARES.pop(_module(fn))
+        if proc.is_alive():
+            return proc, jobs, out
+
+
+def _in_process(fn: Callable[..., Generator[Progress, None, Any]] | str, args: tuple, kwargs: dict,
                 cancel: threading.Event) -> Generator[Progress, None, Any]:
-    ctx = multiprocessing.get_context("spawn")
-    out = ctx.Queue()
-    proc = ctx.Process(target=_child, args=(fn, args, kwargs, out), daemon=True, name="napari-unwind job")
-    proc.start()
+    proc, jobs, out = _take_spare(fn)
+    jobs.put((fn, args, kwargs))
     try:
         while True:
             if cancel.is_set():
@@ -198,18 +247,22 @@ def _in_process(fn: Callable[..., Generator[Progress, None, Any]], args: tuple, 
         if proc.is_alive():
             proc.terminate()
         proc.join(timeout=5)
-        out.close()
+        for q in (jobs, out):  # a child stopped before reading its task must not block our exit on the pipe
+            q.cancel_join_thread()
+            q.close()
+        prewarm(fn)  # the next run starts warm
 
 
 def start_process_job(
-    fn: Callable[..., Generator[Progress, None, Any]],
+    fn: Callable[..., Generator[Progress, None, Any]] | str,
     args: tuple = (),
     kwargs: dict | None = None,
     **callbacks: Any,
 ) -> Job:
     """:func:`start_job` for ``fn(*args, **kwargs)`` run in a spawned child process.
 
-    ``fn`` must be importable by name (a module-level function of the core) and its arguments and result
+    ``fn`` is a module-level function of the core, or its ``"module:name"`` (then the UI process never imports
+    it), run in a spare child (:func:`prewarm`); its arguments and result must be
     picklable (numpy arrays, lazy dask arrays of a file, the core's dataclasses). Cancel terminates the child.
     The keyword arguments are those of :func:`start_job`.
     """
