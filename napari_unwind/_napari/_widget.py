@@ -476,8 +476,16 @@ class UnwindWidget(QWidget):
                 self._fail(exc)
         if "endpoints" in meta and self._ends_layer is None:
             self._ends_layer = layer
+        if "selected" in meta and self._selection_layer is None:
+            self._selection_layer = layer  # the reader's selection: the dock updates it rather than add another
         if self.scan_layer is None and "session_path" in meta and layer in self._image_layers():
             self.use_layer(layer)
+            seg = meta.get("segmentation")
+            if seg and seg.get("k") and (seg.get("selected") or seg.get("seeds")) and self.tree is None:
+                from ..session import Segmentation
+
+                self._pending_segmentation = Segmentation.from_dict(seg)  # recomputed in a worker
+                self.segment(level=self._pending_segmentation.level)
 
     def _refresh_layer_combo(self) -> None:
         layers = self._image_layers()

@@ -9,7 +9,7 @@ pytest.importorskip("napari")
 from napari_unwind._napari._widget import DOCK_SHORTCUTS, UnwindWidget, volume_from_layer  # noqa: E402
 from napari_unwind.deformation import Deformation  # noqa: E402
 from napari_unwind.io import write_volume  # noqa: E402
-from napari_unwind.session import Endpoints, Session, SourceInfo, save_session  # noqa: E402
+from napari_unwind.session import Endpoints, Segmentation, Session, SourceInfo, save_session  # noqa: E402
 
 pytestmark = pytest.mark.gui
 
@@ -139,7 +139,8 @@ def test_a_session_opened_by_napari_gives_the_dock_its_deformation(make_napari_v
     d = Deformation.from_polyline(np.array([[8.0, 16, 16], [24, 16, 16], [40, 16, 16]]), spacing=1.0,
                                   cage_half_extent=6.0, unit="micrometer")
     ends = Endpoints(head=(8.0, 16.0, 16.0), tail=(40.0, 16.0, 16.0))
-    path = save_session(Session(source=SourceInfo.from_path(scan), deformation=d, endpoints=ends),
+    seg = Segmentation(k=3, level=0, selected=(1,), seeds=((24.0, 21.0, 16.0),))
+    path = save_session(Session(source=SourceInfo.from_path(scan), deformation=d, endpoints=ends, segmentation=seg),
                         tmp_path / "rod.unwind.json")
     viewer = make_napari_viewer()
     w = UnwindWidget(viewer)
@@ -147,7 +148,12 @@ def test_a_session_opened_by_napari_gives_the_dock_its_deformation(make_napari_v
     assert w.model.deformation.to_dict() == d.to_dict()
     assert w.scan_layer is not None and w.volume.shape == (48, 32, 32)
     assert w.endpoints() == ends
-    qtbot.waitUntil(lambda: w.idle, timeout=60_000)
+    qtbot.waitUntil(lambda: w.idle and bool(w.selected), timeout=60_000)  # the selection, rebuilt in a worker
+    assert w.features.k == 3 and w.selected == [1]
+    assert [lyr.name for lyr in viewer.layers].count("selection") == 1
+    rod_voxels = rod() == 3000
+    chosen = np.isin(w.features.labels, [1])
+    assert (chosen & rod_voxels).sum() > 0.8 * rod_voxels.sum()
 
 
 def test_cancel_stops_an_export_and_leaves_no_file(make_napari_viewer, qtbot, tmp_path):
