@@ -1,0 +1,129 @@
+"""Every private napari and vispy access of the straight view, in one place.
+
+napari offers no public hook into its volume visual's sampling, so the straight view (``_straight_view.py``) reaches
+into napari 0.9's vispy layer and vispy's ``VolumeVisual``. Everything that does so is here, and the module refuses
+to import against a napari minor version other than the pinned one (pyproject: ``napari>=0.9.2,<0.10``), since any
+of these names may change without notice.
+
+The private names used:
+
+- ``viewer.window._qt_viewer.canvas.layer_to_visual[layer]`` -> napari's vispy layer;
+- ``vispy_layer._layer_node._volume_node`` -> the 3D node (a vispy ``VolumeVisual``);
+- on that node: ``_interpolation_fun`` (the Function templates behind the ``$get_data`` slot), ``_texture`` (the scan
+  texture), ``_need_interpolation_update``, ``_vol_shape``, ``_need_vertex_update``, ``shared_program['u_shape']``.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import napari
+from vispy.visuals.volume import VolumeVisual
+
+PINNED_MINOR = (0, 9)
+
+
+def _check_version(version: str) -> None:
+    try:
+        minor = tuple(int(p) for p in version.split(".")[:2])
+    except ValueError:
+        minor = None
+    if minor != PINNED_MINOR:
+        raise ImportError(
+            f"napari-unwind's straight view uses private napari APIs checked against napari "
+            f"{PINNED_MINOR[0]}.{PINNED_MINOR[1]}.x, but napari {version} is installed; install "
+            f"'napari>={PINNED_MINOR[0]}.{PINNED_MINOR[1]}.2,<{PINNED_MINOR[0]}.{PINNED_MINOR[1] + 1}'"
+        )
+
+
+_check_version(napari.__version__)
+
+
+def _set(node: Any, key: str, value: Any) -> None:
+    """Set an attribute vispy's frozen visual does not know (its __setattr__ refuses new names)."""
+    object.__setattr__(node, key, value)
+
+
+def volume_node(viewer: Any, layer: Any) -> VolumeVisual:
+    """The vispy ``VolumeVisual`` that draws ``layer`` in 3D."""
+    vispy_layer = viewer.window._qt_viewer.canvas.layer_to_visual[layer]
+    node = vispy_layer._layer_node._volume_node
+    if not isinstance(node, VolumeVisual):
+        raise RuntimeError(f"napari's 3D node for {layer.name!r} is a {type(node).__name__}, not a VolumeVisual")
+    return node
+
+
+def scene_canvas(viewer: Any) -> Any:
+    """The vispy SceneCanvas of the viewer (for ``render()``, which returns rows top-down)."""
+    return viewer.window._qt_viewer.canvas._scene_canvas
+
+
+def scan_texture(node: VolumeVisual) -> Any:
+    """The node's 3D texture (holds the scan level; uploaded by napari's set_data only)."""
+    return node._texture
+
+
+def install(node: VolumeVisual, lookup: Any, box_zyx: tuple[int, int, int]) -> None:
+    """Make ``node`` sample through ``lookup`` (a vispy Function with a ``$texture`` slot) over a ray box of shape
+    ``box_zyx``, and keep it so across napari's later ``set_data`` calls (which reset the box to the texture's)."""
+    if not hasattr(node, "_unwind_saved"):
+        _set(node, "_unwind_saved", dict(node._interpolation_fun))
+    node._interpolation_fun["linear"] = lookup
+    node._interpolation_fun["nearest"] = lookup
+    _set(node, "_unwind_box", tuple(int(v) for v in box_zyx))
+
+    def set_data(vol: Any, clim: Any = None, copy: bool = True) -> None:
+        VolumeVisual.set_data(node, vol, clim=clim, copy=copy)
+        box = getattr(node, "_unwind_box", None)
+        if box is not None:
+            _apply_box(node, box)
+
+    _set(node, "set_data", set_data)
+    _apply_box(node, node._unwind_box)
+    node._need_interpolation_update = True
+    node.update()
+
+
+def set_box(node: VolumeVisual, box_zyx: tuple[int, int, int]) -> None:
+    """Change the ray box (the straight shape changes with an edit's arclength): a uniform and 8 vertices."""
+    _set(node, "_unwind_box", tuple(int(v) for v in box_zyx))
+    _apply_box(node, node._unwind_box)
+    node.update()
+
+
+def _apply_box(node: VolumeVisual, box: tuple[int, int, int]) -> None:
+    node.shared_program["u_shape"] = (box[2], box[1], box[0])
+    if node._vol_shape != box:
+        node._vol_shape = box
+        node._need_vertex_update = True
+
+
+def uninstall(node: VolumeVisual) -> None:
+    """Restore vispy's own sampling and the texture's box (the bent view of the same texture)."""
+    saved = getattr(node, "_unwind_saved", None)
+    if saved is None:
+        return
+    node._interpolation_fun.update(saved)
+    _set(node, "_unwind_box", None)
+    try:
+        del node.set_data  # the instance wrapper; back to VolumeVisual.set_data
+    except AttributeError:
+        pass
+    data = node._last_data
+    if data is not None:
+        _apply_box(node, tuple(data.shape[:3]))
+    node._need_interpolation_update = True
+    node.update()
+
+
+def max_3d_texture_size() -> int | None:
+    """GL_MAX_3D_TEXTURE_SIZE of the current GL (napari's cached query; 2048 on Mesa llvmpipe)."""
+    from napari._vispy.utils.gl import get_max_texture_sizes
+
+    return get_max_texture_sizes()[1]
+
+
+def gl_extensions() -> str:
+    """The GL extension string (napari's cached query)."""
+    from napari._vispy.utils.gl import get_gl_extensions
+
+    return get_gl_extensions()
