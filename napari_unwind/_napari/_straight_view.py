@@ -185,7 +185,8 @@ class StraightView:
         self.frame_uploads += 1
         self._lookup["nslices"] = float(shape[0])
         self._lookup["box"] = (float(shape[2]), float(shape[1]), float(shape[0]))
-        self.layer.scale = (ds, ds, ds)
+        if not np.allclose(self.layer.scale, ds):
+            self.layer.scale = (ds, ds, ds)  # napari re-slices (re-uploads) on a new scale: only when it changed
         first = self._shape is None
         self._shape = tuple(int(v) for v in shape)
         if self.straight:

@@ -1,0 +1,283 @@
+"""The GPU straight view (issue 12): napari's ray caster samples the scan through the frame table.
+
+References are independent of the shader: the CPU ``straighten`` of the same scan and deformation, its numpy MIP,
+and napari's own unmodified renderer drawing that CPU volume in the same mode with the same camera.
+Run: QT_QPA_PLATFORM=xcb xvfb-run -a -s "-screen 0 1600x1200x24" .venv/bin/pytest -q tests/_napari/test_straight_view.py
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from napari_unwind.deformation import Deformation
+from napari_unwind.editing import EditModel
+from napari_unwind.errors import InvalidInputError
+from napari_unwind.io import Volume
+from napari_unwind.warp import straighten
+
+pytestmark = pytest.mark.gui
+
+ZOOM = 6.0
+
+
+def bent(shift=0.0, twist_deg=0.0, cage=(9.0, 7.0)):
+    """Keyframes on a quarter circle in the axis0-axis1 plane; ``shift`` moves every keyframe along u (axis2) and
+    ``twist_deg`` turns every frame's u, v about n."""
+    t = np.linspace(0, np.pi / 2, 5)
+    pos = np.stack([40 * np.sin(t), 40 * (1 - np.cos(t)), np.zeros_like(t)], axis=1) + [8.0, 8.0, 30.0 + shift]
+    n = np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], axis=1)
+    u = np.tile([0.0, 0.0, 1.0], (5, 1))
+    v = np.cross(n, u)
+    a = np.deg2rad(twist_deg)
+    u, v = np.cos(a) * u + np.sin(a) * v, -np.sin(a) * u + np.cos(a) * v
+    return Deformation.from_keyframes(pos, np.stack([u, v, n], axis=1), cage, spacing=(1.0, 1.0, 1.0),
+                                      origin=(0.0, 0.0, 0.0))
+
+
+@pytest.fixture(scope="module")
+def scan():
+    rng = np.random.default_rng(0)
+    vol = ndimage.gaussian_filter(rng.random((56, 56, 60)), 2)
+    return ((vol - vol.min()) / (vol.max() - vol.min())).astype(np.float32)
+
+
+def cpu(scan, d, order=1):
+    return np.asarray(straighten(scan, d, spacing=1.0, order=order).data)
+
+
+def _viewer(make_napari_viewer):
+    from napari_unwind._napari import _private
+
+    viewer = make_napari_viewer(show=True)
+    viewer.window._qt_window.resize(700, 640)
+    viewer.dims.ndisplay = 3
+    return viewer, _private
+
+
+def look(viewer, shape, ds=1.0):
+    """Orthographic, looking down axis1 (rows = axis0, columns = axis2), centred on the straight box."""
+    camera = viewer.scene.camera
+    camera.perspective = 0
+    camera.angles = (0, 0, 90)
+    camera.center = tuple((np.array(shape, float) / 2 - 0.5) * ds)
+    camera.zoom = ZOOM
+
+
+def shot(viewer):
+    return viewer.screenshot(canvas_only=True, flash=False)[..., :3].astype(int)
+
+
+def reference_render(viewer, sv, array, **kwargs):
+    """napari's own renderer on the CPU-straightened volume, same camera, straight view hidden."""
+    sv.layer.visible = False
+    layer = viewer.add_image(array, contrast_limits=(0, 1), scale=sv.layer.scale, **kwargs)
+    img = shot(viewer)
+    viewer.layers.remove(layer)
+    sv.layer.visible = True
+    return img
+
+
+def numpy_mip_at_voxels(img, shape):
+    """The render's grey value at each (axis0, axis2) voxel centre of the straight box (ZOOM px per voxel)."""
+    h, w = img.shape[:2]
+    rows = np.floor(h / 2 + (np.arange(shape[0]) - (shape[0] - 1) / 2) * ZOOM).astype(int)
+    cols = np.floor(w / 2 + (np.arange(shape[2]) - (shape[2] - 1) / 2) * ZOOM).astype(int)
+    return img[np.ix_(rows, cols)][..., 0] / 255.0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# no GL: the level choice and the version pin
+# ----------------------------------------------------------------------------------------------------------------
+def test_level_choice_under_texture_limit_and_budget():
+    from napari_unwind._napari._straight_view import choose_level
+
+    shapes = [(600, 500, 400), (300, 250, 200), (150, 125, 100)]
+    assert choose_level(shapes, 4, max_texture_size=2048, memory_budget=1 << 30) == 0     # 480 MB fits 1 GiB
+    assert choose_level(shapes, 4, max_texture_size=512, memory_budget=1 << 30) == 1      # 600 > 512
+    assert choose_level(shapes, 4, max_texture_size=2048, memory_budget=50 << 20) == 2    # 60 MB > 50 MiB
+    with pytest.raises(InvalidInputError, match="no pyramid level fits the GPU"):
+        choose_level(shapes, 4, max_texture_size=100, memory_budget=1 << 30)
+    with pytest.raises(InvalidInputError, match="memory_budget must be a positive"):
+        choose_level(shapes, 4, max_texture_size=100, memory_budget=0)
+
+
+def test_other_napari_minor_is_refused_with_a_clear_message():
+    from napari_unwind._napari import _private
+
+    _private._check_version("0.9.7")
+    with pytest.raises(ImportError, match=r"napari 0\.10\.0 is installed; install 'napari>=0\.9\.2,<0\.10'"):
+        _private._check_version("0.10.0")
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the render against the CPU
+# ----------------------------------------------------------------------------------------------------------------
+def test_mip_equals_cpu_straighten_and_a_wrong_deformation_fails(make_napari_viewer, scan):
+    from napari_unwind._napari._straight_view import StraightView
+
+    viewer, _ = _viewer(make_napari_viewer)
+    d = bent()
+    sv = StraightView(viewer, scan)
+    sv.update(d)
+    assert sv.available, sv.reason
+    sv.layer.contrast_limits = (0, 1)
+    ref = cpu(scan, d)
+    look(viewer, ref.shape)
+    img = shot(viewer)
+
+    # 1. the numpy MIP along axis1 of the CPU volume, read at the voxel centres (grey colormap, clim 0..1)
+    got = numpy_mip_at_voxels(img, ref.shape)
+    want = ref.max(axis=1)
+    err = np.abs(got - want)
+    # tolerance: 8-bit readback, and the ray samples between voxel centres along the ray (<= the true max)
+    assert err.mean() < 0.02 and err.max() < 0.08, (err.mean(), err.max())
+
+    # 2. napari's own MIP of the CPU volume, pixel by pixel
+    other = reference_render(viewer, sv, ref)
+    diff = np.abs(img - other)
+    assert diff.mean() < 1.0 and np.percentile(diff, 99.9) <= 16, (diff.mean(), diff.max())
+
+    # the same tolerances reject a deformation moved by 2 voxels or twisted by 10 degrees
+    for wrong in (bent(shift=2.0), bent(twist_deg=10.0)):
+        bad = cpu(scan, wrong)
+        assert bad.shape == ref.shape
+        e = np.abs(got - bad.max(axis=1))
+        assert not (e.mean() < 0.02 and e.max() < 0.08), (e.mean(), e.max())
+
+
+@pytest.mark.parametrize("mode", ["translucent", "iso"])
+def test_translucent_and_iso_equal_napari_rendering_the_cpu_volume(make_napari_viewer, scan, mode):
+    from napari_unwind._napari._straight_view import StraightView
+
+    viewer, _ = _viewer(make_napari_viewer)
+    d = bent()
+    sv = StraightView(viewer, scan)
+    sv.update(d)
+    kw = {"rendering": mode, "iso_threshold": 0.55} if mode == "iso" else {"rendering": mode}
+    sv.layer.contrast_limits = (0, 1)
+    for k, v in kw.items():
+        setattr(sv.layer, k, v)
+    ref = cpu(scan, d)
+    look(viewer, ref.shape)
+    img = shot(viewer)
+    other = reference_render(viewer, sv, ref, **kw)
+    assert img.max() > 40  # something drawn
+    bad = reference_render(viewer, sv, cpu(scan, bent(twist_deg=10.0)), **kw)
+    diff, bad_diff = np.abs(img - other), np.abs(img - bad)
+    corr = np.corrcoef(img[..., 0].ravel(), other[..., 0].ravel())[0, 1]
+    bad_corr = np.corrcoef(img[..., 0].ravel(), bad[..., 0].ravel())[0, 1]
+    print(mode, "diff", diff.mean(), "corr", corr, "| twisted 10 deg: diff", bad_diff.mean(), "corr", bad_corr)
+    if mode == "iso":
+        # the surface's silhouette (anything drawn): the CPU interpolates values, the shader positions, so the
+        # crossing of the threshold moves by a fraction of a voxel at the edge
+        sil, ref_sil, bad_sil = (x.max(axis=2) > 0 for x in (img, other, bad))
+        mismatch, bad_mismatch = (sil != ref_sil).sum() / ref_sil.sum(), (sil != bad_sil).sum() / bad_sil.sum()
+        print("silhouette mismatch", mismatch, "twisted", bad_mismatch)
+        assert ref_sil.mean() > 0.02 and mismatch < 0.08 and bad_mismatch > 2 * mismatch
+        # shading follows the gradients of the two different interpolants on a noisy surface: only loosely equal
+        assert corr > 0.8 and bad_corr < corr, (corr, bad_corr)
+    else:
+        # translucent: measured mean 0.45 grey levels, correlation 0.9997 (twisted: 1.55, 0.9967)
+        assert corr > 0.999 and diff.mean() < 1.0, (corr, diff.mean())
+        assert bad_diff.mean() > 2 * diff.mean() and bad_corr < 0.998
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "nearest"])
+@pytest.mark.parametrize("mode", ["mip", "minip", "attenuated_mip", "average", "translucent", "additive", "iso"])
+def test_every_rendering_mode_and_interpolation_draws(make_napari_viewer, scan, mode, interpolation, capsys):
+    from napari_unwind._napari._straight_view import StraightView
+
+    viewer, _ = _viewer(make_napari_viewer)
+    sv = StraightView(viewer, scan)
+    sv.update(bent())
+    sv.layer.rendering = mode
+    sv.layer.interpolation3d = interpolation
+    sv.layer.contrast_limits = (0, 1)
+    look(viewer, sv._shape)
+    img = shot(viewer)
+    out = capsys.readouterr()
+    assert "error" not in (out.out + out.err).lower()
+    assert img.max() > 0
+    if interpolation == "nearest" and mode == "mip":
+        # nearest = order 0: napari's nearest MIP of the order-0 CPU volume
+        other = reference_render(viewer, sv, cpu(scan, bent(), order=0), interpolation3d="nearest")
+        assert np.abs(img - other).mean() < 1.0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# edits
+# ----------------------------------------------------------------------------------------------------------------
+def test_edit_changes_the_render_undo_restores_it_and_the_scan_is_not_reuploaded(make_napari_viewer, scan):
+    from napari_unwind._napari._straight_view import StraightView
+
+    viewer, _ = _viewer(make_napari_viewer)
+    model = EditModel(bent())
+    sv = StraightView(viewer, scan)
+    sv.update(model.deformation)
+    model.deformation_changed.connect(sv.update)
+    sv.layer.contrast_limits = (0, 1)
+    look(viewer, sv._shape)
+    before = shot(viewer)
+
+    tex = sv.scan_texture
+    calls = []
+    for name in ("set_data", "scale_and_set_data"):
+        orig = getattr(tex, name)
+        setattr(tex, name, lambda *a, _o=orig, _n=name, **k: (calls.append(_n), _o(*a, **k))[1])
+    uploads = sv.frame_uploads
+
+    model.set_s(float(model.deformation.knots[2]))
+    model.move(3.0, 0.0)
+    edited = shot(viewer)
+    assert np.abs(edited - before).mean() > 1.0
+    model.undo()
+    after = shot(viewer)
+    np.testing.assert_array_equal(after, before)
+    assert sv.frame_uploads == uploads + 2
+    assert calls == []
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# big scans, fallback
+# ----------------------------------------------------------------------------------------------------------------
+def test_forced_small_texture_limit_picks_a_coarser_level_that_still_renders_right(make_napari_viewer, scan):
+    from napari_unwind._napari._straight_view import StraightView
+
+    coarse = scan.reshape(28, 2, 28, 2, 30, 2).mean(axis=(1, 3, 5)).astype(np.float32)
+    vol = Volume(scan, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), levels=(scan, coarse),
+                 level_spacings=((1.0, 1.0, 1.0), (2.0, 2.0, 2.0)), level_origins=((0.0, 0.0, 0.0), (0.5, 0.5, 0.5)))
+    viewer, _ = _viewer(make_napari_viewer)
+    sv = StraightView(viewer, vol, max_texture_size=40)
+    assert sv.level == 1 and "pyramid level 1 (28x28x30" in sv.level_text
+    assert StraightView(viewer, vol, memory_budget=56 * 56 * 60 * 4 - 1).level == 1
+    d = bent()
+    sv.update(d)
+    assert sv.layer.data.shape == coarse.shape
+    sv.layer.contrast_limits = (0, 1)
+    from napari_unwind.preview import level_deformation
+
+    ref = np.asarray(straighten(coarse, level_deformation(vol, d, 1), spacing=2.0, order=1).data)
+    assert tuple(sv._shape) == ref.shape
+    look(viewer, ref.shape, ds=2.0)
+    img = shot(viewer)
+    other = reference_render(viewer, sv, ref)
+    # measured 1.15 grey levels (a small box: edges weigh more); 4 scan voxels = 2 level voxels off is told apart
+    err = np.abs(img - other).mean()
+    bad = reference_render(viewer, sv, np.asarray(
+        straighten(coarse, level_deformation(vol, bent(shift=4.0), 1), spacing=2.0, order=1).data))
+    assert img.max() > 40 and err < 2.0 and np.abs(img - bad).mean() > 1.5 * err, (err, np.abs(img - bad).mean())
+
+
+def test_fallback_uses_the_cpu_preview_and_says_why(make_napari_viewer, scan, qtbot):
+    from napari_unwind._napari._straight_view import LAYER_NAME, StraightView
+
+    viewer, _ = _viewer(make_napari_viewer)
+    sv = StraightView(viewer, scan, disable="float textures unavailable (test)")
+    lines = []
+    sv.status.connect(lines.append)
+    assert not sv.available
+    sv.update(bent())
+    assert sv.preview is not None and LAYER_NAME not in viewer.layers
+    qtbot.waitUntil(lambda: sv.preview.idle and sv.preview.layer is not None, timeout=30000)
+    assert lines == ["straight view: CPU preview (float textures unavailable (test))"]
