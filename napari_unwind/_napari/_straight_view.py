@@ -177,7 +177,8 @@ class StraightView:
             return
         self._ensure_layer()
         d = level_deformation(self.scan, deformation, self.level)
-        ds = float(min(d.spacing))
+        ds = self._ds = float(min(d.spacing))
+        self._level_spacing = tuple(float(v) for v in d.spacing)
         base, dv, du = d.slice_geometry(ds, voxels=True)
         shape = d.output_shape(ds)
         table = np.ascontiguousarray(np.stack([base, dv, du]).astype(np.float32))  # (3, Ns, 3)
@@ -220,6 +221,11 @@ class StraightView:
             _private.install(self.node, self._lookup, self._shape)
         else:
             _private.uninstall(self.node)
+        # the straight box is drawn at the isotropic ds, the scan at its level spacing: napari re-uploads the
+        # texture when the scale changes, so an anisotropic scan costs one upload per toggle (isotropic: none)
+        scale = (self._ds,) * 3 if straight else tuple(self._level_spacing)
+        if not np.allclose(self.layer.scale, scale):
+            self.layer.scale = scale
         self.viewer.reset_view()
 
     @property

@@ -281,3 +281,50 @@ def test_fallback_uses_the_cpu_preview_and_says_why(make_napari_viewer, scan, qt
     assert sv.preview is not None and LAYER_NAME not in viewer.layers
     qtbot.waitUntil(lambda: sv.preview.idle and sv.preview.layer is not None, timeout=30000)
     assert lines == ["straight view: CPU preview (float textures unavailable (test))"]
+
+
+def test_a_shader_that_does_not_compile_falls_back_with_its_reason(make_napari_viewer, scan, qtbot, monkeypatch):
+    from napari_unwind._napari import _straight_view
+    from napari_unwind._napari._straight_view import LAYER_NAME, StraightView
+
+    broken = _straight_view.STRAIGHT_LOOKUP.replace("vec3 p = base", "vec3 p = undeclared_thing + base")
+    monkeypatch.setattr(_straight_view, "STRAIGHT_LOOKUP", broken)
+    viewer, _ = _viewer(make_napari_viewer)
+    sv = StraightView(viewer, scan)
+    assert sv.available
+    sv.update(bent())
+    assert not sv.available and sv.reason.startswith("the straight-view shader failed")
+    assert LAYER_NAME not in viewer.layers and sv.preview is not None
+    qtbot.waitUntil(lambda: sv.preview.idle and sv.preview.layer is not None, timeout=30000)
+
+
+def test_toggle_shows_the_bent_scan_from_the_same_texture_and_back(make_napari_viewer, scan):
+    from napari_unwind._napari._straight_view import StraightView
+
+    viewer, _ = _viewer(make_napari_viewer)
+    sv = StraightView(viewer, scan)
+    sv.update(bent())
+    sv.layer.contrast_limits = (0, 1)
+    look(viewer, sv._shape)
+    straight = shot(viewer)
+    tex = sv.scan_texture
+    calls = []
+    orig = tex.scale_and_set_data
+    tex.scale_and_set_data = lambda *a, **k: (calls.append(1), orig(*a, **k))[1]
+
+    sv.set_straight(False)
+    look(viewer, scan.shape)
+    bent_img = shot(viewer)
+    assert calls == []   # the toggle itself uploads nothing (napari re-uploads when a layer is shown again, below)
+    sv.layer.visible = False
+    plain = viewer.add_image(scan, contrast_limits=(0, 1))
+    reference = shot(viewer)
+    viewer.layers.remove(plain)
+    sv.layer.visible = True
+    np.testing.assert_array_equal(bent_img, reference)   # the bent view is napari's own render of the scan
+
+    calls.clear()
+    sv.set_straight(True)
+    look(viewer, sv._shape)
+    np.testing.assert_array_equal(shot(viewer), straight)
+    assert calls == [] and sv.scan_texture is tex
