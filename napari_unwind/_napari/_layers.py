@@ -42,3 +42,13 @@ def labels_layer(labels: np.ndarray, *, spacing: Any, unit: str | None, name: st
     meta = {"name": name, **_geometry(spacing, unit)}
     meta.update(kwargs)
     return labels, meta, "labels"
+
+
+def scan_units(viewer: Any) -> dict[str, Any]:
+    """``{"units": ...}`` of the viewer's scan (its first Image layer with a physical unit), or ``{}``: the layers
+    added over the scan take them, since napari stops using units when the layers' units disagree."""
+    for layer in viewer.layers:
+        units = getattr(layer, "units", None)
+        if layer.__class__.__name__ == "Image" and units is not None and {str(u) for u in units} != {"pixel"}:
+            return {"units": tuple(units)}
+    return {}

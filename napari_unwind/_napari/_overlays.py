@@ -101,8 +101,10 @@ class BentOverlays:
             layer.edge_color = colors
         else:
             active = layers.selection.active  # adding a layer selects it: keep the user's selection
+            from ._layers import scan_units
+
             self.viewer.add_vectors(data, name=name, edge_color=colors, edge_width=width, vector_style="line",
-                                    metadata={"napari_unwind": {"overlay": True}})
+                                    metadata={"napari_unwind": {"overlay": True}}, **scan_units(self.viewer))
             if active is not None and active in layers:
                 layers.selection.active = active
 

@@ -125,8 +125,10 @@ class StraightPreview:
         if layer is None:
             layers = self.viewer.layers
             active = layers.selection.active  # adding a layer selects it: keep the user's selection
+            from ._layers import scan_units
+
             self.viewer.add_image(array, name=PREVIEW_NAME, scale=scale, translate=origin,
-                                  metadata={"napari_unwind": {"preview": True}})
+                                  metadata={"napari_unwind": {"preview": True}}, **scan_units(self.viewer))
             if active is not None and active in layers:
                 layers.selection.active = active
             return

@@ -182,7 +182,7 @@ class UnwindWidget(QWidget):
         self.status = QLabel("")
         self.status.setWordWrap(True)
         layout = QVBoxLayout(self)
-        layout.addWidget(self.toolbox)
+        layout.addWidget(self.toolbox, 1)  # the open step gets the height; the status line only its own
         layout.addWidget(self.status)
         self.setMinimumWidth(400)  # the feature table and the reports need room; napari's docks start narrow
 
@@ -795,7 +795,11 @@ class UnwindWidget(QWidget):
             yield Progress("ends", 1, 1)
             return ends
 
-        return self._start(make, "suggesting the ends", lambda ends: self.set_ends(list(ends)))
+        def done(ends: Any) -> None:
+            self.set_ends(list(ends))
+            self._say("suggested head and tail: check them in the \"ends\" layer, drag to move")
+
+        return self._start(make, "suggesting the ends", done)
 
     def set_ends(self, voxels: list, roles: list[str] | None = None) -> Any:
         """Show ends (full-resolution voxel coordinates, head first) in the "ends" Points layer."""
@@ -808,9 +812,11 @@ class UnwindWidget(QWidget):
             self._ends_layer.data = world
             self._ends_layer.features = {"end": roles}
         else:
+            from ._layers import scan_units
+
             self._ends_layer = self._add_layer((world, {"name": "ends", "features": {"end": roles}, "size": size,
-                                                        "face_color": "yellow", "text": {"string": "{end}"}},
-                                                "points"))
+                                                        "face_color": "yellow", "text": {"string": "{end}"},
+                                                        **scan_units(self.viewer)}, "points"))
         self._ends_layer.mode = "select"
         self.viewer.layers.selection.active = self._ends_layer
         self._update_needs()
@@ -934,6 +940,8 @@ class UnwindWidget(QWidget):
         except UnwindError as exc:
             self._fail(exc)
             return None
+        if self.path_edit.text() != str(path):
+            self.path_edit.setText(str(path))  # the page shows what is written (its format follows the suffix)
         overwrite = False
         if target.exists():
             if not self.confirm_overwrite(target):
