@@ -159,7 +159,7 @@ class StraightView:
             data = data.astype(np.float32)
         self.layer = self.viewer.add_image(data, name=LAYER_NAME, metadata={"napari_unwind": {"straight": True}})
         self.node = _private.volume_node(self.viewer, self.layer)
-        self._frames = Texture2D(np.zeros((3, 1, 3), np.float32), internalformat="rgb32f", interpolation="nearest",
+        self._frames = Texture2D(np.zeros((3, 1, 3), np.float32), internalformat="rgb32f", interpolation="linear",
                                  wrapping="clamp_to_edge")
         self._lookup = Function(STRAIGHT_LOOKUP)
         self._lookup["frames"] = self._frames
