@@ -15,6 +15,8 @@ pytest.importorskip("napari")
 
 from napari.utils._proxies import ReadOnlyWrapper  # noqa: E402
 from napari.utils.interactions import mouse_press_callbacks, mouse_release_callbacks  # noqa: E402
+from qtpy.QtCore import QPoint, Qt  # noqa: E402
+from qtpy.QtTest import QTest  # noqa: E402
 
 from napari_unwind._napari._widget import UnwindWidget  # noqa: E402
 from napari_unwind.datasets import fish_phantom  # noqa: E402
@@ -55,6 +57,19 @@ def click(layer, world, *, ndisplay=2, shift=False, view_direction=None, viewer=
                                                  exceptions=("handled",)))
     mouse_release_callbacks(layer, ReadOnlyWrapper(SimpleNamespace(type="mouse_release", **common),
                                                    exceptions=("handled",)))
+
+
+def drag(qtbot, widget, start, end, *, steps=4, modifier=None):
+    """Press at canvas pixel ``start``, move in steps, release at ``end``."""
+    modifier = Qt.KeyboardModifier.NoModifier if modifier is None else modifier
+    start, end = np.asarray(start), np.asarray(end)
+    QTest.mousePress(widget, Qt.MouseButton.LeftButton, modifier, QPoint(*map(int, start)))
+    for t in np.linspace(0, 1, steps + 1)[1:]:
+        qtbot.wait(15)  # vispy drops moves closer than 10 ms
+        p = np.round(start + t * (end - start)).astype(int)
+        QTest.mouseMove(widget, QPoint(*map(int, p)))
+    qtbot.wait(15)
+    QTest.mouseRelease(widget, Qt.MouseButton.LeftButton, modifier, QPoint(*map(int, end)))
 
 
 def fish_voxel(fish, labels_scale=1):
@@ -135,6 +150,43 @@ def test_whole_workflow(make_napari_viewer, qtbot, tmp_path, fish, scan_path):
     np.testing.assert_allclose(d1.positions[1], expected, atol=1e-9)
     assert w.model.undo()
     assert w.model.deformation is d0
+
+    # the same through the Refine step's 2D editor, as a user does it: synthetic mouse drags on its canvas (Qt events
+    # on the vispy canvas). The expected amounts come from the drag's pixels through vispy's own view transform
+    # (set here: a known rectangle), and the keyframe's frame before the drag.
+    w.toolbox.setCurrentIndex(4)
+    w.model.select_keyframe(1)
+    ed = w.refine_panel.editor
+    qtbot.waitExposed(ed.native)
+    qtbot.waitUntil(lambda: ed.cross is not None and ed.cross.s == w.model.s, timeout=10_000)
+    side = min(ed.native.width(), ed.native.height())
+    ed.view.camera.rect = (-30.0, -30.0, 60.0 * ed.native.width() / side, 60.0 * ed.native.height() / side)
+    qtbot.wait(30)
+    start = np.round(ed.canvas_at((0.0, 0.0))).astype(int)
+    end = start + (20, -10)  # 20 px right, 10 px up
+    dx, dy = ed.scene_at(end) - ed.scene_at(start)  # the plane distance of the drag (vispy's transform)
+    assert dx > 0 and dy > 0 and abs(dx / dy - 2.0) < 0.01
+    drag(qtbot, ed.native, start, end)
+    k, k1 = d0.keyframes[1], w.model.deformation.keyframes[1]
+    np.testing.assert_allclose(k1.position, k.position + dx * k.u + dy * k.v, atol=1e-6)
+    assert len(w.model.history) == 1 and w.model.history[0].label == "move"
+    moved = w.model.deformation
+    # shift-drag twists by the angle swept about the centre (the view re-centres on the moved keyframe first)
+    qtbot.waitUntil(lambda: ed.cross is not None and ed.cross.s == w.model.s, timeout=10_000)
+    ed.view.camera.rect = (-30.0, -30.0, 60.0 * ed.native.width() / side, 60.0 * ed.native.height() / side)
+    qtbot.wait(30)
+    a = np.round(ed.canvas_at((12.0, 0.0))).astype(int)
+    b = np.round(ed.canvas_at((12.0 * np.cos(0.5), 12.0 * np.sin(0.5)))).astype(int)
+    p0, p1 = ed.scene_at(a), ed.scene_at(b)
+    theta = np.arctan2(p1[1], p1[0]) - np.arctan2(p0[1], p0[0])
+    drag(qtbot, ed.native, a, b, modifier=Qt.KeyboardModifier.ShiftModifier)
+    k2 = w.model.deformation.keyframes[1]
+    m1 = moved.keyframes[1]
+    np.testing.assert_allclose(k2.u, np.cos(theta) * m1.u + np.sin(theta) * m1.v, atol=1e-6)
+    assert [st.label for st in w.model.history] == ["move", "twist"]
+    assert w.model.undo() and w.model.undo()
+    assert w.model.deformation is d0  # undo restored it bit for bit (the very object)
+    w.toolbox.setCurrentIndex(5)
 
     # export: equals the core's straighten of the same scan and deformation, read back
     out = tmp_path / "x.nrrd"
