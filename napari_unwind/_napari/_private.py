@@ -17,6 +17,7 @@ from __future__ import annotations
 from typing import Any
 
 import napari
+import numpy as np
 from vispy.visuals.volume import VolumeVisual
 
 PINNED_MINOR = (0, 9)
@@ -127,3 +128,59 @@ def gl_extensions() -> str:
     from napari._vispy.utils.gl import get_gl_extensions
 
     return get_gl_extensions()
+
+
+def max_fragment_uniform_vectors() -> int | None:
+    """GL_MAX_FRAGMENT_UNIFORM_VECTORS of the current GL (vispy's gloo has no name for it)."""
+    from napari._vispy.utils.gl import _opengl_context
+    from vispy.gloo import gl
+
+    with _opengl_context():
+        try:
+            value = gl.glGetParameter(0x8DFD)
+        except Exception:
+            return None
+    return int(value) if value else None
+
+
+def set_uniform(node: VolumeVisual, name: str, value: Any) -> None:
+    """Set a uniform array the straight view's Function declares itself.
+
+    vispy stores a uniform array raveled and re-applies it that way when the program's code changes (napari
+    rebuilds it on a rendering or interpolation change); its own shape check then refuses it ("needs shape (n, 3)
+    not (1, 3n)"), the re-apply stops half way and the visual stops drawing. So the value is kept here and the
+    stored copies are put back in 2D before every draw (a wrapper of the node's ``_prepare_draw``).
+    """
+    value = np.ascontiguousarray(value, dtype=np.float32)
+    arrays = node.__dict__.get("_unwind_uniforms")
+    if arrays is None:
+        arrays = {}
+        _set(node, "_unwind_uniforms", arrays)
+
+        def prepare_draw(view: Any) -> None:
+            _fix_uniform_arrays(node)
+            VolumeVisual._prepare_draw(node, view)
+
+        _set(node, "_prepare_draw", prepare_draw)
+    arrays[name] = value
+    node.shared_program[name] = value
+    _fix_uniform_arrays(node)
+
+
+def _fix_uniform_arrays(node: VolumeVisual) -> None:
+    """Called before each draw, before vispy flushes its queued GL commands. Besides the 2D copies: vispy's GL
+    side computes a uniform array's element count only when it first looks the uniform's location up, and later
+    sets only element 0 (vispy 0.15 ``GlirProgram.set_uniform``); dropping the cached location makes the next set
+    look it up again, with the full count."""
+    from vispy.gloo import get_current_canvas
+
+    canvas = get_current_canvas()
+    objects = getattr(getattr(canvas.context.shared, "parser", None), "_objects", {}) if canvas is not None else {}
+    for name, value in node.__dict__.get("_unwind_uniforms", {}).items():
+        for program in list(node.shared_program._programs.values()):
+            for store in (program._user_variables, program._pending_variables):
+                if name in store:
+                    store[name] = value
+            glir_program = objects.get(program.id)
+            if glir_program is not None:
+                glir_program._handles.pop(name, None)

@@ -29,7 +29,7 @@ from ..deformation import Deformation
 from ..errors import InvalidInputError
 from ..preview import _levels, level_deformation
 from . import _private
-from ._shaders import STRAIGHT_LOOKUP
+from ._shaders import FRAMES_UNIFORM, STRAIGHT_LOOKUP, uniform_lookup
 
 __all__ = ["StraightView", "choose_level", "LAYER_NAME", "DEFAULT_MEMORY_BUDGET"]
 
@@ -89,6 +89,9 @@ class StraightView:
         Bytes of GPU memory the scan texture may take (default 1 GiB).
     disable : str, optional
         Do not use the shader, for this reason (the CPU preview is used): testing, or a user setting.
+    frames : {"auto", "uniform", "texture"}
+        Where the shader reads the frame table: a uniform array (faster on llvmpipe; "auto" uses it while the
+        table fits GL_MAX_FRAGMENT_UNIFORM_VECTORS) or an rgb32f texture (any length).
 
     Signals
     -------
@@ -99,7 +102,13 @@ class StraightView:
     status = Signal(str)
 
     def __init__(self, viewer: Any, scan: Any, *, max_texture_size: int | None = None,
-                 memory_budget: int = DEFAULT_MEMORY_BUDGET, disable: str | None = None) -> None:
+                 memory_budget: int = DEFAULT_MEMORY_BUDGET, disable: str | None = None,
+                 frames: str = "auto") -> None:
+        if frames not in ("auto", "uniform", "texture"):
+            raise InvalidInputError(f"frames must be 'auto', 'uniform' or 'texture', got {frames!r}")
+        self.frames = frames
+        self._capacity = 0
+        self._table: np.ndarray | None = None
         self.viewer = viewer
         self.scan = scan
         levels, _, _, _, _ = _levels(scan)
@@ -112,6 +121,7 @@ class StraightView:
         self.straight = True
         self.deformation: Deformation | None = None
         self.frame_uploads = 0
+        self.enabled = True
         self._preview: Any = None
         self._shape: tuple[int, int, int] | None = None
         self._frames: Texture2D | None = None
@@ -161,10 +171,28 @@ class StraightView:
         self.node = _private.volume_node(self.viewer, self.layer)
         self._frames = Texture2D(np.zeros((3, 1, 3), np.float32), internalformat="rgb32f", interpolation="linear",
                                  wrapping="clamp_to_edge")
-        self._lookup = Function(STRAIGHT_LOOKUP)
-        self._lookup["frames"] = self._frames
+        self._scan_shape = tuple(float(v) for v in data.shape)
+
+    def _make_lookup(self, ns: int) -> bool:
+        """(Re)build the sampling Function when the table's home changes; True when it is a new Function."""
+        capacity = 0
+        if self.frames != "texture":
+            limit = _private.max_fragment_uniform_vectors() or 0
+            cap = 256 * -(-ns // 256)          # rounded up: a length edit rarely recompiles
+            if 3 * cap + 256 <= limit:          # leave room for napari's own uniforms
+                capacity = cap
+            elif self.frames == "uniform":
+                raise InvalidInputError(f"a frame table of {ns} slices does not fit GL_MAX_FRAGMENT_UNIFORM_VECTORS "
+                                        f"({limit}); use frames='texture' or 'auto'")
+        if self._lookup is not None and capacity == self._capacity:
+            return False
+        self._capacity = capacity
+        self._lookup = Function(uniform_lookup(capacity) if capacity else STRAIGHT_LOOKUP)
+        if not capacity:
+            self._lookup["frames"] = self._frames
         self._lookup["fill"] = 0.0
-        self._lookup["scan_shape"] = tuple(float(v) for v in data.shape)
+        self._lookup["scan_shape"] = self._scan_shape
+        return True
 
     # -- edits -------------------------------------------------------------------------------------------------
     def update(self, deformation: Deformation) -> None:
@@ -181,26 +209,38 @@ class StraightView:
         self._level_spacing = tuple(float(v) for v in d.spacing)
         base, dv, du = d.slice_geometry(ds, voxels=True)
         shape = d.output_shape(ds)
-        table = np.ascontiguousarray(np.stack([base, dv, du]).astype(np.float32))  # (3, Ns, 3)
-        self._frames.set_data(table)
+        new = self._make_lookup(int(shape[0]))
+        if self._capacity:
+            table = np.zeros((3 * self._capacity, 3), np.float32)
+            table[:3 * shape[0]] = np.stack([base, dv, du], axis=1).reshape(-1, 3)   # slice k: rows 3k, 3k+1, 3k+2
+        else:
+            self._frames.set_data(np.ascontiguousarray(np.stack([base, dv, du]).astype(np.float32)))  # (3, Ns, 3)
         self.frame_uploads += 1
         self._lookup["nslices"] = float(shape[0])
         self._lookup["box"] = (float(shape[2]), float(shape[1]), float(shape[0]))
+        self._table = table if self._capacity else None
         if not np.allclose(self.layer.scale, ds):
             self.layer.scale = (ds, ds, ds)  # napari re-slices (re-uploads) on a new scale: only when it changed
         first = self._shape is None
         self._shape = tuple(int(v) for v in shape)
-        if self.straight:
-            if first:
-                _private.install(self.node, self._lookup, self._shape)
-                problem = self._try_draw()
-                if problem is not None:
-                    self._fail(problem)
-                    self._cpu_preview(deformation)
-                    return
-                self.status.emit(self.level_text)
-            else:
-                _private.set_box(self.node, self._shape)
+        if not self.straight:
+            return
+        if first or new:
+            _private.install(self.node, self._lookup, self._shape)
+        else:
+            _private.set_box(self.node, self._shape)
+        self._set_table()
+        if first:
+            problem = self._try_draw()
+            if problem is not None:
+                self._fail(problem)
+                self._cpu_preview(deformation)
+                return
+            self.status.emit(self.level_text)
+
+    def _set_table(self) -> None:
+        if self._table is not None:
+            _private.set_uniform(self.node, FRAMES_UNIFORM, self._table)
 
     def _try_draw(self) -> str | None:
         try:
@@ -219,6 +259,7 @@ class StraightView:
         self.straight = straight
         if straight:
             _private.install(self.node, self._lookup, self._shape)
+            self._set_table()
         else:
             _private.uninstall(self.node)
         # the straight box is drawn at the isotropic ds, the scan at its level spacing: napari re-uploads the
@@ -242,6 +283,18 @@ class StraightView:
             self._preview = StraightPreview(self.viewer, lambda: scan)
             self.status.emit(self.level_text)
         self._preview.request(deformation)
+
+    # -- the StraightPreview interface (the Refine panel can hold either) ---------------------------------------
+    def request(self, deformation: Deformation | None = None) -> None:
+        """Show ``deformation`` (default: the last one) unless disabled; the shader path is synchronous."""
+        d = deformation if deformation is not None else self.deformation
+        if d is not None and self.enabled:
+            self.update(d)
+
+    @property
+    def idle(self) -> bool:
+        """Nothing pending (the shader draws on napari's next paint; the CPU preview may still be working)."""
+        return self._preview is None or self._preview.idle
 
     @property
     def preview(self) -> Any:

@@ -113,12 +113,13 @@ def test_other_napari_minor_is_refused_with_a_clear_message():
 # ----------------------------------------------------------------------------------------------------------------
 # the render against the CPU
 # ----------------------------------------------------------------------------------------------------------------
-def test_mip_equals_cpu_straighten_and_a_wrong_deformation_fails(make_napari_viewer, scan):
+@pytest.mark.parametrize("frames", ["uniform", "texture"])
+def test_mip_equals_cpu_straighten_and_a_wrong_deformation_fails(make_napari_viewer, scan, frames):
     from napari_unwind._napari._straight_view import StraightView
 
     viewer, _ = _viewer(make_napari_viewer)
     d = bent()
-    sv = StraightView(viewer, scan)
+    sv = StraightView(viewer, scan, frames=frames)
     sv.update(d)
     assert sv.available, sv.reason
     sv.layer.contrast_limits = (0, 1)
@@ -208,12 +209,15 @@ def test_every_rendering_mode_and_interpolation_draws(make_napari_viewer, scan, 
 # ----------------------------------------------------------------------------------------------------------------
 # edits
 # ----------------------------------------------------------------------------------------------------------------
-def test_edit_changes_the_render_undo_restores_it_and_the_scan_is_not_reuploaded(make_napari_viewer, scan):
+@pytest.mark.parametrize("frames", ["uniform", "texture"])
+def test_edit_changes_the_render_undo_restores_it_and_the_scan_is_not_reuploaded(make_napari_viewer, scan, frames):
+    """The edited render equals napari's render of the CPU straighten of the edited deformation (the uniform
+    table's later uploads once set only its first element: vispy caches the array's count with its location)."""
     from napari_unwind._napari._straight_view import StraightView
 
     viewer, _ = _viewer(make_napari_viewer)
     model = EditModel(bent())
-    sv = StraightView(viewer, scan)
+    sv = StraightView(viewer, scan, frames=frames)
     sv.update(model.deformation)
     model.deformation_changed.connect(sv.update)
     sv.layer.contrast_limits = (0, 1)
@@ -231,6 +235,11 @@ def test_edit_changes_the_render_undo_restores_it_and_the_scan_is_not_reuploaded
     model.move(3.0, 0.0)
     edited = shot(viewer)
     assert np.abs(edited - before).mean() > 1.0
+    assert sv._capacity == (256 if frames == "uniform" else 0)
+    assert calls == []
+    moved = reference_render(viewer, sv, cpu(scan, model.deformation))
+    assert np.abs(edited - moved).mean() < 1.0
+    calls.clear()
     model.undo()
     after = shot(viewer)
     np.testing.assert_array_equal(after, before)
@@ -284,11 +293,12 @@ def test_fallback_uses_the_cpu_preview_and_says_why(make_napari_viewer, scan, qt
 
 
 def test_a_shader_that_does_not_compile_falls_back_with_its_reason(make_napari_viewer, scan, qtbot, monkeypatch):
-    from napari_unwind._napari import _straight_view
+    from napari_unwind._napari import _shaders, _straight_view
     from napari_unwind._napari._straight_view import LAYER_NAME, StraightView
 
-    broken = _straight_view.STRAIGHT_LOOKUP.replace("vec3 p = base", "vec3 p = undeclared_thing + base")
-    monkeypatch.setattr(_straight_view, "STRAIGHT_LOOKUP", broken)
+    broken = _shaders.STRAIGHT_LOOKUP.replace("vec3 p = base", "vec3 p = undeclared_thing + base")
+    monkeypatch.setattr(_straight_view, "STRAIGHT_LOOKUP", broken)   # the texture table's code
+    monkeypatch.setattr(_shaders, "STRAIGHT_LOOKUP", broken)         # uniform_lookup's source
     viewer, _ = _viewer(make_napari_viewer)
     sv = StraightView(viewer, scan)
     assert sv.available
