@@ -296,7 +296,7 @@ def test_a_shader_that_does_not_compile_falls_back_with_its_reason(make_napari_v
     from napari_unwind._napari import _shaders, _straight_view
     from napari_unwind._napari._straight_view import LAYER_NAME, StraightView
 
-    broken = _shaders.STRAIGHT_LOOKUP.replace("vec3 p = base", "vec3 p = undeclared_thing + base")
+    broken = _shaders.STRAIGHT_LOOKUP.replace("vec3 n = $scan_shape;", "vec3 n = $scan_shape + undeclared_thing;")
     monkeypatch.setattr(_straight_view, "STRAIGHT_LOOKUP", broken)   # the texture table's code
     monkeypatch.setattr(_shaders, "STRAIGHT_LOOKUP", broken)         # uniform_lookup's source
     viewer, _ = _viewer(make_napari_viewer)
