@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -129,6 +130,9 @@ class StraightView:
         self.reason = disable or self._gl_problem()
         self.available = self.reason is None
         self._level_data = levels[self.level]
+        self._levels = levels
+        self._memory_budget = memory_budget
+        self._start = (0, 0, 0)            # the crop's first voxel on its level (focus)
 
     # -- setup -------------------------------------------------------------------------------------------------
     @staticmethod
@@ -147,7 +151,8 @@ class StraightView:
         if not self.available:
             return f"straight view: CPU preview ({self.reason})"
         shape = "x".join(str(v) for v in self._level_data.shape)
-        return f"straight view: GPU shader, pyramid level {self.level} ({shape}, 3D texture limit " \
+        crop = f", crop from voxel {tuple(int(v) for v in self._start)}" if any(self._start) else ""
+        return f"straight view: GPU shader, pyramid level {self.level} ({shape}{crop}, 3D texture limit " \
                f"{self.max_texture_size})"
 
     def _fail(self, reason: str) -> None:
@@ -204,7 +209,7 @@ class StraightView:
             self._cpu_preview(deformation)
             return
         self._ensure_layer()
-        d = level_deformation(self.scan, deformation, self.level)
+        d = self._on_texture(deformation)
         ds = self._ds = float(min(d.spacing))
         self._level_spacing = tuple(float(v) for v in d.spacing)
         base, dv, du = d.slice_geometry(ds, voxels=True)
@@ -241,6 +246,54 @@ class StraightView:
     def _set_table(self) -> None:
         if self._table is not None:
             _private.set_uniform(self.node, FRAMES_UNIFORM, self._table)
+
+    def _on_texture(self, deformation: Deformation) -> Deformation:
+        """``deformation`` on the uploaded texture's voxel grid: the level's, shifted by the crop's start."""
+        d = level_deformation(self.scan, deformation, self.level)
+        if any(self._start):
+            sp = np.asarray(d.spacing, dtype=float)
+            d = replace(d, origin=tuple(np.asarray(d.origin, dtype=float) + np.asarray(self._start) * sp))
+        return d
+
+    def focus(self, *, margin: int = 2) -> int:
+        """Upload the finest level on which a crop around the current deformation fits the texture limit and the
+        memory budget (the region the straight grid samples, plus ``margin`` voxels); returns the level.
+
+        This re-uploads the scan texture once (an explicit request, not an edit). Edits that later move the grid
+        beyond the crop show the fill there until the next ``focus``.
+        """
+        if self.deformation is None or not self.available:
+            return self.level
+        for level in range(len(self._levels)):
+            d = level_deformation(self.scan, self.deformation, level)
+            ds = float(min(d.spacing))
+            base, dv, du = d.slice_geometry(ds, voxels=True)
+            _, ny, nx = d.output_shape(ds)
+            corners = np.concatenate([base, base + (ny - 1) * dv, base + (nx - 1) * du,
+                                      base + (ny - 1) * dv + (nx - 1) * du])
+            shape = np.asarray(self._levels[level].shape)
+            lo = np.clip(np.floor(corners.min(axis=0)).astype(int) - margin, 0, shape)
+            hi = np.clip(np.ceil(corners.max(axis=0)).astype(int) + margin + 1, 0, shape)
+            size = hi - lo
+            if (size <= 0).any():
+                continue
+            if self.max_texture_size is not None and size.max() > self.max_texture_size:
+                continue
+            if int(np.prod(size)) * 4 > self._memory_budget:
+                continue
+            break
+        else:
+            return self.level
+        self.level = level
+        self._start = tuple(int(v) for v in lo)
+        self._level_data = self._levels[level][tuple(slice(a, b) for a, b in zip(lo, hi))]
+        data = np.asarray(self._level_data)
+        self.layer.data = data.astype(np.float32) if data.dtype == np.float64 else data
+        self._scan_shape = tuple(float(v) for v in data.shape)
+        self._lookup["scan_shape"] = self._scan_shape
+        self.update(self.deformation)
+        self.status.emit(self.level_text)
+        return level
 
     def _try_draw(self) -> str | None:
         try:

@@ -338,3 +338,25 @@ def test_toggle_shows_the_bent_scan_from_the_same_texture_and_back(make_napari_v
     look(viewer, sv._shape)
     np.testing.assert_array_equal(shot(viewer), straight)
     assert calls == [] and sv.scan_texture is tex
+
+
+def test_focus_uploads_a_finer_level_crop_around_the_specimen(make_napari_viewer, scan):
+    from napari_unwind._napari._straight_view import StraightView
+
+    coarse = scan.reshape(28, 2, 28, 2, 30, 2).mean(axis=(1, 3, 5)).astype(np.float32)
+    vol = Volume(scan, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), levels=(scan, coarse),
+                 level_spacings=((1.0, 1.0, 1.0), (2.0, 2.0, 2.0)), level_origins=((0.0, 0.0, 0.0), (0.5, 0.5, 0.5)))
+    viewer, _ = _viewer(make_napari_viewer)
+    d = bent()
+    sv = StraightView(viewer, vol, max_texture_size=54)   # level 0 (60 voxels along axis2) does not fit
+    sv.update(d)
+    assert sv.level == 1
+    assert sv.focus() == 0
+    assert max(sv.layer.data.shape) <= 54 and sv.layer.data.shape != scan.shape and "crop from voxel" in sv.level_text
+    sv.layer.contrast_limits = (0, 1)
+    ref = cpu(scan, d)                      # full resolution, whole scan
+    assert tuple(sv._shape) == ref.shape
+    look(viewer, ref.shape)
+    img = shot(viewer)
+    other = reference_render(viewer, sv, ref)
+    assert img.max() > 40 and np.abs(img - other).mean() < 1.0
