@@ -317,9 +317,13 @@ class StraightView:
             _private.uninstall(self.node)
         # the straight box is drawn at the isotropic ds, the scan at its level spacing: napari re-uploads the
         # texture when the scale changes, so an anisotropic scan costs one upload per toggle (isotropic: none)
+        # the bent view sits where the scan (the level, the crop) is: the texture's voxel 0 at its origin
         scale = (self._ds,) * 3 if straight else tuple(self._level_spacing)
+        translate = (0.0, 0.0, 0.0) if straight else tuple(self._on_texture(self.deformation).origin)
         if not np.allclose(self.layer.scale, scale):
             self.layer.scale = scale
+        if not np.allclose(self.layer.translate, translate):
+            self.layer.translate = translate
         self.viewer.reset_view()
 
     @property
