@@ -156,7 +156,21 @@ def test_a_session_opened_by_napari_gives_the_dock_its_deformation(make_napari_v
     assert (chosen & rod_voxels).sum() > 0.8 * rod_voxels.sum()
 
 
-def test_cancel_stops_an_export_and_leaves_no_file(make_napari_viewer, qtbot, tmp_path):
+def test_cancel_stops_an_export_and_leaves_no_file(make_napari_viewer, qtbot, tmp_path, monkeypatch):
+    import time
+
+    import napari_unwind.warp as warp
+
+    real = warp.export_iter
+
+    def export_iter(*args, **kwargs):
+        # the export of this small rod can finish before the click on Cancel reaches the worker (a flaky test):
+        # its first step waits a little, as a big export's would take, so the Cancel always arrives during the job
+        gen = real(*args, **kwargs)
+        time.sleep(0.5)
+        return (yield from gen)
+
+    monkeypatch.setattr(warp, "export_iter", export_iter)
     viewer = make_napari_viewer()
     w = UnwindWidget(viewer)
     w.use_layer(viewer.add_image(rod()))
