@@ -144,6 +144,24 @@ def main(argv: list[str] | None = None) -> int:
     viewer.reset_view()
     shot("05-refine", 4)
 
+    # the live straight view (GLSL shader), to set beside the bent view with its cage (04)
+    panel = dock.refine_panel
+    for layer in viewer.layers:
+        layer.visible = layer.name in ("unwind cage", "unwind curve")
+    panel.live_check.setChecked(True)
+    straight_layer = viewer.layers["straight view"] if "straight view" in viewer.layers else None
+    if straight_layer is not None:
+        straight_layer.contrast_limits = tuple(float(v) for v in np.percentile(tank.volume, [60, 99.5]))
+        viewer.layers["unwind cage"].visible = viewer.layers["unwind curve"].visible = False
+        lo, hi = np.asarray(straight_layer.extent.world)
+        viewer.scene.camera.center = tuple((lo + hi) / 2)
+        viewer.scene.camera.angles = (0.0, 0.0, 90.0)
+        viewer.scene.camera.zoom = 0.8 * min(viewer.window._qt_viewer.canvas.size) / float(max(hi - lo))
+        shot("08-live-straight", 4)
+    panel.live_check.setChecked(False)
+    for layer in viewer.layers:
+        layer.visible = True
+
     run(dock.export(tmp / "fish-straight.nrrd"))
     viewer.dims.ndisplay = 3
     straight = None

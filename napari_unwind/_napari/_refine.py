@@ -260,6 +260,30 @@ class RefinePanel(QWidget):
         pad.addWidget(self.preview_check)
         lay.addLayout(pad)
 
+        live = QHBoxLayout()
+        self.live_check = QCheckBox("live 3D straight view (GPU)")
+        self.live_check.setToolTip("draw the straight fish in the 3D view with the GLSL shader, from the scan's own "
+                                   "texture: an edit re-uploads only the frame table (falls back to the CPU preview "
+                                   "where GL lacks what it needs)")
+        self.live_check.toggled.connect(self._on_live_toggled)
+        live.addWidget(self.live_check)
+        self.bent_check = QCheckBox("bent")
+        self.bent_check.setToolTip("show the scan bent (as scanned) in the same layer and texture; off: straight")
+        self.bent_check.setEnabled(False)
+        self.bent_check.toggled.connect(lambda on: self.live is not None and self.live.set_straight(not on))
+        live.addWidget(self.bent_check)
+        self.finer_button = QPushButton("finer level here")
+        self.finer_button.setToolTip("upload the finest pyramid level the memory budget allows, cropped around the "
+                                     "specimen")
+        self.finer_button.setEnabled(False)
+        self.finer_button.clicked.connect(self._on_finer)
+        live.addWidget(self.finer_button)
+        lay.addLayout(live)
+        self.live_label = QLabel("")
+        self.live_label.setWordWrap(True)
+        lay.addWidget(self.live_label)
+        self.live: Any = None
+
         self.status = QLabel("")
         self.status.setWordWrap(True)
         self.status.setStyleSheet("color: #ff8080")
@@ -296,6 +320,38 @@ class RefinePanel(QWidget):
         if (before, after) != tuple(round(p, 2) for p in d.pad):
             self._call(lambda: self.model.set_pad(before, after))
 
+    def _on_live_toggled(self, on: bool) -> None:
+        """Start or stop the GPU straight view (issue 12); it needs the 3D display."""
+        if not on:
+            if self.live is not None:
+                self.live.close()
+            self.live = None
+            self.live_label.setText("")
+            self.bent_check.setEnabled(False)
+            self.finer_button.setEnabled(False)
+            return
+        scan = self._scan()
+        if scan is None or self.model.deformation is None:
+            self.live_label.setText("the live straight view needs a scan and a deformation (skeleton or session)")
+            self.live_check.blockSignals(True)
+            self.live_check.setChecked(False)
+            self.live_check.blockSignals(False)
+            return
+        from ._straight_view import StraightView
+
+        self.live = StraightView(self.viewer, scan)
+        self.live.status.connect(lambda text: self.live_label.setText(text))
+        self.viewer.dims.ndisplay = 3
+        self.live.request(self.model.deformation)
+        self.live_label.setText(self.live.level_text)
+        self.bent_check.setEnabled(self.live.available)
+        self.finer_button.setEnabled(self.live.available)
+
+    def _on_finer(self) -> None:
+        if self.live is not None and self.live.available:
+            self.live.focus()
+            self.live_label.setText(self.live.level_text)
+
     def _on_preview_toggled(self, on: bool) -> None:
         self.preview.enabled = bool(on)
         if on:
@@ -322,6 +378,8 @@ class RefinePanel(QWidget):
         self._on_position()
         self._on_history(self.model.can_undo, self.model.can_redo)
         self.preview.request(d)
+        if self.live is not None:
+            self.live.request(d)
 
     def _on_position(self, *_: Any) -> None:
         d, m = self.model.deformation, self.model
@@ -374,6 +432,8 @@ class RefinePanel(QWidget):
 
     def _disconnect(self, model: EditModel) -> None:
         self.preview.close()
+        if self.live is not None:
+            self.live.close()
         self.editor.release()  # the Qt widgets are gone already
         for sig, slot in ((model.deformation_changed, self._on_deformation),
                           (model.position_changed, self._on_position),

@@ -172,7 +172,10 @@ class StraightView:
         data = np.asarray(self._level_data)
         if data.dtype == np.float64:
             data = data.astype(np.float32)
-        self.layer = self.viewer.add_image(data, name=LAYER_NAME, metadata={"napari_unwind": {"straight": True}})
+        from ._layers import scan_units
+
+        self.layer = self.viewer.add_image(data, name=LAYER_NAME, metadata={"napari_unwind": {"straight": True}},
+                                           **scan_units(self.viewer))
         self.node = _private.volume_node(self.viewer, self.layer)
         self._frames = Texture2D(np.zeros((3, 1, 3), np.float32), internalformat="rgb32f", interpolation="linear",
                                  wrapping="clamp_to_edge")

@@ -194,3 +194,26 @@ def test_the_wireframes_and_preview_leave_the_users_layer_selected(make_napari_v
     model.set_deformation(bent_deformation())
     qtbot.waitUntil(lambda: not p.pending and p.preview.idle and p.preview.layer is not None, timeout=20000)
     assert CAGE in viewer.layers and viewer.layers.selection.active is ends
+
+
+def test_the_live_gpu_straight_view_follows_the_edits_and_goes_when_unticked(panel, qtbot):
+    """Issue 12 in the panel: ticking "live 3D straight view" adds the shader's layer in 3D and says which level is
+    on screen; each edit re-uploads only the frame table; unticking removes the layer."""
+    p, model, viewer, vol, d = panel
+    viewer.window._qt_window.show()
+    p.live_check.setChecked(True)
+    sv = p.live
+    assert sv is not None and viewer.dims.ndisplay == 3
+    assert ("GPU shader, pyramid level 0" in p.live_label.text()) == sv.available
+    if not sv.available:  # a GL without float textures: the CPU preview, and the reason
+        assert "CPU preview (" in p.live_label.text()
+        return
+    layer = viewer.layers["straight view"]
+    assert sv.deformation is model.deformation
+    uploads = sv.frame_uploads
+    model.twist(0.2)
+    assert sv.deformation is model.deformation and sv.frame_uploads == uploads + 1
+    model.undo()
+    assert sv.deformation is d
+    p.live_check.setChecked(False)
+    assert p.live is None and layer not in viewer.layers and "straight view" not in viewer.layers
