@@ -7,7 +7,6 @@ Run under Xvfb: QT_QPA_PLATFORM=xcb xvfb-run -a -s "-screen 0 1600x1200x24" .ven
 
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
@@ -16,8 +15,8 @@ from scipy import ndimage
 
 pytest.importorskip("napari")
 
-from qtpy.QtCore import QPoint, Qt  # noqa: E402
-from qtpy.QtTest import QTest  # noqa: E402
+from _gui_helpers import Events, drag, state  # noqa: E402
+from qtpy.QtCore import Qt  # noqa: E402
 
 from napari_unwind._napari._editor_canvas import EditorCanvas  # noqa: E402
 from napari_unwind.deformation import Deformation  # noqa: E402
@@ -44,25 +43,6 @@ def bent_deformation(cage=(9.0, 7.0)):
     return Deformation.from_keyframes(pos, np.stack([u, v, n], axis=1), cage)
 
 
-def state(d: Deformation) -> str:
-    """Bit-exact fingerprint of a deformation."""
-    return json.dumps(d.to_dict(), sort_keys=True, default=lambda x: float(x).hex()) + "|" + "".join(
-        np.asarray(k.position).tobytes().hex() + np.asarray(k.frame).tobytes().hex() for k in d.keyframes)
-
-
-class Events:
-    def __init__(self, model):
-        self.changed = self.history = 0
-        model.deformation_changed.connect(self._changed)
-        model.history_changed.connect(self._history)
-
-    def _changed(self, *_):
-        self.changed += 1
-
-    def _history(self, *_):
-        self.history += 1
-
-
 @pytest.fixture
 def editor(qtbot):
     rng = np.random.default_rng(1)
@@ -81,18 +61,6 @@ def editor(qtbot):
     np.testing.assert_allclose(ed.scene_at(to_canvas(3.0, -4.0)), (3.0, -4.0), atol=1e-6)
     yield ed, model, d
     ed.close()
-
-
-def drag(qtbot, widget, start, end, *, steps=4, modifier=Qt.KeyboardModifier.NoModifier):
-    """Press at canvas pixel ``start``, move in steps, release at ``end`` (integers)."""
-    start, end = np.asarray(start), np.asarray(end)
-    QTest.mousePress(widget, Qt.MouseButton.LeftButton, modifier, QPoint(*map(int, start)))
-    for t in np.linspace(0, 1, steps + 1)[1:]:
-        qtbot.wait(15)  # vispy drops moves closer than 10 ms
-        p = np.round(start + t * (end - start)).astype(int)
-        QTest.mouseMove(widget, QPoint(*map(int, p)))
-    qtbot.wait(15)
-    QTest.mouseRelease(widget, Qt.MouseButton.LeftButton, modifier, QPoint(*map(int, end)))
 
 
 def test_dragging_the_centre_moves_the_keyframe_by_the_dragged_plane_distance(editor, qtbot):

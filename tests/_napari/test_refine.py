@@ -12,6 +12,7 @@ from scipy import ndimage
 
 pytest.importorskip("napari")
 
+from _gui_helpers import Events  # noqa: E402
 from qtpy.QtCore import QPoint, Qt  # noqa: E402
 from qtpy.QtTest import QTest  # noqa: E402
 
@@ -32,19 +33,6 @@ def bent_deformation(cage=(9.0, 7.0), n_keys=5):
     u = np.tile([0.0, 0.0, 1.0], (n_keys, 1))
     v = np.cross(n, u)
     return Deformation.from_keyframes(pos, np.stack([u, v, n], axis=1), cage)
-
-
-class Events:
-    def __init__(self, model):
-        self.changed = self.history = 0
-        model.deformation_changed.connect(self._changed)
-        model.history_changed.connect(self._history)
-
-    def _changed(self, *_):
-        self.changed += 1
-
-    def _history(self, *_):
-        self.history += 1
 
 
 @pytest.fixture

@@ -13,10 +13,10 @@ import pytest
 
 pytest.importorskip("napari")
 
+from _gui_helpers import drag  # noqa: E402
 from napari.utils._proxies import ReadOnlyWrapper  # noqa: E402
 from napari.utils.interactions import mouse_press_callbacks, mouse_release_callbacks  # noqa: E402
-from qtpy.QtCore import QPoint, Qt  # noqa: E402
-from qtpy.QtTest import QTest  # noqa: E402
+from qtpy.QtCore import Qt  # noqa: E402
 
 from napari_unwind._napari._widget import UnwindWidget  # noqa: E402
 from napari_unwind.datasets import fish_phantom  # noqa: E402
@@ -57,19 +57,6 @@ def click(layer, world, *, ndisplay=2, shift=False, view_direction=None, viewer=
                                                  exceptions=("handled",)))
     mouse_release_callbacks(layer, ReadOnlyWrapper(SimpleNamespace(type="mouse_release", **common),
                                                    exceptions=("handled",)))
-
-
-def drag(qtbot, widget, start, end, *, steps=4, modifier=None):
-    """Press at canvas pixel ``start``, move in steps, release at ``end``."""
-    modifier = Qt.KeyboardModifier.NoModifier if modifier is None else modifier
-    start, end = np.asarray(start), np.asarray(end)
-    QTest.mousePress(widget, Qt.MouseButton.LeftButton, modifier, QPoint(*map(int, start)))
-    for t in np.linspace(0, 1, steps + 1)[1:]:
-        qtbot.wait(15)  # vispy drops moves closer than 10 ms
-        p = np.round(start + t * (end - start)).astype(int)
-        QTest.mouseMove(widget, QPoint(*map(int, p)))
-    qtbot.wait(15)
-    QTest.mouseRelease(widget, Qt.MouseButton.LeftButton, modifier, QPoint(*map(int, end)))
 
 
 def fish_voxel(fish, labels_scale=1):
