@@ -337,12 +337,22 @@ class RefinePanel(QWidget):
             self.live_check.setChecked(False)
             self.live_check.blockSignals(False)
             return
-        from ._straight_view import StraightView
+        try:
+            from ._straight_view import StraightView  # checks napari's version (private API pinned)
 
-        self.live = StraightView(self.viewer, scan)
-        self.live.status.connect(lambda text: self.live_label.setText(text))
-        self.viewer.dims.ndisplay = 3
-        self.live.request(self.model.deformation)
+            self.viewer.dims.ndisplay = 3
+            self.live = StraightView(self.viewer, scan)
+            self.live.status.connect(lambda text: self.live_label.setText(text))
+            self.live.request(self.model.deformation)
+        except (ImportError, RuntimeError, UnwindError) as exc:  # another napari, a GL without a volume node, ...
+            if self.live is not None:
+                self.live.close()
+            self.live = None
+            self.live_label.setText(f"the live straight view is not available: {exc}; the straight preview is used")
+            self.live_check.blockSignals(True)
+            self.live_check.setChecked(False)
+            self.live_check.blockSignals(False)
+            return
         self.live_label.setText(self.live.level_text)
         self.bent_check.setEnabled(self.live.available)
         self.finer_button.setEnabled(self.live.available)

@@ -205,3 +205,19 @@ def test_the_live_gpu_straight_view_follows_the_edits_and_goes_when_unticked(pan
     assert sv.deformation is d
     p.live_check.setChecked(False)
     assert p.live is None and layer not in viewer.layers and "straight view" not in viewer.layers
+
+
+def test_the_live_view_says_why_when_it_cannot_start(panel, qtbot, monkeypatch):
+    """Another napari minor (the shader's private access is pinned) or a GL without a volume node: one line in the
+    panel, the box unticked, the CPU preview kept; no traceback from the Qt slot."""
+    import napari_unwind._napari._straight_view as sv
+
+    def refuse(*args, **kwargs):
+        raise ImportError("napari-unwind's live straight view needs napari 0.9.x; this is napari 0.10.0")
+
+    monkeypatch.setattr(sv, "StraightView", refuse)
+    p, model, viewer, vol, d = panel
+    p.live_check.setChecked(True)
+    assert p.live is None and not p.live_check.isChecked()
+    assert "not available: napari-unwind's live straight view needs napari 0.9.x" in p.live_label.text()
+    assert p.preview.enabled
