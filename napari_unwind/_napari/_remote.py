@@ -1,0 +1,155 @@
+"""The dock's "server" backend: progress generators that drive :class:`napari_unwind.client.Client`.
+
+Each function is a generator of core :class:`~napari_unwind.progress.Progress` records that returns its result,
+the shape :func:`._workers.start_job` runs in a worker (same progress bar, same Cancel). A server job is followed
+through ``Client.watch``; when the generator is closed before the job ended (Cancel), the job is cancelled on the
+server. No Qt here; the client (grpcio, the ``server`` extra) is imported only when a server is used.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InvalidInputError
+from ..progress import Progress
+
+__all__ = ["Server", "check_server", "upload_iter", "suggest_ends_iter", "skeleton_iter", "export_iter"]
+
+
+@dataclass(frozen=True)
+class Server:
+    """Where the dock's jobs run: ``host:port``, the bearer token, and the CA certificate for TLS (or None)."""
+
+    address: str
+    token: str | None = None
+    ca: str | None = None
+
+    def client(self, *, timeout: float = 60.0, retry_seconds: float = 10.0) -> Any:
+        try:
+            from ..client import Client
+        except ImportError as exc:
+            raise InvalidInputError(f"the server backend needs the 'server' extra (grpcio): {exc}; install "
+                                    "napari-unwind[server] or use 'this computer'") from None
+        return Client(self.address, token=self.token or None, tls=self.ca or False, timeout=timeout,
+                      retry_seconds=retry_seconds, progress=False)
+
+
+def parse_server(address: str, token: str = "", ca: str = "") -> Server:
+    """Check the dock's fields and build a :class:`Server`; ``token`` may be the path of a file holding it."""
+    address = address.strip()
+    host, sep, port = address.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise InvalidInputError(f"the server address must be host:port, got {address!r}; e.g. 127.0.0.1:50051")
+    token = token.strip()
+    if token and Path(token).expanduser().is_file():
+        token = Path(token).expanduser().read_text().strip()
+    ca = ca.strip()
+    if ca and not Path(ca).expanduser().is_file():
+        raise InvalidInputError(f"the CA certificate file does not exist: {ca!r}; give a PEM file or leave it empty "
+                                "for a plain connection")
+    return Server(address, token or None, str(Path(ca).expanduser()) if ca else None)
+
+
+def check_server(server: Server, *, deadline: float = 5.0) -> Generator[Progress, None, str]:
+    """Health and authentication of ``server`` within ``deadline`` seconds; returns the health status name.
+
+    Raises :class:`~napari_unwind.client.RemoteError` (code UNAVAILABLE, UNAUTHENTICATED, ...) with one line.
+    """
+    yield Progress("connect", 0, 1, server.address)
+    with server.client(timeout=deadline, retry_seconds=0.0) as c:
+        status = c.health()
+        c.jobs(limit=1)  # health needs no token; this call checks it
+    yield Progress("connect", 1, 1)
+    return status
+
+
+def _follow(client: Any, job: Any) -> Generator[Progress, None, Any]:
+    """Yield the job's progress until it ends; cancel it on the server when closed early (Cancel)."""
+    from unwind_services._proto.unwind.v1 import common_pb2 as pb
+
+    from ..client import RemoteError, _progress
+
+    final = None
+    try:
+        for event in client.watch(job.id):
+            if event.HasField("progress"):
+                yield _progress(event.progress)
+            else:
+                final = event.job
+    finally:
+        if final is None or final.state not in (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED,
+                                                pb.JOB_STATE_CANCELLED):
+            try:
+                client.cancel(job.id)
+            except RemoteError:
+                pass
+    if final is None or final.state != pb.JOB_STATE_SUCCEEDED:
+        state = pb.JobState.Name(final.state)[10:].lower() if final is not None else "lost"
+        message = final.error.message if final is not None else "the server ended the job's stream"
+        raise RemoteError(f"server job {job.id} {state}: {message}",
+                          (final.error.code if final is not None else "") or "UNKNOWN", final)
+    return final
+
+
+def upload_iter(server: Server, volume: Any, *, labels: bool = False, name: str = "scan"
+                ) -> Generator[Progress, None, str]:
+    """Upload a :class:`~napari_unwind.io.Volume` (or a mask with its geometry); returns the server's volume id."""
+    yield Progress("upload", 0, 1, f"{name} to {server.address}")
+    with server.client(timeout=3600.0) as c:
+        info = c.upload(volume, name=name, labels=labels)
+    yield Progress("upload", 1, 1)
+    return info.volume_id
+
+
+def _mask_volume(mask: Any, volume: Any) -> Any:
+    from ..io import as_volume
+
+    return as_volume(mask.astype(np.uint8), spacing=volume.spacing, unit=volume.unit, origin=volume.origin)
+
+
+def suggest_ends_iter(server: Server, volume_id: str, mask: Any, volume: Any
+                      ) -> Generator[Progress, None, tuple[tuple, str]]:
+    """Upload the selection's mask, suggest head and tail on the server; returns ((head, tail), mask volume id)."""
+    mask_id = yield from upload_iter(server, _mask_volume(mask, volume), labels=True, name="selection")
+    yield Progress("ends", 0, 1, "longest geodesic (server)")
+    with server.client() as c:
+        head, tail = c.suggest_ends(mask_id, volume_id)
+    yield Progress("ends", 1, 1)
+    return (tuple(head), tuple(tail)), mask_id
+
+
+def skeleton_iter(server: Server, volume_id: str, mask_id: str, ends: Any) -> Generator[Progress, None, Any]:
+    """The skeleton job on the server; returns (its Session, the stored session's id)."""
+    from ..client import Client
+
+    kw: dict[str, Any] = {}
+    if ends is not None:
+        kw = dict(head=ends.head, tail=ends.tail, chain=ends.chain or None)
+    with server.client() as c:
+        job = c.skeleton(mask_id, volume_id=volume_id, wait=False, **kw)
+        done = yield from _follow(c, job)
+    return Client.session(done), done.result.session_id
+
+
+def export_iter(server: Server, volume_id: str, session_id: str, target: Path, *, order: int = 1,
+                spacing: float | None = None, pad: int = 0, overwrite: bool = False
+                ) -> Generator[Progress, None, Path]:
+    """Straighten on the server (a job), then download the result to ``target`` (atomically); returns ``target``."""
+    from ..io._atomic import check_writable
+    from ..io._formats import output_format
+
+    output_format(target)
+    check_writable(target, overwrite=overwrite)
+    with server.client() as c:
+        job = c.straighten(volume_id, session_id, wait=False, output_name=target.name, order=order,
+                           spacing=spacing, pad=pad)
+        done = yield from _follow(c, job)
+        yield Progress("download", 0, 1, str(target))
+        c.download(done.result.volume_id, target, overwrite=overwrite)
+    yield Progress("download", 1, 1)
+    return target
