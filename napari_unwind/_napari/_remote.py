@@ -60,10 +60,15 @@ def check_server(server: Server, *, deadline: float = 5.0) -> Generator[Progress
 
     Raises :class:`~napari_unwind.client.RemoteError` (code UNAVAILABLE, UNAUTHENTICATED, ...) with one line.
     """
+    from ..client import RemoteError
+
     yield Progress("connect", 0, 1, server.address)
     with server.client(timeout=deadline, retry_seconds=0.0) as c:
-        status = c.health()
-        c.jobs(limit=1)  # health needs no token; this call checks it
+        try:
+            status = c.health()
+            c.jobs(limit=1)  # health needs no token; this call checks it
+        except RemoteError as exc:
+            raise RemoteError(f"{exc.code}: {server.address}: {exc}", exc.code) from None
     yield Progress("connect", 1, 1)
     return status
 

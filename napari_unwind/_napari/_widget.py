@@ -169,6 +169,8 @@ class UnwindWidget(QWidget):
         self._simplify_worker: Any = None
         self._simplify_pending: int | None = None
         self._syncing = False
+        self.server: Any = None  # _remote.Server once "Connect" succeeded with the "server" backend; None: local
+        self._remote: dict[str, Any] = {}  # server ids of this scan: volume, mask (per selection), session
 
         self.toolbox = QToolBox()
         self.toolbox.addItem(self._scan_page(), "1. Scan")
@@ -198,6 +200,7 @@ class UnwindWidget(QWidget):
     def _scan_page(self) -> QWidget:
         w = QWidget()
         lay = QVBoxLayout(w)
+        lay.addLayout(self._backend_form())
         row = QHBoxLayout()
         self.layer_combo = QComboBox()
         self.layer_combo.setToolTip("The 3D Image layer to straighten")
@@ -217,6 +220,59 @@ class UnwindWidget(QWidget):
         lay.addWidget(self.scan_warning)
         lay.addStretch(1)
         return w
+
+    def _backend_form(self) -> QFormLayout:
+        form = QFormLayout()
+        self.backend_combo = QComboBox()
+        self.backend_combo.addItem("this computer", "local")
+        self.backend_combo.addItem("server", "server")
+        self.backend_combo.setToolTip("Where the ends, the skeleton and the export run")
+        self.backend_combo.currentIndexChanged.connect(self._on_backend_chosen)
+        form.addRow("backend", self.backend_combo)
+        self.server_address = QLineEdit()
+        self.server_address.setPlaceholderText("host:port, e.g. 127.0.0.1:50051")
+        self.server_token = QLineEdit()
+        self.server_token.setEchoMode(QLineEdit.EchoMode.Password)
+        self.server_token.setPlaceholderText("token, or the path of a file holding it")
+        self.server_ca = QLineEdit()
+        self.server_ca.setPlaceholderText("CA certificate (PEM) for TLS; empty: no TLS")
+        self.connect_button = QPushButton("Connect")
+        self.connect_button.clicked.connect(self.connect_server)
+        self.backend_info = QLabel("")
+        self.backend_info.setWordWrap(True)
+        self._server_rows = (self.server_address, self.server_token, self.server_ca, self.connect_button)
+        for label, widget in zip(("address", "token", "TLS CA", ""), self._server_rows):
+            form.addRow(label, widget)
+        form.addRow(self.backend_info)
+        self._on_backend_chosen()
+        return form
+
+    def _on_backend_chosen(self, index: int | None = None) -> None:
+        server = self.backend_combo.currentData() == "server"
+        for widget in self._server_rows:
+            widget.setEnabled(server)
+        self.server = None
+        self._remote = {}
+        self.backend_info.setText("jobs run on a server once connected" if server else "jobs run on this computer")
+
+    def connect_server(self) -> Job | None:
+        """Check the server's health and the token (with a deadline); on success the dock's jobs run there."""
+        from ._remote import check_server, parse_server
+
+        self.server = None
+        self._remote = {}
+        try:
+            server = parse_server(self.server_address.text(), self.server_token.text(), self.server_ca.text())
+        except UnwindError as exc:
+            self._fail(exc)
+            return None
+
+        def done(status: str) -> None:
+            self.server = server
+            self.backend_info.setText(f"connected to {server.address} ({status})")
+            self._say(f"server {server.address}: {status}")
+
+        return self._start(lambda: check_server(server), "connecting", done)
 
     def _segment_page(self) -> QWidget:
         w = QWidget()
@@ -516,6 +572,7 @@ class UnwindWidget(QWidget):
         changed = self.volume is None or volume.source != self.volume.source or volume.shape != self.volume.shape
         self.volume, self.scan_layer = volume, layer
         if changed:
+            self._remote = {}
             self.tree = self.features = self.result = None
             self.selected, self.seeds = [], {}
             self._source_info = None
@@ -784,6 +841,8 @@ class UnwindWidget(QWidget):
             self._fail(exc)
             return None
         volume = self.volume
+        if self.server is not None:
+            return self._remote_suggest_ends(mask)
 
         def make() -> Generator[Progress, None, tuple]:
             from ..skeleton import suggest_endpoints
@@ -856,6 +915,8 @@ class UnwindWidget(QWidget):
             return None
         volume = self.volume
         self.skeleton_report.setPlainText("computing...")
+        if self.server is not None:
+            return self._remote_skeleton(mask, ends)
         # in a child process: the tet mesher holds the GIL for seconds, which would freeze a thread worker's UI
         return self._start(None, "computing the skeleton", self._skeleton_ready, (self.skeleton_cancel,),
                            process=(_SKELETON, (mask, ends),
@@ -953,6 +1014,8 @@ class UnwindWidget(QWidget):
         order = int(self.order_combo.currentData())
         pad = int(self.pad_box.value())
         session = self._session_dict()
+        if self.server is not None:
+            return self._remote_export(target, order=order, spacing=spacing, pad=pad, overwrite=overwrite)
 
         def make() -> Generator[Progress, None, Any]:
             from ..warp import export_iter
@@ -969,6 +1032,93 @@ class UnwindWidget(QWidget):
             self._say(f"exported to {self.exported}")
 
         return self._start(make, "exporting", done, (self.export_cancel,))
+
+    # ==============================================================================================================
+    # the server backend (same progress and Cancel; the generators are in ._remote)
+    # ==============================================================================================================
+    def _with_scan_uploaded(self, then: Callable[[str], Generator[Progress, None, Any]]
+                            ) -> Callable[[], Generator[Progress, None, Any]]:
+        """``then(volume_id)`` after uploading the scan once (its id is kept for this scan and server)."""
+        from ._remote import upload_iter
+
+        server, volume, remote = self.server, self.volume, self._remote
+        name = self.scan_layer.name if self.scan_layer is not None else "scan"
+
+        def make() -> Generator[Progress, None, Any]:
+            if "volume_id" not in remote:
+                remote["volume_id"] = yield from upload_iter(server, volume, name=name)
+            return (yield from then(remote["volume_id"]))
+
+        return make
+
+    def _remote_suggest_ends(self, mask: Any) -> Job | None:
+        from ._remote import suggest_ends_iter
+
+        server, volume, key = self.server, self.volume, tuple(self.selected)
+
+        def then(volume_id: str) -> Generator[Progress, None, Any]:
+            ends, mask_id = yield from suggest_ends_iter(server, volume_id, mask, volume)
+            return ends, mask_id
+
+        def done(value: Any) -> None:
+            ends, mask_id = value
+            self._remote["mask"] = (key, mask_id)
+            self.set_ends(list(ends))
+            self._say("suggested head and tail (server): check them in the \"ends\" layer, drag to move")
+
+        return self._start(self._with_scan_uploaded(then), "suggesting the ends", done)
+
+    def _remote_skeleton(self, mask: Any, ends: Any) -> Job | None:
+        from ._remote import _mask_volume, skeleton_iter, upload_iter
+
+        server, volume, key = self.server, self.volume, tuple(self.selected)
+        known = self._remote.get("mask")
+        mask_id = known[1] if known is not None and known[0] == key else None
+
+        def then(volume_id: str) -> Generator[Progress, None, Any]:
+            mid = mask_id or (yield from upload_iter(server, _mask_volume(mask, volume), labels=True,
+                                                     name="selection"))
+            session, session_id = yield from skeleton_iter(server, volume_id, mid, ends)
+            return session, session_id, mid
+
+        def done(value: Any) -> None:
+            session, session_id, mid = value
+            self._remote["mask"] = (key, mid)
+            self._remote["session"] = (session_id, session.deformation)
+            d = session.deformation
+            self.skeleton_report.setPlainText(f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes "
+                                              f"(server {server.address}, session {session_id})")
+            if session.endpoints is not None and self._ends_layer is None:
+                self._show_session_ends(session.endpoints)
+            self.model.set_deformation(d)
+            self._remote["session"] = (session_id, self.model.deformation)
+            self._say("skeleton done (server)")
+
+        return self._start(self._with_scan_uploaded(then), "computing the skeleton", done, (self.skeleton_cancel,))
+
+    def _remote_export(self, target: Path, **options: Any) -> Job | None:
+        from ._remote import export_iter
+
+        server = self.server
+        known = self._remote.get("session")
+        if known is None or known[1] is not self.model.deformation:
+            self._fail(InvalidInputError("the server holds no session of this deformation (it was edited, or opened "
+                                         "here): compute the skeleton on the server, or export on 'this computer'"))
+            return None
+        session_id = known[0]
+
+        def then(volume_id: str) -> Generator[Progress, None, Any]:
+            return (yield from export_iter(server, volume_id, session_id, target, **options))
+
+        def done(written: Any) -> None:
+            from ._layers import image_layer
+
+            self.exported = Path(written)
+            self._add_layer(image_layer(open_volume(written), name=f"straight {self.exported.name}"))
+            self.export_info.setText(f"written: {self.exported} (server)")
+            self._say(f"exported to {self.exported} (server)")
+
+        return self._start(self._with_scan_uploaded(then), "exporting", done, (self.export_cancel,))
 
     # ==============================================================================================================
     # session
