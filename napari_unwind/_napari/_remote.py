@@ -129,7 +129,7 @@ def suggest_ends_iter(server: Server, volume_id: str, mask: Any, volume: Any
 
 
 def skeleton_iter(server: Server, volume_id: str, mask_id: str, ends: Any) -> Generator[Progress, None, Any]:
-    """The skeleton job on the server; returns (its Session, the stored session's id)."""
+    """The skeleton job on the server; returns (its Session, the stored session's id, the core's warnings)."""
     from ..client import Client
 
     kw: dict[str, Any] = {}
@@ -138,7 +138,7 @@ def skeleton_iter(server: Server, volume_id: str, mask_id: str, ends: Any) -> Ge
     with server.client() as c:
         job = c.skeleton(mask_id, volume_id=volume_id, wait=False, **kw)
         done = yield from _follow(c, job)
-    return Client.session(done), done.result.session_id
+    return Client.session(done), done.result.session_id, tuple(done.result.warnings)
 
 
 def export_iter(server: Server, volume_id: str, session_id: str, target: Path, *, order: int = 1,

@@ -1078,21 +1078,26 @@ class UnwindWidget(QWidget):
         def then(volume_id: str) -> Generator[Progress, None, Any]:
             mid = mask_id or (yield from upload_iter(server, _mask_volume(mask, volume), labels=True,
                                                      name="selection"))
-            session, session_id = yield from skeleton_iter(server, volume_id, mid, ends)
-            return session, session_id, mid
+            session, session_id, warnings = yield from skeleton_iter(server, volume_id, mid, ends)
+            return session, session_id, warnings, mid
 
         def done(value: Any) -> None:
-            session, session_id, mid = value
+            session, session_id, warnings, mid = value
             self._remote["mask"] = (key, mid)
-            self._remote["session"] = (session_id, session.deformation)
             d = session.deformation
-            self.skeleton_report.setPlainText(f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes "
-                                              f"(server {server.address}, session {session_id})")
+            lines = [f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes (server {server.address}, "
+                     f"session {session_id})"]
+            folds = d.folds()
+            if folds:
+                lines.append("FOLDS at s = " + ", ".join(f"{a:.4g}..{b:.4g}" for a, b in folds)
+                             + ": edit the keyframes there (Refine), then export on this computer")
+            lines += [f"warning: {w}" for w in warnings]
+            self.skeleton_report.setPlainText("\n".join(lines))
             if session.endpoints is not None and self._ends_layer is None:
                 self._show_session_ends(session.endpoints)
             self.model.set_deformation(d)
-            self._remote["session"] = (session_id, self.model.deformation)
-            self._say("skeleton done (server)")
+            self._remote["session"] = (session_id, self.model.deformation)  # an edit makes another object
+            self._say("skeleton done (server)" + (" with warnings (see Skeleton)" if warnings or folds else ""))
 
         return self._start(self._with_scan_uploaded(then), "computing the skeleton", done, (self.skeleton_cancel,))
 

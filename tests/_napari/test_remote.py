@@ -22,6 +22,7 @@ from test_workflow import click, fish_voxel, wait  # noqa: E402
 from napari_unwind._napari._widget import UnwindWidget  # noqa: E402
 from napari_unwind.cli import main as unwind_main  # noqa: E402
 from napari_unwind.datasets import fish_phantom  # noqa: E402
+from napari_unwind.deformation import Deformation  # noqa: E402
 from napari_unwind.io import open_volume, write_volume  # noqa: E402
 
 pytestmark = pytest.mark.gui
@@ -109,6 +110,12 @@ def test_dock_on_a_server_exports_the_voxels_of_the_local_dock(make_napari_viewe
     remote = tmp_path / "remote.nrrd"
     wait(qtbot, w, w.export(remote), timeout=120_000)
     assert viewer.layers[-1].name == "straight remote.nrrd" and "(server)" in w.export_info.text()
+
+    # an edit here is not on the server: its export is refused in one line (the undo brings the server's back)
+    w.model.set_deformation(Deformation.from_dict(d.to_dict()), keep_history=True)
+    assert w.export(tmp_path / "edited.nrrd") is None
+    assert w.status.text().startswith("error: the server holds no session of this deformation"), w.status.text()
+    assert w.model.undo() and w.model.deformation is d
 
     # the same deformation exported on this computer (switching backend forgets the server)
     w.backend_combo.setCurrentIndex(w.backend_combo.findData("local"))
