@@ -66,6 +66,10 @@ def test_wrong_token_and_unreachable_server_say_what_is_wrong_in_one_line(make_n
     text = w.status.text()
     assert text.startswith("error: UNAUTHENTICATED") and "\n" not in text and "Traceback" not in text, text
     assert w.server is None
+    _connect(qtbot, w, "127.0.0.1:1", "any")  # nothing listens there
+    text = w.status.text()
+    assert text.startswith("error: UNAVAILABLE: 127.0.0.1:1") and "\n" not in text, text
+    assert w.server is None
     w.server_address.setText("127.0.0.1")
     assert w.connect_server() is None
     assert w.status.text().startswith("error: the server address must be host:port"), w.status.text()
