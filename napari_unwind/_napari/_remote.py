@@ -79,6 +79,7 @@ def _follow(client: Any, job: Any) -> Generator[Progress, None, Any]:
 
     from ..client import RemoteError, _progress
 
+    _FINAL = (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED, pb.JOB_STATE_CANCELLED)
     final = None
     try:
         for event in client.watch(job.id):
@@ -86,9 +87,10 @@ def _follow(client: Any, job: Any) -> Generator[Progress, None, Any]:
                 yield _progress(event.progress)
             else:
                 final = event.job
+                if final.state not in _FINAL:  # the job as it stands (queued): a point where Cancel is seen
+                    yield Progress("server job", 0, 0, pb.JobState.Name(final.state)[10:].lower())
     finally:
-        if final is None or final.state not in (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED,
-                                                pb.JOB_STATE_CANCELLED):
+        if final is None or final.state not in _FINAL:
             try:
                 client.cancel(job.id)
             except RemoteError:

@@ -24,6 +24,7 @@ from napari_unwind.cli import main as unwind_main  # noqa: E402
 from napari_unwind.datasets import fish_phantom  # noqa: E402
 from napari_unwind.deformation import Deformation  # noqa: E402
 from napari_unwind.io import open_volume, write_volume  # noqa: E402
+from unwind_services._proto.unwind.v1 import common_pb2 as pb  # noqa: E402
 
 pytestmark = pytest.mark.gui
 
@@ -114,6 +115,21 @@ def test_dock_on_a_server_exports_the_voxels_of_the_local_dock(make_napari_viewe
     remote = tmp_path / "remote.nrrd"
     wait(qtbot, w, w.export(remote), timeout=120_000)
     assert viewer.layers[-1].name == "straight remote.nrrd" and "(server)" in w.export_info.text()
+
+    # Cancel of a server job that already started: the job is cancelled on the server (one worker, kept busy by a
+    # skeleton job, so the export waits queued: the first record is its queued state, then the dock's Cancel)
+    from napari_unwind._napari._remote import _follow
+
+    server_, ids = w.server, dict(w._remote)
+    with server_.client() as c:
+        blocker = c.skeleton(ids["mask"][1], volume_id=ids["volume_id"], wait=False)
+        queued = c.straighten(ids["volume_id"], ids["session"][0], wait=False, output_name="never.nrrd")
+        follow = _follow(c, queued)
+        first = next(follow)
+        assert first.stage == "server job" and first.message == "queued", first
+        follow.close()  # what Cancel does to the job's generator
+        assert c.job(queued.id).state == pb.JOB_STATE_CANCELLED
+        c.cancel(blocker.id)
 
     # an edit here is not on the server: its export is refused in one line (the undo brings the server's back)
     w.model.set_deformation(Deformation.from_dict(d.to_dict()), keep_history=True)
