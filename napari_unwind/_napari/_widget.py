@@ -4,7 +4,12 @@ Steps (pages of a tool box, revisitable in any order; each says what it still ne
 
 Scan
     An Image layer of the viewer, or a file opened with :func:`napari_unwind.io.open_volume`; shape, spacing and
-    unit, and a warning when the spacing is missing (no unit and 1 x 1 x 1: lengths are then in voxels).
+    unit, and a warning when the spacing is missing (no unit and 1 x 1 x 1: lengths are then in voxels). The
+    "backend" row above it: "this computer", or "server" (address, token or token file, CA file for TLS; Connect
+    checks health and the token). On a server the ends, the skeleton and the export run through
+    :class:`napari_unwind.client.Client` (:mod:`._remote`): the scan and the selection's mask are uploaded once,
+    the export is downloaded to the chosen path; same progress bar and Cancel (which cancels the server's job).
+    The join tree and the feature picking stay on this computer (the service returns no label volume to draw).
 Segment
     The join tree is built once in a worker; the feature-count slider re-simplifies it live (no rebuild). The
     features are a Labels layer; a click on one (2D or 3D) selects it, shift-click adds it; the table lists their
