@@ -67,7 +67,7 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from .errors import InvalidInputError
+from .errors import InvalidInputError, finite_number
 from .io._volume import Volume, check_spacing
 
 __all__ = [
@@ -336,16 +336,6 @@ def _positive(name: str, value: Any, *, allow_zero: bool = False) -> float:
     if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
         need = "zero or positive" if allow_zero else "positive"
         raise InvalidInputError(f"{name} must be finite and {need}, got {value!r}")
-    return v
-
-
-def _finite(name: str, value: Any) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InvalidInputError(f"{name} must be a number, got {value!r}") from None
-    if not np.isfinite(v):
-        raise InvalidInputError(f"{name} must be finite, got {value!r}")
     return v
 
 
@@ -987,8 +977,8 @@ def fish_phantom(
     spacing = check_spacing(spacing)
     sp = np.asarray(spacing)
     body_radius = _positive("body_radius", body_radius)
-    twist = _finite("twist", twist)
-    roll = _finite("roll", roll)
+    twist = finite_number("twist", twist)
+    roll = finite_number("roll", roll)
     noise = _positive("noise", noise, allow_zero=True)
     seed = _seed(seed)
     ds = _straight_spacing(straight_spacing, spacing)

@@ -36,7 +36,7 @@ from psygnal import Signal
 from scipy import ndimage
 
 from .deformation import Deformation
-from .errors import InvalidInputError
+from .errors import InvalidInputError, finite_number
 
 __all__ = ["EditModel", "Step", "CrossSection", "cross_section"]
 
@@ -310,17 +310,17 @@ class EditModel:
 
     def move(self, dx: float, dy: float) -> Deformation:
         """Move the keyframe's centre by ``dx`` along u and ``dy`` along v (physical units)."""
-        dx, dy = _finite("dx", dx), _finite("dy", dy)
+        dx, dy = finite_number("dx", dx), finite_number("dy", dy)
         return self._edit("move", lambda d, i: d.move_keyframe(i, dx, dy))
 
     def twist(self, angle: float) -> Deformation:
         """Turn the keyframe's u and v about n by ``angle`` radians (counter-clockwise seen from the tail)."""
-        angle = _finite("angle", angle)
+        angle = finite_number("angle", angle)
         return self._edit("twist", lambda d, i: d.twist_keyframe(i, angle))
 
     def tilt(self, angle: float, *, axis: str = "u") -> Deformation:
         """Tilt the keyframe's section about its ``u`` or ``v`` axis by ``angle`` radians."""
-        angle = _finite("angle", angle)
+        angle = finite_number("angle", angle)
         if axis not in ("u", "v"):
             raise InvalidInputError(f"tilt axis must be 'u' or 'v', got {axis!r}")
         return self._edit(f"tilt about {axis}", lambda d, i: d.tilt_keyframe(i, angle, axis=axis))
@@ -368,7 +368,7 @@ class EditModel:
     def set_pad(self, before: float, after: float) -> Deformation:
         """Set the padding of the straight box ahead of the head and past the tail (physical units, >= 0)."""
         d = self._need()
-        before, after = _finite("before", before), _finite("after", after)
+        before, after = finite_number("before", before), finite_number("after", after)
         if before < 0 or after < 0:
             raise InvalidInputError(f"padding must be >= 0 at both ends, got ({before:g}, {after:g})")
         self._end_gesture_silently()
@@ -378,18 +378,6 @@ class EditModel:
         self.deformation_changed.emit(new)
         self.history_changed.emit(self.can_undo, self.can_redo)
         return new
-
-
-def _finite(name: str, value: Any) -> float:
-    if isinstance(value, (bool, np.bool_)) or not np.isscalar(value):
-        raise InvalidInputError(f"{name} must be a number, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InvalidInputError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise InvalidInputError(f"{name} must be a finite number, got {value!r}")
-    return v
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -472,7 +460,7 @@ def cross_section(
     shape = getattr(volume, "shape", None)
     if shape is None or len(shape) != 3:
         raise InvalidInputError(f"volume must be a 3D array (axis0, axis1, axis2), got shape {shape}")
-    s = _finite("s", s)
+    s = finite_number("s", s)
     lo, hi = deformation.s_range
     if not lo - 1e-9 <= s <= hi + 1e-9:
         raise InvalidInputError(f"s must lie in the deformation's range [{lo:.4g}, {hi:.4g}], got {s:.4g}")
@@ -491,7 +479,7 @@ def cross_section(
         x_mid, y_mid = 0.0, 0.0
     if pixel is None:
         pixel = max(float(sp.min()), 2.0 * max(hw, hh) / 512.0)
-    pixel = _finite("pixel", pixel)
+    pixel = finite_number("pixel", pixel)
     if pixel <= 0:
         raise InvalidInputError(f"pixel must be > 0, got {pixel!r}")
     nx = max(2, int(math.ceil(2 * hw / pixel)) + 1)

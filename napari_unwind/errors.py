@@ -12,6 +12,7 @@ __all__ = [
     "UnknownFormatError",
     "OutputError",
     "SeriesSelectionError",
+    "finite_number",
 ]
 
 
@@ -43,3 +44,23 @@ class SeriesSelectionError(InvalidInputError):
 
 class OutputError(UnwindError, OSError):
     """An output cannot be written (unwritable folder, existing file without ``overwrite``...)."""
+
+
+def finite_number(name: str, value: object) -> float:
+    """``value`` as a finite float, or an :class:`InvalidInputError` naming ``name`` and the value received.
+
+    Booleans and non-scalars (lists, arrays) are refused: ``True`` is not an angle, ``[3]`` not a distance.
+    """
+    import math
+
+    import numpy as np
+
+    if isinstance(value, (bool, np.bool_)) or not np.isscalar(value):
+        raise InvalidInputError(f"{name} must be a number, got {value!r}")
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v):
+        raise InvalidInputError(f"{name} must be a finite number, got {value!r}")
+    return v
