@@ -201,6 +201,20 @@ def fit_cages(
     return out * (1.0 + margin) + sign * min_margin
 
 
+def _nearest_labels(labels: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The label of the labelled voxel nearest to each point (voxel indices, shape (P, 3)), shape (P,).
+
+    The nearest labelled voxel of a point outside every part is on a part's surface, so a KD-tree of the surface
+    voxels answers it: cost grows with the surface and the number of points, not with the crop's volume (a full
+    distance transform of the crop did the same before).
+    """
+    solid = labels > 0
+    surface = solid & ~ndimage.binary_erosion(solid, border_value=0)
+    where = np.argwhere(surface)
+    _, nearest = cKDTree(where).query(np.asarray(points, dtype=float))
+    return labels[tuple(where[nearest].T)]
+
+
 def _boundary_voxels(mask: np.ndarray, curve_vox: np.ndarray | None = None) -> np.ndarray:
     """Index coordinates (N, 3) of the mask voxels with a face neighbour outside, specks removed.
 
@@ -230,13 +244,11 @@ def _boundary_voxels(mask: np.ndarray, curve_vox: np.ndarray | None = None) -> n
             touched = np.unique(on[on > 0])
             if len(touched) == 0 or (~ok).any() or (on == 0).any():
                 # parts of the curve outside the mask (a gap, an end snapped beside it): the part nearest them
-                _, near = ndimage.distance_transform_edt(labels == 0, return_indices=True)
                 off = idx[ok][on == 0] if ok.any() else np.zeros((0, 3), dtype=int)
                 clipped = np.clip(idx[~ok], 0, np.asarray(crop.shape) - 1)
                 pts = np.concatenate([off, clipped]) if len(clipped) else off
                 if len(pts):
-                    nearest = labels[tuple(near[:, pts[:, 0], pts[:, 1], pts[:, 2]])]
-                    touched = np.union1d(touched, nearest[nearest > 0])
+                    touched = np.union1d(touched, _nearest_labels(labels, pts))
             keep = np.zeros(n + 1, dtype=bool)
             keep[touched] = True
             # a detached part much smaller than the specimen (a fin the segmentation broke off) is kept; one of

@@ -138,3 +138,28 @@ def test_another_specimen_in_the_mask_does_not_widen_the_cage():
     assert not (other & both).any() and other.sum() > 0.1 * ph.mask.sum()
     with_other = propose_cage(both | other, pts, frames, spacing=ph.spacing)
     assert (*with_other[0], *with_other[1]) == pytest.approx((*clean[0], *clean[1]))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_nearest_labels_matches_the_distance_transform(seed):
+    """The part nearest to a point outside the mask: KD-tree of the surface against scipy's exact EDT."""
+    from scipy import ndimage
+
+    from napari_unwind.skeleton._cage import _nearest_labels
+
+    rng = np.random.default_rng(seed)
+    blobs = ndimage.gaussian_filter(rng.random((40, 36, 30)), 2.5)
+    labels, n = ndimage.label(blobs > np.quantile(blobs, 0.85))
+    assert n >= 2
+    outside = np.argwhere(labels == 0)
+    pts = outside[rng.choice(len(outside), 200, replace=False)]
+    dist, near = ndimage.distance_transform_edt(labels == 0, return_indices=True)
+    expected = labels[tuple(near[:, pts[:, 0], pts[:, 1], pts[:, 2]])]
+    got = _nearest_labels(labels, pts)
+    # ties (two parts at the same distance) may go either way: then the chosen part must be as near
+    same = got == expected
+    if not same.all():
+        for p, g in zip(pts[~same], got[~same]):
+            d_g = np.sqrt(((np.argwhere(labels == g) - p) ** 2).sum(1)).min()
+            assert abs(d_g - dist[tuple(p)]) < 1e-9
+    assert same.mean() > 0.9
