@@ -24,6 +24,21 @@ def rod(shape=(48, 32, 32)):
     return a
 
 
+def rod_deformation(**kw):
+    """A straight deformation along the rod's axis (axis0), cage 6 voxels."""
+    return Deformation.from_polyline(np.array([[8.0, 16, 16], [24, 16, 16], [40, 16, 16]]), spacing=1.0,
+                                     cage_half_extent=6.0, **kw)
+
+
+@pytest.fixture
+def rod_dock(make_napari_viewer):
+    """The dock of a fresh viewer, its scan the rod (an in-memory Image layer)."""
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    w.use_layer(viewer.add_image(rod()))
+    return w
+
+
 def wait(qtbot, job, timeout=60_000):
     assert job is not None
     qtbot.waitUntil(lambda: job.done, timeout=timeout)
@@ -94,12 +109,9 @@ def test_ends_more_than_two_points_are_a_chain(make_napari_viewer):
         w.endpoints()
 
 
-def test_export_never_replaces_a_file_without_confirmation(make_napari_viewer, qtbot, tmp_path, monkeypatch):
-    viewer = make_napari_viewer()
-    w = UnwindWidget(viewer)
-    w.use_layer(viewer.add_image(rod()))
-    w.model.set_deformation(Deformation.from_polyline(np.array([[8.0, 16, 16], [24, 16, 16], [40, 16, 16]]),
-                                                      spacing=1.0, cage_half_extent=6.0))
+def test_export_never_replaces_a_file_without_confirmation(rod_dock, qtbot, tmp_path, monkeypatch):
+    w = rod_dock
+    w.model.set_deformation(rod_deformation())
     target = tmp_path / "kept.nrrd"
     target.write_bytes(b"the user's file")
     asked = []
@@ -110,10 +122,8 @@ def test_export_never_replaces_a_file_without_confirmation(make_napari_viewer, q
     qtbot.waitUntil(lambda: w.idle, timeout=60_000)  # the Refine panel's preview of the deformation
 
 
-def test_cancel_stops_the_skeleton(make_napari_viewer, qtbot):
-    viewer = make_napari_viewer()
-    w = UnwindWidget(viewer)
-    w.use_layer(viewer.add_image(rod()))
+def test_cancel_stops_the_skeleton(rod_dock, qtbot):
+    w = rod_dock
     wait(qtbot, w.segment())
     qtbot.waitUntil(lambda: w.idle, timeout=30_000)
     w.select_features([int(w.features.labels[24, 21, 16])])
@@ -136,8 +146,7 @@ def test_saving_a_session_needs_the_scan_file(make_napari_viewer):
 def test_a_session_opened_by_napari_gives_the_dock_its_deformation(make_napari_viewer, qtbot, tmp_path):
     scan = tmp_path / "rod.nrrd"
     write_volume(rod(), scan, spacing=(1.0, 1.0, 1.0), unit="micrometer")
-    d = Deformation.from_polyline(np.array([[8.0, 16, 16], [24, 16, 16], [40, 16, 16]]), spacing=1.0,
-                                  cage_half_extent=6.0, unit="micrometer")
+    d = rod_deformation(unit="micrometer")
     ends = Endpoints(head=(8.0, 16.0, 16.0), tail=(40.0, 16.0, 16.0))
     seg = Segmentation(k=3, level=0, selected=(1,), seeds=((24.0, 21.0, 16.0),))
     path = save_session(Session(source=SourceInfo.from_path(scan), deformation=d, endpoints=ends, segmentation=seg),
@@ -156,7 +165,7 @@ def test_a_session_opened_by_napari_gives_the_dock_its_deformation(make_napari_v
     assert (chosen & rod_voxels).sum() > 0.8 * rod_voxels.sum()
 
 
-def test_cancel_stops_an_export_and_leaves_no_file(make_napari_viewer, qtbot, tmp_path, monkeypatch):
+def test_cancel_stops_an_export_and_leaves_no_file(rod_dock, qtbot, tmp_path, monkeypatch):
     import time
 
     import napari_unwind.warp as warp
@@ -171,11 +180,8 @@ def test_cancel_stops_an_export_and_leaves_no_file(make_napari_viewer, qtbot, tm
         return (yield from gen)
 
     monkeypatch.setattr(warp, "export_iter", export_iter)
-    viewer = make_napari_viewer()
-    w = UnwindWidget(viewer)
-    w.use_layer(viewer.add_image(rod()))
-    w.model.set_deformation(Deformation.from_polyline(np.array([[8.0, 16, 16], [24, 16, 16], [40, 16, 16]]),
-                                                      spacing=1.0, cage_half_extent=6.0))
+    w = rod_dock
+    w.model.set_deformation(rod_deformation())
     target = tmp_path / "cancelled.nrrd"
     job = w.export(target)
     w.cancel()
@@ -186,10 +192,8 @@ def test_cancel_stops_an_export_and_leaves_no_file(make_napari_viewer, qtbot, tm
     qtbot.waitUntil(lambda: w.idle, timeout=60_000)
 
 
-def test_a_failed_skeleton_says_why_in_the_dock(make_napari_viewer, qtbot):
-    viewer = make_napari_viewer()
-    w = UnwindWidget(viewer)
-    w.use_layer(viewer.add_image(rod()))
+def test_a_failed_skeleton_says_why_in_the_dock(rod_dock, qtbot):
+    w = rod_dock
     wait(qtbot, w.segment())
     qtbot.waitUntil(lambda: w.idle, timeout=30_000)
     w.select_features([int(w.features.labels[24, 21, 16])])
