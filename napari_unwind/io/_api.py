@@ -5,7 +5,7 @@ from __future__ import annotations
 import errno
 import os
 import shutil
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +19,7 @@ from ._formats import detect_format, output_format, reader_for, writer_for
 from ._volume import Volume
 
 __all__ = ["open_volume", "write_volume", "write_volume_iter", "import_volume", "import_volume_iter", "as_volume",
-           "disk_full_error"]
+           "import_slabs_iter", "disk_full_error"]
 
 _FULL = {errno.ENOSPC: "no space left on device", getattr(errno, "EDQUOT", -1): "disk quota exceeded"}
 
@@ -271,6 +271,87 @@ def import_volume_iter(
                                            overwrite=overwrite, nan_value=nan_value, chunks=chunks,
                                            max_side=max_side, labels=labels, pyramid=True, **codec)
     return open_volume(written, format="ome-zarr")
+
+
+def import_slabs_iter(
+    blocks: Iterable[np.ndarray],
+    dst: str | os.PathLike,
+    *,
+    shape: tuple[int, int, int],
+    dtype: Any,
+    spacing: Any = None,
+    unit: str | None = None,
+    origin: Any = None,
+    chunks: Any = None,
+    max_side: int = 256,
+    overwrite: bool = False,
+    nan_value: float | None = None,
+    labels: bool = False,
+    compression: str | None = None,
+    compression_level: int | None = None,
+) -> Iterator[Progress]:
+    """:func:`import_volume_iter` for voxels that arrive in order, e.g. an upload: streamed, never held whole.
+
+    ``blocks`` are consecutive runs of planes along axis0 (each of shape ``(k, N1, N2)``, any ``k``); they are
+    cut into the store's slabs of ``chunks[0]`` planes as they come (without a copy when they already are), checked
+    for NaN and infinities (or have them replaced by ``nan_value``), and written by the same OME-Zarr writer, so
+    the store is the one :func:`import_volume` writes from the whole array. Fewer or more planes than ``shape``,
+    or blocks of another plane shape or dtype, are an :class:`InvalidInputError`, and nothing is left behind.
+    Yields progress, returns ``dst``.
+    """
+    from .ome_zarr import _normalise_chunks
+
+    dtype = np.dtype(dtype)
+    shape = tuple(int(n) for n in shape)
+    placeholder = as_volume(da.empty(shape, dtype=dtype, chunks=shape), spacing=spacing, unit=unit, origin=origin)
+    checked = _checked(placeholder, nan_value)  # validates nan_value; the placeholder itself is never read
+    depth = _normalise_chunks(chunks, shape)[0]
+    fill = None if checked is placeholder or nan_value is None else dtype.type(nan_value)
+
+    def slabs() -> Iterator[np.ndarray]:
+        z0 = 0
+
+        def ready(slab: np.ndarray) -> np.ndarray:
+            nonlocal z0
+            if np.issubdtype(dtype, np.floating):
+                if fill is None:
+                    where = [(z0, z0 + slab.shape[0]), (0, shape[1]), (0, shape[2])]
+                    _reject_nonfinite(slab, {None: {"array-location": where}})
+                else:
+                    slab = np.where(np.isfinite(slab), slab, fill)
+            z0 += slab.shape[0]
+            return slab
+
+        parts: list[np.ndarray] = []
+        have = 0
+        for block in blocks:
+            block = np.asarray(block)
+            if block.ndim != 3 or tuple(block.shape[1:]) != shape[1:] or block.dtype != dtype:
+                raise InvalidInputError(f"a block of planes of a {shape} {dtype} volume must have shape "
+                                        f"(k, {shape[1]}, {shape[2]}) and dtype {dtype}, got {block.shape} "
+                                        f"{block.dtype}")
+            while block.shape[0]:
+                if not parts and block.shape[0] >= depth:
+                    yield ready(block[:depth])
+                    block = block[depth:]
+                    continue
+                take = min(depth - have, block.shape[0])
+                parts.append(block[:take])
+                have += take
+                block = block[take:]
+                if have == depth:
+                    yield ready(np.concatenate(parts))
+                    parts, have = [], 0
+        if parts:
+            yield ready(np.concatenate(parts))
+
+    dst = Path(dst)
+    codec = {k: v for k, v in (("compression", compression), ("compression_level", compression_level))
+             if v is not None}
+    if not dst.name.lower().endswith(".zarr"):
+        raise InvalidInputError(f"import writes an OME-Zarr folder; name the output *.zarr, got {dst}")
+    return (yield from write_volume_iter(placeholder, dst, format="ome-zarr", overwrite=overwrite, chunks=chunks,
+                                         max_side=max_side, labels=labels, pyramid=True, slabs=slabs(), **codec))
 
 
 def import_volume(

@@ -32,7 +32,7 @@ import json
 import math
 import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -594,6 +594,7 @@ def write_ome_zarr(
     shuffle: str = "auto",
     name: str | None = None,
     attributes: dict[str, Any] | None = None,
+    slabs: Iterable[np.ndarray] | None = None,
 ) -> Iterator[Progress]:
     """Write ``volume`` as an OME-Zarr pyramid (NGFF 0.5, zarr v3), slab by slab.
 
@@ -624,6 +625,12 @@ def write_ome_zarr(
         Image name stored in the metadata.
     attributes : dict, optional
         Extra JSON-serialisable attributes stored under ``"unwind"`` (provenance, the straightening map...).
+    slabs : iterable of ndarray, optional
+        Level 0 as it arrives (an upload): consecutive slabs along axis0 of ``chunks[0]`` planes each (the last
+        may be shorter), in order, instead of reading ``volume.data``, which then only gives the shape, the
+        dtype and the geometry. A slab of another shape or dtype, or too few or too many slabs, is an
+        :class:`~napari_unwind.errors.InvalidInputError`. The store written is the one ``volume.data`` holding
+        the same voxels gives.
     """
     shape = volume.shape
     dtype = volume.dtype
@@ -652,8 +659,18 @@ def write_ome_zarr(
     depth = chunk_shape[0]
     starts = list(range(0, shape[0], depth))
 
+    given = None if slabs is None else iter(slabs)
+
     def read_slab(z0: int) -> np.ndarray:
-        return np.asarray(volume.data[z0:min(shape[0], z0 + depth)].compute())
+        if given is None:
+            return np.asarray(volume.data[z0:min(shape[0], z0 + depth)].compute())
+        want = (min(shape[0], z0 + depth) - z0, *shape[1:])
+        slab = next(given, None)
+        if slab is None or tuple(slab.shape) != want or slab.dtype != dtype:
+            got = "nothing" if slab is None else f"shape {tuple(slab.shape)} {slab.dtype}"
+            raise InvalidInputError(f"slab {z0 // depth} (planes {z0}-{z0 + want[0] - 1}) of a {shape} {dtype} "
+                                    f"volume must have shape {want} and dtype {dtype}, got {got}")
+        return slab
 
     # read the next slab while this one is written
     with ThreadPoolExecutor(max_workers=1) as reader, ThreadPoolExecutor(max_workers=len(arrays)) as writer:
@@ -661,6 +678,8 @@ def write_ome_zarr(
         pending = reader.submit(read_slab, starts[0])
         for i, z0 in enumerate(starts):
             slab = pending.result()
+            if given is not None and i + 1 == len(starts) and next(given, None) is not None:
+                raise InvalidInputError(f"more planes than the {shape[0]} of a {shape} {dtype} volume arrived")
             if i + 1 < len(starts):
                 pending = reader.submit(read_slab, starts[i + 1])
             pyr.push(0, slab, last=i + 1 == len(starts))
