@@ -436,26 +436,52 @@ class Client:
         return self.submit(jobs_pb2.SubmitRequest(segment=req), wait=wait)
 
     def segmentation(self, segmentation_id: str):
+        """The segmentation's ``SegmentationInfo``: its current features, their statistics, their label volume."""
         from unwind_services._proto.unwind.v1 import segmentation_pb2
 
         return self._unary(self.segmentation_stub.Info,
                            segmentation_pb2.SegmentationRef(segmentation_id=segmentation_id))
 
     def simplify(self, segmentation_id: str, features: int):
-        """Keep another number of features, from the server's cached join tree (no rebuild)."""
+        """Keep another number of features, from the server's cached join tree (no rebuild); returns the
+        ``SegmentationInfo`` (its ``labels_volume_id`` is their label volume; :meth:`features` downloads them)."""
         from unwind_services._proto.unwind.v1 import segmentation_pb2
 
         return self._unary(self.segmentation_stub.Simplify,
                            segmentation_pb2.SimplifyRequest(segmentation_id=segmentation_id, features=features))
 
+    def features(self, segmentation_id: str, k: int | None = None, *, timeout: float = 3600.0):
+        """The features of a segmentation on this computer: :class:`~napari_unwind.segmentation.Features` (the
+        label volume at working resolution and every feature's statistics, without the join tree).
+
+        ``k`` features are kept on the server first (:meth:`simplify`; it becomes the segmentation's current
+        number); ``None`` takes the current ones (:meth:`segmentation`). The label volume is written once per
+        ``k`` on the server and downloaded here; the result is what
+        :func:`napari_unwind.segmentation.load_features` gives for the same segmentation saved locally, so
+        ``select``, ``refine_mask``, ``ids_at`` and ``nearest_feature`` work on it (an isovalue at working
+        resolution needs the tree: refine at full resolution instead).
+        """
+        from .segmentation import Features
+
+        info = self.segmentation(segmentation_id) if k is None else self.simplify(segmentation_id, k)
+        labels = self.open(info.labels_volume_id, timeout=timeout)
+        return Features.from_labels(np.asarray(labels.data), json.loads(info.features_json))
+
     def select(self, segmentation_id: str, *, seeds: Any = None, ids: Sequence[int] | None = None,
-               fill_holes: bool = False, isovalue: float | None = None, output_name: str = "", wait: bool = True):
-        """The chosen features refined to a full-resolution mask (a job; ``result.volume_id`` is the mask)."""
+               fill_holes: bool = False, isovalue: float | None = None, output_name: str = "",
+               features: int | None = None, wait: bool = True):
+        """The chosen features refined to a full-resolution mask (a job; ``result.volume_id`` is the mask).
+
+        ``features``: the number of features the ids and seeds refer to (one :meth:`simplify` made; default: the
+        segmentation's current one). Without ``isovalue`` the mask is cut at the lowest threshold of the features
+        it covers, as :func:`napari_unwind.segmentation.refine_mask` does on this computer.
+        """
         from unwind_services._proto.unwind.v1 import jobs_pb2, segmentation_pb2
 
         req = segmentation_pb2.SelectRequest(segmentation_id=segmentation_id, seeds=_points(seeds, "seed"),
                                              ids=list(ids or ()), fill_holes=fill_holes, isovalue=isovalue or 0.0,
-                                             has_isovalue=isovalue is not None, output_name=output_name)
+                                             has_isovalue=isovalue is not None, output_name=output_name,
+                                             features=features or 0)
         return self.submit(jobs_pb2.SubmitRequest(select=req), wait=wait)
 
     def suggest_ends(self, mask_volume_id: str, volume_id: str = "") -> tuple[np.ndarray, np.ndarray]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 import tarfile
@@ -230,30 +231,63 @@ class SegmentationServicer(segmentation_pb2_grpc.SegmentationServiceServicer):
     def Select(self, request, context):
         return self.jobs.submit(current_user(), jobs_pb2.SubmitRequest(select=request))
 
-    def _info(self, row, features) -> segmentation_pb2.SegmentationInfo:
+    def _labels(self, owner: str, row, k: int):
+        """The label volume of ``k`` features as (its volume row, its Volume); under the segmentation's lock.
+
+        Written once per (segmentation, k) (atomically, by the core's save_features) and registered as a volume of
+        the owner; ``meta["labels"]`` maps k to its id. The segment job's own file (``meta["features"]``, which
+        holds ``meta["k"]`` features) is registered the first time any k is asked for.
+        """
+        from napari_unwind.segmentation import JoinTree, save_features
+
+        row = self.catalog.segmentation(owner, row.id)  # the meta as it is now (another call may have added a k)
+        root, known = self.catalog.root, row.meta.get("labels")
+        stem = row.name.split(" k=")[0]
+
+        def register(path: Path, n: int) -> None:
+            nonlocal known
+            vrow, _ = self.catalog.add_volume(owner, path, f"{stem} features k={n}", "output", row.job_id)
+            known = {**(known or {}), str(n): vrow.id}
+            self.catalog.store.update_meta(owner, row.id, dict(row.meta, labels=known))
+
+        if known is None:
+            register(root.absolute(row.meta["features"]), int(row.meta["k"]))
+        if str(k) not in known:
+            tree = JoinTree.from_npz(root.absolute(row.meta["tree"]))
+            register(save_features(tree.simplify(k), root.absolute(row.path) / f"features-k{k}.zarr", overwrite=True),
+                     k)
+        return self.catalog.volume(owner, known[str(k)])
+
+    def _info(self, row, k: int, vrow, vol) -> segmentation_pb2.SegmentationInfo:
+        from napari_unwind.segmentation import Features
+
+        attrs = vol.metadata["unwind"]["segmentation"]
+        features = Features.from_labels(np.zeros((1, 1, 1), np.uint16), attrs)  # the statistics, not the voxels
         return segmentation_pb2.SegmentationInfo(
-            segmentation_id=row.id, volume_id=row.meta["volume_id"], features=int(features.k),
-            level=int(features.level), shape=list(features.shape), feature=[convert.feature_msg(s)
-                                                                            for s in features.stats])
+            segmentation_id=row.id, volume_id=row.meta["volume_id"], features=k, level=int(attrs["level"]),
+            shape=list(vol.shape), feature=[convert.feature_msg(s) for s in features.stats],
+            labels_volume_id=vrow.id, features_json=json.dumps(attrs), maxima=int(row.meta.get("maxima", 0)))
 
     def Info(self, request, context):
-        from napari_unwind.segmentation import load_features
-
-        row = self.catalog.segmentation(current_user(), request.segmentation_id)
-        return self._info(row, load_features(self.catalog.root.absolute(row.meta["features"])))
+        owner = current_user()
+        row = self.catalog.segmentation(owner, request.segmentation_id)
+        k = int(row.meta["k"])
+        with self.catalog.lock(row.id):
+            vrow, vol = self._labels(owner, row, k)
+        return self._info(row, k, vrow, vol)
 
     def Simplify(self, request, context):
-        from napari_unwind.segmentation import JoinTree, save_features
+        from napari_unwind.segmentation._common import check_features_count
 
         owner = current_user()
         row = self.catalog.segmentation(owner, request.segmentation_id)
+        k = check_features_count(request.features)
         with self.catalog.lock(row.id):
-            tree = JoinTree.from_npz(self.catalog.root.absolute(row.meta["tree"]))
-            features = tree.simplify(request.features)
-            save_features(features, self.catalog.root.absolute(row.meta["features"]), overwrite=True)
-            meta = dict(row.meta, k=int(features.k))
-            self.catalog.store.update_meta(owner, row.id, meta)
-        return self._info(row, features)
+            vrow, vol = self._labels(owner, row, k)
+            row = self.catalog.segmentation(owner, row.id)
+            self.catalog.store.update_meta(owner, row.id, dict(row.meta, k=k, features=self.catalog.root.relative(
+                self.catalog.path(vrow))))
+        return self._info(row, k, vrow, vol)
 
 
 class SkeletonServicer(skeleton_pb2_grpc.SkeletonServiceServicer):

@@ -133,7 +133,7 @@ def segment(ctx: TaskContext, req: Any) -> TaskGen:
     row = ctx.catalog.store.add_object(
         ctx.owner, "segmentation", f"{vrow.name} k={k}", root.relative(ctx.workdir),
         {"volume_id": vrow.id, "k": k, "level": int(features.level), "tree": root.relative(Path(tree_path)),
-         "features": root.relative(Path(features_path))}, ctx.job_id)
+         "features": root.relative(Path(features_path)), "maxima": int(tree.n_maxima)}, ctx.job_id)
     return pb.JobResult(segmentation_id=row.id, figures=_figures(
         features=features.k, level=int(features.level), seconds=time.perf_counter() - t0))
 
@@ -145,12 +145,25 @@ def select(ctx: TaskContext, req: Any) -> TaskGen:
     _, volume = ctx.catalog.volume(ctx.owner, seg.meta["volume_id"])
     out = ctx.output(req.output_name, "mask.zarr")
     seeds = convert.points(req.seeds, "seed")
-    features = load_features(ctx.catalog.root.absolute(seg.meta["features"]))
+    k = req.features or int(seg.meta["k"])
+    if k == int(seg.meta["k"]):
+        path = ctx.catalog.root.absolute(seg.meta["features"])
+    elif str(k) in seg.meta.get("labels", {}):
+        path = ctx.catalog.path(ctx.catalog.store.get_object(ctx.owner, seg.meta["labels"][str(k)], "volume"))
+    else:
+        raise StateError(f"segmentation {seg.id} has no simplification to {k} features; call Simplify with "
+                         f"features={k} first")
+    features = load_features(path)
     ids = selected_ids(features, seeds=seeds if len(seeds) else None, ids=list(req.ids) or None)
     working = select(features, ids=ids, fill_holes=req.fill_holes)
-    iso = req.isovalue if req.has_isovalue else min(features.stat(i).threshold for i in ids)
-    written = yield from refine_mask_iter(volume, working, features=features, isovalue=iso, output=out)
-    return pb.JobResult(volume_id=ctx.register(written, out.name), figures=_figures(ids=ids, isovalue=float(iso)))
+    # no isovalue: refine_mask's default (the lowest threshold of the features the mask covers), as on this computer
+    written = yield from refine_mask_iter(volume, working, features=features,
+                                          isovalue=req.isovalue if req.has_isovalue else None, output=out)
+    vid = ctx.register(written, out.name)
+    refined = (ctx.catalog.volume(ctx.owner, vid)[1].metadata.get("unwind") or {}).get("refined_mask") or {}
+    iso = req.isovalue if req.has_isovalue else refined.get("isovalue")
+    return pb.JobResult(volume_id=vid, figures=_figures(ids=ids, features=k, **(
+        {} if iso is None else {"isovalue": float(iso)})))
 
 
 def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:

@@ -57,23 +57,29 @@ class Feature(_message.Message):
     def __init__(self, id: _Optional[int] = ..., voxel_count: _Optional[int] = ..., bbox_full: _Optional[_Iterable[int]] = ..., value_min: _Optional[float] = ..., value_max: _Optional[float] = ..., threshold: _Optional[float] = ..., max_position_full: _Optional[_Union[_common_pb2.Point, _Mapping]] = ...) -> None: ...
 
 class SegmentationInfo(_message.Message):
-    __slots__ = ("segmentation_id", "volume_id", "features", "level", "shape", "feature")
+    __slots__ = ("segmentation_id", "volume_id", "features", "level", "shape", "feature", "labels_volume_id", "features_json", "maxima")
     SEGMENTATION_ID_FIELD_NUMBER: _ClassVar[int]
     VOLUME_ID_FIELD_NUMBER: _ClassVar[int]
     FEATURES_FIELD_NUMBER: _ClassVar[int]
     LEVEL_FIELD_NUMBER: _ClassVar[int]
     SHAPE_FIELD_NUMBER: _ClassVar[int]
     FEATURE_FIELD_NUMBER: _ClassVar[int]
+    LABELS_VOLUME_ID_FIELD_NUMBER: _ClassVar[int]
+    FEATURES_JSON_FIELD_NUMBER: _ClassVar[int]
+    MAXIMA_FIELD_NUMBER: _ClassVar[int]
     segmentation_id: str
     volume_id: str
     features: int
     level: int
     shape: _containers.RepeatedScalarFieldContainer[int]
     feature: _containers.RepeatedCompositeFieldContainer[Feature]
-    def __init__(self, segmentation_id: _Optional[str] = ..., volume_id: _Optional[str] = ..., features: _Optional[int] = ..., level: _Optional[int] = ..., shape: _Optional[_Iterable[int]] = ..., feature: _Optional[_Iterable[_Union[Feature, _Mapping]]] = ...) -> None: ...
+    labels_volume_id: str
+    features_json: str
+    maxima: int
+    def __init__(self, segmentation_id: _Optional[str] = ..., volume_id: _Optional[str] = ..., features: _Optional[int] = ..., level: _Optional[int] = ..., shape: _Optional[_Iterable[int]] = ..., feature: _Optional[_Iterable[_Union[Feature, _Mapping]]] = ..., labels_volume_id: _Optional[str] = ..., features_json: _Optional[str] = ..., maxima: _Optional[int] = ...) -> None: ...
 
 class SelectRequest(_message.Message):
-    __slots__ = ("segmentation_id", "seeds", "ids", "fill_holes", "isovalue", "has_isovalue", "output_name")
+    __slots__ = ("segmentation_id", "seeds", "ids", "fill_holes", "isovalue", "has_isovalue", "output_name", "features")
     SEGMENTATION_ID_FIELD_NUMBER: _ClassVar[int]
     SEEDS_FIELD_NUMBER: _ClassVar[int]
     IDS_FIELD_NUMBER: _ClassVar[int]
@@ -81,6 +87,7 @@ class SelectRequest(_message.Message):
     ISOVALUE_FIELD_NUMBER: _ClassVar[int]
     HAS_ISOVALUE_FIELD_NUMBER: _ClassVar[int]
     OUTPUT_NAME_FIELD_NUMBER: _ClassVar[int]
+    FEATURES_FIELD_NUMBER: _ClassVar[int]
     segmentation_id: str
     seeds: _containers.RepeatedCompositeFieldContainer[_common_pb2.Point]
     ids: _containers.RepeatedScalarFieldContainer[int]
@@ -88,4 +95,5 @@ class SelectRequest(_message.Message):
     isovalue: float
     has_isovalue: bool
     output_name: str
-    def __init__(self, segmentation_id: _Optional[str] = ..., seeds: _Optional[_Iterable[_Union[_common_pb2.Point, _Mapping]]] = ..., ids: _Optional[_Iterable[int]] = ..., fill_holes: _Optional[bool] = ..., isovalue: _Optional[float] = ..., has_isovalue: _Optional[bool] = ..., output_name: _Optional[str] = ...) -> None: ...
+    features: int
+    def __init__(self, segmentation_id: _Optional[str] = ..., seeds: _Optional[_Iterable[_Union[_common_pb2.Point, _Mapping]]] = ..., ids: _Optional[_Iterable[int]] = ..., fill_holes: _Optional[bool] = ..., isovalue: _Optional[float] = ..., has_isovalue: _Optional[bool] = ..., output_name: _Optional[str] = ..., features: _Optional[int] = ...) -> None: ...

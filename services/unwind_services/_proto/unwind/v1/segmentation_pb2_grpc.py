@@ -73,14 +73,15 @@ class SegmentationServiceServicer:
         raise NotImplementedError('Method not implemented!')
 
     def Simplify(self, request, context):
-        """Keep another number of features of a finished segmentation, from its cached tree (fast, no rebuild).
+        """Keep another number of features of a finished segmentation, from its cached tree (fast, no rebuild); it
+        becomes the segmentation's current one. Its label volume is written once per number of features and reused.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
     def Info(self, request, context):
-        """Describe a segmentation: its features and their statistics.
+        """Describe a segmentation: its current features, their statistics and their label volume.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
