@@ -17,13 +17,15 @@ core, so one spare child per job kind waits ready, its imports done (:func:`prew
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import multiprocessing
 import pickle
 import queue as queue_module
+import sys
 import threading
 import time
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -194,6 +196,29 @@ _SPARES: dict[str, tuple[Any, Any, Any]] = {}
 _SPARES_LOCK = threading.Lock()
 
 
+@contextlib.contextmanager
+def _main_hidden() -> Iterator[None]:
+    """Hide the parent's ``__main__`` from a child being spawned: multiprocessing's spawn runs the parent's main
+    script again in the child, and a napari script rarely has an ``if __name__ == "__main__"`` guard (the child would
+    open a second viewer, or fail in its bootstrapping). The children here need nothing from ``__main__``."""
+    main = sys.modules.get("__main__")
+    if main is None:
+        yield
+        return
+    missing = object()
+    saved = {k: main.__dict__.get(k, missing) for k in ("__file__", "__spec__")}
+    main.__dict__.pop("__file__", None)
+    main.__spec__ = None
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is missing:
+                main.__dict__.pop(k, None)
+            else:
+                main.__dict__[k] = v
+
+
 def prewarm(fn: Callable[..., Any] | str) -> None:
     """Start an idle child process that imports ``fn``'s module (a function or ``"module:name"``), so the next
     :func:`start_process_job` of it skips the seconds of a fresh interpreter's imports. Does nothing when one is
@@ -206,7 +231,8 @@ def prewarm(fn: Callable[..., Any] | str) -> None:
         ctx = multiprocessing.get_context("spawn")
         jobs, out = ctx.Queue(), ctx.Queue()
         proc = ctx.Process(target=_child_loop, args=(module, jobs, out), daemon=True, name="napari-unwind job")
-        proc.start()
+        with _main_hidden():
+            proc.start()
         _SPARES[module] = (proc, jobs, out)
 
 
