@@ -296,8 +296,12 @@ def add_remote_commands(subparsers: Any) -> None:
                    help="address to listen on (default 127.0.0.1, this machine only; 0.0.0.0 needs --tokens)")
     p.add_argument("--service", action="append", choices=("volume", "segmentation", "skeleton", "warp", "jobs"),
                    help="run only this service (repeatable; the job service always runs)")
-    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:8786",
-                   help="dask.distributed scheduler for the chunked export (default: threads in this process)")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:8786|threads",
+                   help="where the jobs' chunked dask work (refine, straighten, bend, writes) runs. Default: a dask "
+                        "LocalCluster the server starts and stops (one worker process, a thread per core), right "
+                        "for one machine. tcp://HOST:PORT: an existing dask.distributed cluster (deploy/local.sh, "
+                        "compose.yaml), for several machines; its workers must see the data root at the same path. "
+                        "threads: dask threads inside each job worker, no cluster (small machines, tests)")
     p.add_argument("--tokens", default=None, metavar="FILE", help="tokens file: USER sha256:<hash> per line")
     p.add_argument("--add-token", default=None, metavar="USER",
                    help="print a new token for USER, store its hash in --tokens FILE, and exit")

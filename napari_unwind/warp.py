@@ -61,7 +61,6 @@ data range for margin 8) inside the volume, and exactly nothing where the region
 
 from __future__ import annotations
 
-import contextlib
 import math
 import operator
 import os
@@ -87,6 +86,7 @@ from .io._atomic import atomic_output, check_writable
 from .io._formats import output_format
 from .io._volume import SUPPORTED_DTYPES, Volume, normalise_unit, unit_label
 from .progress import Progress, run
+from .scheduler import use_scheduler
 
 __all__ = [
     "DEFAULT_MAX_OUTPUT",
@@ -1034,38 +1034,6 @@ def _session_dict(session: Any) -> dict | None:
     raise InvalidInputError(f"session must be a dict or have a to_dict() method, got {type(session).__name__}")
 
 
-@contextlib.contextmanager
-def _scheduler(scheduler: str | None) -> Iterator[None]:
-    """Run dask computations on the threads (None), the synchronous scheduler, or a distributed cluster."""
-    if scheduler is None or scheduler in ("threads", "threading"):
-        with dask.config.set(scheduler="threads"):
-            yield
-    elif scheduler in ("synchronous", "sync", "single-threaded"):
-        with dask.config.set(scheduler="synchronous"):
-            yield
-    elif isinstance(scheduler, str) and "://" in scheduler:
-        try:
-            from distributed import Client
-        except ImportError:  # pragma: no cover - distributed is in the [server] extra
-            raise InvalidInputError(
-                "a scheduler address needs the 'distributed' package (pip install napari-unwind[server])"
-            ) from None
-        try:
-            client = Client(scheduler, timeout="20s", set_as_default=False)
-        except OSError as exc:
-            raise InvalidInputError(f"cannot reach the dask scheduler at {scheduler}: {exc}") from None
-        try:
-            with dask.config.set(scheduler=client.get):
-                yield
-        finally:
-            client.close()
-    else:
-        raise InvalidInputError(
-            f"scheduler must be None (threads), 'synchronous' or a scheduler address such as "
-            f"'tcp://host:8786', got {scheduler!r}"
-        )
-
-
 def _compressed(fmt: str, path: str | os.PathLike, write_options: dict[str, Any]) -> bool:
     """Whether the writer of ``fmt`` compresses (so that the file may be smaller than the voxels)."""
     if fmt == "ome-zarr":
@@ -1196,7 +1164,7 @@ def export_iter(
     d2 = Deformation.from_dict(straight.metadata["deformation"])
     ds = straight.metadata["output_spacing"]
     _check_disk(path, straight, fmt, write_options)
-    with _scheduler(scheduler):
+    with use_scheduler(scheduler):
         if fmt != "ome-zarr":
             if "file_chunks" in write_options:
                 raise InvalidInputError(f"file_chunks is an option of OME-Zarr outputs, not of {fmt}")
@@ -1262,7 +1230,8 @@ def export(
         The session the deformation comes from (stored in an OME-Zarr export).
     scheduler : str, optional
         None (threads), ``"synchronous"``, or a dask.distributed scheduler address ``"tcp://host:port"`` (a
-        client is connected for the duration of the export and closed afterwards).
+        client is connected for the duration of the export and closed afterwards, unless an enclosing
+        :func:`napari_unwind.scheduler.use_scheduler` of the same address already holds one).
     progress : callable, optional
         Called with each progress record.
     max_output : float or None

@@ -13,6 +13,7 @@ import errno
 import grpc
 
 from napari_unwind.errors import InvalidInputError, OutputError, UnwindError
+from napari_unwind.scheduler import SchedulerError
 
 __all__ = [
     "AuthError",
@@ -73,7 +74,7 @@ def status_for(exc: BaseException) -> tuple[grpc.StatusCode, str | None]:
         ((LimitError, MemoryError), grpc.StatusCode.RESOURCE_EXHAUSTED),
         (CancelledError, grpc.StatusCode.CANCELLED),
         ((DeadlineError, TimeoutError), grpc.StatusCode.DEADLINE_EXCEEDED),
-        (ShuttingDownError, grpc.StatusCode.UNAVAILABLE),
+        ((ShuttingDownError, SchedulerError), grpc.StatusCode.UNAVAILABLE),  # SchedulerError: the cluster lost it
         (InvalidInputError, grpc.StatusCode.INVALID_ARGUMENT),  # UnknownFormatError and SeriesSelectionError too
         ((OutputError, StateError, UnwindError), grpc.StatusCode.FAILED_PRECONDITION),
     )

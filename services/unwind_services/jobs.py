@@ -31,6 +31,7 @@ from pathlib import Path
 
 from napari_unwind.errors import InvalidInputError
 from napari_unwind.io._atomic import TMP_MARK, remove_path
+from napari_unwind.scheduler import use_scheduler
 
 from ._proto.unwind.v1 import common_pb2 as pb
 from ._proto.unwind.v1 import jobs_pb2
@@ -277,24 +278,15 @@ def run_job(catalog: Catalog, job_id: str, scheduler: str | None = None) -> None
     try:
         workdir.mkdir(parents=True, exist_ok=True)
         ctx = TaskContext(catalog, owner, job_id, workdir, scheduler)
-        gen = run_task(ctx, store.spec(job_id))
-        t0 = time.monotonic()
-        last = ("", 0.0)
-        while True:
-            why = store.stop_requested(job_id)
-            if why:
-                raise _Stop(why)
-            if timeout and time.monotonic() - t0 > timeout:
-                raise DeadlineError(f"the job ran longer than its timeout of {timeout:g} s and was stopped")
+        # all the job's chunked dask work (refine, segment, skeleton, straighten, bend, writes) runs on the
+        # server's scheduler; a cluster that loses the work ends the job with SchedulerError (UNAVAILABLE)
+        with use_scheduler(scheduler):
+            gen = run_task(ctx, store.spec(job_id))
             try:
-                p = next(gen)
-            except StopIteration as stop:
-                result = stop.value
-                break
-            now = time.monotonic()
-            if p.stage != last[0] or now - last[1] >= _PROGRESS_INTERVAL or (p.total and p.done >= p.total):
-                store.add_progress(job_id, p.stage, p.done, p.total, p.message)
-                last = (p.stage, now)
+                result = _advance(store, job_id, gen, timeout)
+            except BaseException:
+                gen.close()  # still on the scheduler: a chunk read in flight ends before its client is closed
+                raise
         store.finish(job_id, pb.JOB_STATE_SUCCEEDED, result=result)
     except _Stop as stop:
         if gen is not None:
@@ -320,6 +312,27 @@ def run_job(catalog: Catalog, job_id: str, scheduler: str | None = None) -> None
         if store.job_row(job_id)["state"] != pb.JOB_STATE_SUCCEEDED and workdir.exists() \
                 and not store.has_objects(job_id):
             shutil.rmtree(workdir, ignore_errors=True)  # nothing of a failed job is kept (a saved session is)
+
+
+def _advance(store: Store, job_id: str, gen, timeout: float):
+    """Step the job's generator to its end, storing progress; stop between two steps when asked or past its
+    timeout. Returns the generator's result."""
+    t0 = time.monotonic()
+    last = ("", 0.0)
+    while True:
+        why = store.stop_requested(job_id)
+        if why:
+            raise _Stop(why)
+        if timeout and time.monotonic() - t0 > timeout:
+            raise DeadlineError(f"the job ran longer than its timeout of {timeout:g} s and was stopped")
+        try:
+            p = next(gen)
+        except StopIteration as stop:
+            return stop.value
+        now = time.monotonic()
+        if p.stage != last[0] or now - last[1] >= _PROGRESS_INTERVAL or (p.total and p.done >= p.total):
+            store.add_progress(job_id, p.stage, p.done, p.total, p.message)
+            last = (p.stage, now)
 
 
 def job_workdir(root: Path, owner: str, job_id: str) -> Path:

@@ -27,7 +27,7 @@ from .paths import DataRoot
 from .servicers import SERVICES
 from .store import Store
 
-__all__ = ["ServerConfig", "UnwindServer"]
+__all__ = ["ServerConfig", "UnwindServer", "LocalDask", "check_scheduler"]
 
 log = logging.getLogger("unwind_services")
 
@@ -46,6 +46,7 @@ class ServerConfig:
     tls_key: Path | None = None
     limits: Limits = field(default_factory=Limits)
     workers: int = 2
+    dask_threads: int = 0  # threads of the in-process LocalCluster's worker (0: one per core)
     grpc_threads: int = 64
     drain_seconds: float = 10.0
 
@@ -70,6 +71,51 @@ def _warm_imports() -> None:
             log.exception("importing %s failed", name)
 
 
+#: ``--scheduler`` values that keep dask in the job workers' own threads (no cluster).
+THREADS = ("threads",)
+
+
+def check_scheduler(scheduler: str | None) -> None:
+    """None (the in-process LocalCluster), ``"threads"``, or a cluster address; anything else is refused."""
+    if scheduler is None or scheduler in THREADS:
+        return
+    if not isinstance(scheduler, str) or "://" not in scheduler or not scheduler.split("://", 1)[1]:
+        raise InvalidInputError(f"--scheduler must be 'threads' or a dask scheduler address such as "
+                                f"tcp://host:8786 (default: a LocalCluster in the server), got {scheduler!r}")
+
+
+class LocalDask:
+    """The default scheduler: a dask.distributed LocalCluster started by the server, closed with it.
+
+    One worker process (under a nanny, which restarts it if it dies) with one thread per core: the chunked work
+    runs outside the server's process, so it never holds the server's GIL (gRPC answers stay fast), and all
+    chunks of a computation live in one process, so no chunk is copied between workers. Its memory limit is
+    half of this machine's memory (the job workers, which write the slabs, and the server need the rest); past
+    it the worker spills to ``.unwind/dask`` under the data root, then is restarted. No dashboard.
+    """
+
+    def __init__(self, root: DataRoot, threads: int = 0):
+        import os
+
+        import psutil
+        from distributed import LocalCluster
+
+        self.threads = int(threads) or os.cpu_count() or 1
+        self.memory_limit = int(psutil.virtual_memory().total // 2)
+        space = root.private / "dask"
+        space.mkdir(exist_ok=True)
+        self.cluster = LocalCluster(
+            n_workers=1, threads_per_worker=self.threads, processes=True, host="127.0.0.1", scheduler_port=0,
+            dashboard_address=None, memory_limit=self.memory_limit, local_directory=str(space),
+            silence_logs=logging.WARNING,
+            # no dashboard; the scheduler's small HTTP server (health, metrics) on a free loopback port, not 8787
+            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
+        self.address = self.cluster.scheduler_address
+
+    def close(self) -> None:
+        self.cluster.close(timeout=30)
+
+
 class UnwindServer:
     """One process serving the chosen services over one port."""
 
@@ -81,6 +127,7 @@ class UnwindServer:
             raise InvalidInputError(f"unknown service {unknown[0]!r}; choose from {', '.join(SERVICES)}")
         if "jobs" not in names:
             names.append("jobs")  # every long operation is a job: the job service comes with any other
+        check_scheduler(config.scheduler)
         if (config.tls_cert is None) != (config.tls_key is None):
             raise InvalidInputError("TLS needs both --tls-cert and --tls-key")
         if not _is_loopback(config.listen) and config.tokens is None:
@@ -120,13 +167,38 @@ class UnwindServer:
         if not self.port:
             raise InvalidInputError(f"cannot listen on {address} (in use, or not an address of this machine)")
         self.address = f"{config.listen}:{self.port}"
+        self.dask: LocalDask | None = None
         self._stopped = threading.Event()
+
+    def _start_scheduler(self) -> None:
+        """The job workers' scheduler: a LocalCluster (default), an external cluster (checked now), or threads."""
+        scheduler = self.config.scheduler
+        if scheduler is None:
+            self.dask = LocalDask(self.root, self.config.dask_threads)
+            self.jobs.scheduler = self.dask.address
+            log.info("dask LocalCluster at %s: 1 worker process, %d threads, memory limit %.1f GiB",
+                     self.dask.address, self.dask.threads, self.dask.memory_limit / 2**30)
+        elif scheduler in THREADS:
+            self.jobs.scheduler = None
+            log.info("dask: threads inside each job worker (no cluster)")
+        else:
+            from napari_unwind.scheduler import use_scheduler
+
+            with use_scheduler(scheduler):  # fail now, with a clear message, if it cannot be reached
+                pass
+            self.jobs.scheduler = scheduler
+            log.info("dask cluster at %s", scheduler)
 
     def start(self) -> None:
         warnings.filterwarnings("ignore", category=UserWarning, module="napari_unwind.warp")
         # the core's heavy modules (numba kernels, the tet mesher) load once, now, not in the first job
         threading.Thread(target=_warm_imports, name="unwind-warm", daemon=True).start()
-        self.jobs.start()
+        self._start_scheduler()
+        try:
+            self.jobs.start()
+        except BaseException:
+            self._close_scheduler()
+            raise
         self.server.start()
         for name in ["", *self.service_names]:
             self.health.set(name, health_pb2.HealthCheckResponse.SERVING)
@@ -139,10 +211,19 @@ class UnwindServer:
         grace = self.config.drain_seconds if grace is None else grace
         self.health.enter_graceful_shutdown()
         stopping = self.server.stop(grace)
-        self.jobs.shutdown(drain_seconds=grace)
+        self.jobs.shutdown(drain_seconds=grace)  # the jobs end first: they compute on the cluster
         stopping.wait()
+        self._close_scheduler()
         self.store.close()
         self._stopped.set()
+
+    def _close_scheduler(self) -> None:
+        if self.dask is not None:
+            try:
+                self.dask.close()
+            except Exception:  # noqa: BLE001 - shutting down anyway; the worker dies with the server
+                log.exception("closing the dask LocalCluster failed")
+            self.dask = None
 
     def wait(self) -> None:
         self._stopped.wait()

@@ -17,10 +17,17 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 class ServerProcess:
-    """``python -m napari_unwind.cli serve`` in a child process; restartable on the same port."""
+    """``python -m napari_unwind.cli serve`` in a child process; restartable on the same port.
 
-    def __init__(self, data_root: Path, *args: str, port: int = 0, log: Path | None = None):
+    ``scheduler``: the ``--scheduler`` it gets; "threads" by default (no LocalCluster to start: quick), None for
+    the server's own default (a LocalCluster), or a cluster address.
+    """
+
+    def __init__(self, data_root: Path, *args: str, port: int = 0, log: Path | None = None,
+                 scheduler: str | None = "threads"):
         self.data_root, self.args = Path(data_root), [str(a) for a in args]
+        if scheduler is not None:
+            self.args += ["--scheduler", scheduler]
         self.log = log or self.data_root.parent / f"{self.data_root.name}-server.log"
         self.port = port
         self.proc: subprocess.Popen | None = None
