@@ -1,9 +1,10 @@
 """The dock's "server" backend: progress generators that drive :class:`napari_unwind.client.Client`.
 
 Each function is a generator of core :class:`~napari_unwind.progress.Progress` records that returns its result,
-the shape :func:`._workers.start_job` runs in a worker (same progress bar, same Cancel). A server job is followed
-through ``Client.watch``; when the generator is closed before the job ended (Cancel), the job is cancelled on the
-server. No Qt here; the client (grpcio, the ``server`` extra) is imported only when a server is used.
+the shape :func:`._workers.start_job` runs in a worker (same progress bar, same Cancel); :func:`simplify` (the
+feature slider) is a plain call the dock runs in its own worker. A server job is followed through
+``Client.watch``; when the generator is closed before the job ended (Cancel), the job is cancelled on the server.
+No Qt here; the client (grpcio, the ``server`` extra) is imported only when a server is used.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ import numpy as np
 from ..errors import InvalidInputError
 from ..progress import Progress
 
-__all__ = ["Server", "check_server", "upload_iter", "suggest_ends_iter", "skeleton_iter", "export_iter"]
+__all__ = ["Server", "check_server", "upload_iter", "segment_iter", "simplify", "select_iter", "mask_volume",
+           "suggest_ends_iter", "skeleton_iter", "export_iter"]
 
 
 @dataclass(frozen=True)
@@ -73,22 +75,52 @@ def check_server(server: Server, *, deadline: float = 5.0) -> Generator[Progress
     return status
 
 
-def _follow(client: Any, job: Any) -> Generator[Progress, None, Any]:
-    """Yield the job's progress until it ends; cancel it on the server when closed early (Cancel)."""
+def _follow(client: Any, job: Any, *, poll: float = 0.25) -> Generator[Progress, None, Any]:
+    """Yield the job's progress until it ends; cancel it on the server when closed early (Cancel).
+
+    The job's events are read in a thread; while none arrives (a queued job, a long step) the last record is
+    yielded again every ``poll`` seconds, so the dock's Cancel (seen at a yield) acts within ``poll`` seconds.
+    """
+    import queue
+    import threading
+
     from unwind_services._proto.unwind.v1 import common_pb2 as pb
 
     from ..client import RemoteError, _progress
 
     _FINAL = (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED, pb.JOB_STATE_CANCELLED)
-    final = None
+    events: queue.Queue = queue.Queue()
+
+    def pump() -> None:
+        try:
+            for event in client.watch(job.id):
+                events.put(("event", event))
+            events.put(("end", None))
+        except Exception as exc:  # noqa: BLE001 - handed to the generator (or dropped once it was closed)
+            events.put(("error", exc))
+
+    threading.Thread(target=pump, daemon=True, name=f"watch {job.id}").start()
+    final, last = None, None
     try:
-        for event in client.watch(job.id):
-            if event.HasField("progress"):
-                yield _progress(event.progress)
+        while True:
+            try:
+                kind, item = events.get(timeout=poll)
+            except queue.Empty:
+                if last is not None:
+                    yield last  # nothing new: a point where Cancel is seen
+                continue
+            if kind == "error":
+                raise item
+            if kind == "end":
+                break
+            if item.HasField("progress"):
+                last = _progress(item.progress)
+                yield last
             else:
-                final = event.job
+                final = item.job
                 if final.state not in _FINAL:  # the job as it stands (queued): a point where Cancel is seen
-                    yield Progress("server job", 0, 0, pb.JobState.Name(final.state)[10:].lower())
+                    last = Progress("server job", 0, 0, pb.JobState.Name(final.state)[10:].lower())
+                    yield last
     finally:
         if final is None or final.state not in _FINAL:
             try:
@@ -113,21 +145,54 @@ def upload_iter(server: Server, volume: Any, *, labels: bool = False, name: str 
     return info.volume_id
 
 
-def _mask_volume(mask: Any, volume: Any) -> Any:
+def segment_iter(server: Server, volume_id: str, *, features: int, level: int | None = None
+                 ) -> Generator[Progress, None, tuple[str, int, Any]]:
+    """The Segment job on the server (join tree + ``features`` features), then its features downloaded.
+
+    Returns (the segmentation's id, the maxima of its tree (0: unknown), the
+    :class:`~napari_unwind.segmentation.Features` without the tree).
+    """
+    with server.client() as c:
+        job = c.segment(volume_id, features=features, level=level, wait=False)
+        done = yield from _follow(c, job)
+        seg = done.result.segmentation_id
+        yield Progress("download", 0, 1, "the features' labels")
+        maxima = int(c.segmentation(seg).maxima)
+        result = c.features(seg)
+    yield Progress("download", 1, 1)
+    return seg, maxima, result
+
+
+def simplify(server: Server, segmentation_id: str, k: int) -> Any:
+    """``k`` features of the server's segmentation (Simplify there, its label volume downloaded): Features."""
+    with server.client() as c:
+        return c.features(segmentation_id, k)
+
+
+def select_iter(server: Server, segmentation_id: str, ids: Any, k: int) -> Generator[Progress, None, str]:
+    """The Select job on the server: features ``ids`` of its ``k`` features refined into a full-resolution mask
+    (refine_mask's default isovalue, as on this computer); returns the mask's volume id."""
+    with server.client() as c:
+        job = c.select(segmentation_id, ids=[int(i) for i in ids], features=int(k), wait=False,
+                       output_name="selection.zarr")
+        done = yield from _follow(c, job)
+    return done.result.volume_id
+
+
+def mask_volume(mask: Any, volume: Any) -> Any:
+    """A mask computed on this computer as a Volume with the scan's geometry (to upload it)."""
     from ..io import as_volume
 
     return as_volume(mask.astype(np.uint8), spacing=volume.spacing, unit=volume.unit, origin=volume.origin)
 
 
-def suggest_ends_iter(server: Server, volume_id: str, mask: Any, volume: Any
-                      ) -> Generator[Progress, None, tuple[tuple, str]]:
-    """Upload the selection's mask, suggest head and tail on the server; returns ((head, tail), mask volume id)."""
-    mask_id = yield from upload_iter(server, _mask_volume(mask, volume), labels=True, name="selection")
+def suggest_ends_iter(server: Server, volume_id: str, mask_id: str) -> Generator[Progress, None, tuple]:
+    """Suggest head and tail of the server's mask ``mask_id`` on the server; returns (head, tail)."""
     yield Progress("ends", 0, 1, "longest geodesic (server)")
     with server.client() as c:
         head, tail = c.suggest_ends(mask_id, volume_id)
     yield Progress("ends", 1, 1)
-    return (tuple(head), tuple(tail)), mask_id
+    return tuple(head), tuple(tail)
 
 
 def skeleton_iter(server: Server, volume_id: str, mask_id: str, ends: Any) -> Generator[Progress, None, Any]:

@@ -6,14 +6,15 @@ Scan
     An Image layer of the viewer, or a file opened with :func:`napari_unwind.io.open_volume`; shape, spacing and
     unit, and a warning when the spacing is missing (no unit and 1 x 1 x 1: lengths are then in voxels). The
     "backend" row above it: "this computer", or "server" (address, token or token file, CA file for TLS; Connect
-    checks health and the token). On a server the ends, the skeleton and the export run through
-    :class:`napari_unwind.client.Client` (:mod:`._remote`): the scan and the selection's mask are uploaded once,
-    the export is downloaded to the chosen path; same progress bar and Cancel (which cancels the server's job).
-    The join tree and the feature picking stay on this computer (the service returns no label volume to draw).
+    checks health and the token). On a server the segmentation, the ends, the skeleton and the export run through
+    :class:`napari_unwind.client.Client` (:mod:`._remote`): the scan is uploaded once, the features' label volume
+    comes back to draw and pick, the selection's mask is made there (a Select job), the export is downloaded to
+    the chosen path; same progress bar and Cancel (which cancels the server's job).
 Segment
-    The join tree is built once in a worker; the feature-count slider re-simplifies it live (no rebuild). The
-    features are a Labels layer; a click on one (2D or 3D) selects it, shift-click adds it; the table lists their
-    statistics and shows the selection, which is also a Labels layer ``"selection"``.
+    The join tree is built once in a worker (Cancel stops it); the feature-count slider re-simplifies it live (no
+    rebuild; on a server the server simplifies its cached tree and sends the label volume). The features are a
+    Labels layer; a click on one (2D or 3D) selects it, shift-click adds it; the table lists their statistics and
+    shows the selection, which is also a Labels layer ``"selection"``.
 Ends
     Suggested head and tail (:func:`napari_unwind.skeleton.suggest_endpoints`) in a Points layer ``"ends"``:
     drag them in select mode, place more in add mode. Two points are head and tail; more are read in order as a
@@ -231,7 +232,7 @@ class UnwindWidget(QWidget):
         self.backend_combo = QComboBox()
         self.backend_combo.addItem("this computer", "local")
         self.backend_combo.addItem("server", "server")
-        self.backend_combo.setToolTip("Where the ends, the skeleton and the export run")
+        self.backend_combo.setToolTip("Where the segmentation, the ends, the skeleton and the export run")
         self.backend_combo.currentIndexChanged.connect(self._on_backend_chosen)
         form.addRow("backend", self.backend_combo)
         self.server_address = QLineEdit()
@@ -285,9 +286,15 @@ class UnwindWidget(QWidget):
         self.segment_need = QLabel("")
         self.segment_need.setWordWrap(True)
         lay.addWidget(self.segment_need)
+        row = QHBoxLayout()
         self.segment_button = QPushButton("Build the join tree")
         self.segment_button.clicked.connect(lambda: self.segment())
-        lay.addWidget(self.segment_button)
+        self.segment_cancel = QPushButton("Cancel")
+        self.segment_cancel.clicked.connect(self.cancel)
+        self.segment_cancel.setEnabled(False)
+        row.addWidget(self.segment_button, 1)
+        row.addWidget(self.segment_cancel)
+        lay.addLayout(row)
         row = QHBoxLayout()
         row.addWidget(QLabel("features"))
         self.count_slider = QSlider(Qt.Orientation.Horizontal)
@@ -646,38 +653,54 @@ class UnwindWidget(QWidget):
     # ==============================================================================================================
     def segment(self, *, level: int | None = None) -> Job | None:
         """Build the join tree of the scan in a worker (at pyramid ``level``, default the finest with every side
-        <= 256); then show the features (slider value)."""
+        <= 256); then show the features (slider value). On a server: the Segment job there (the scan uploaded
+        once), whose features' label volume comes back to draw and pick; the slider then simplifies there."""
         if self.volume is None:
             self._fail(InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)"))
             return None
         volume = self.volume
+        if self.server is not None:
+            return self._remote_segment(level)
 
         def make() -> Generator[Progress, None, Any]:
             from ..segmentation import join_tree_iter
 
             return join_tree_iter(volume, level=level)
 
-        return self._start(make, "building the join tree", self._tree_ready)
+        return self._start(make, "building the join tree", self._tree_ready, (self.segment_cancel,))
 
     def _tree_ready(self, tree: Any) -> None:
+        pending = self._pending_segmentation
+        self.tree = tree
+        self._remote.pop("segmentation", None)
+        k = self._set_slider(int(tree.n_maxima), pending.k if pending is not None and pending.k else None)
+        self.set_feature_count(k)
+
+    def _set_slider(self, maxima: int, k: int | None) -> int:
+        """The slider's range for a tree of ``maxima`` maxima (0: unknown) at ``k`` (default: its value); returns
+        the value set."""
         from ..segmentation import MAX_FEATURES
 
-        self.tree = tree
-        top = max(1, min(MAX_FEATURES, int(tree.n_maxima)))
-        pending = self._pending_segmentation
-        k = pending.k if pending is not None and pending.k else min(self.count_slider.value(), top)
+        top = max(1, min(MAX_FEATURES, maxima or MAX_FEATURES))
+        k = min(k or self.count_slider.value(), top)
         self.count_slider.blockSignals(True)
         self.count_slider.setRange(1, top)
-        self.count_slider.setValue(min(k, top))
+        self.count_slider.setValue(k)
         self.count_slider.blockSignals(False)
         self.count_slider.setEnabled(True)
-        self.set_feature_count(min(k, top))
+        self.count_label.setText(str(k))
+        return k
+
+    def _simplify_source(self) -> Any:
+        """What the slider simplifies: the local tree, or the server's segmentation id (None: nothing yet)."""
+        return self.tree if self.tree is not None else self._remote.get("segmentation")
 
     def set_feature_count(self, k: int) -> None:
         """Re-simplify the tree to ``k`` features (no rebuild), off the UI thread; while the slider moves only the
-        latest value waits. The selection follows its clicks."""
+        latest value waits. The selection follows its clicks. On a server the segmentation is simplified there
+        and the label volume of ``k`` features downloaded."""
         self.count_label.setText(str(int(k)))
-        if self.tree is None:
+        if self._simplify_source() is None:
             return
         self._simplify_pending = int(k)
         if self._simplify_worker is None:
@@ -687,19 +710,34 @@ class UnwindWidget(QWidget):
         from napari.qt.threading import create_worker
 
         k, self._simplify_pending = self._simplify_pending, None
-        if k is None or self.tree is None:
+        source = self._simplify_source()
+        if k is None or source is None:
             self._simplify_worker = None
             return
-        worker = create_worker(self.tree.simplify, k, _start_thread=False, _ignore_errors=True)
-        worker.returned.connect(self._features_ready)
+        if self.tree is not None:
+            fn = source.simplify
+        else:
+            from ._remote import simplify
+
+            server = self.server
+
+            def fn(k: int) -> Any:
+                return simplify(server, source, k)
+
+        worker = create_worker(lambda: (source, fn(k)), _start_thread=False, _ignore_errors=True)
+        worker.returned.connect(self._on_simplified)
         worker.errored.connect(self._fail)
         worker.finished.connect(self._next_simplify)
         self._simplify_worker = worker
         worker.start()
 
+    def _on_simplified(self, value: tuple) -> None:
+        source, features = value
+        if source is not self._simplify_source():
+            return  # from a tree or segmentation replaced meanwhile (another scan, another server)
+        self._features_ready(features)
+
     def _features_ready(self, features: Any) -> None:
-        if features.tree is not self.tree:
-            return  # from a tree replaced meanwhile (another scan)
         self.features = f = features
         self._put_layer("_features_layer", self._labels_tuple(f.labels, "features", opacity=0.4))
         self._features_layer.metadata["napari_unwind"] = {"features": True}
@@ -830,8 +868,7 @@ class UnwindWidget(QWidget):
         """The selected features at full resolution (lazy dask bool array)."""
         from ..segmentation import refine_mask, select
 
-        if self.features is None or not self.selected:
-            raise InvalidInputError("no feature is selected: segment the scan and click the specimen (step 2)")
+        self._check_selection()
         working = select(self.features, ids=self.selected)
         return refine_mask(self.volume, working, features=self.features)
 
@@ -841,13 +878,13 @@ class UnwindWidget(QWidget):
     def suggest_ends(self) -> Job | None:
         """Suggest head and tail on the selection's mask (in a worker) and show them in the "ends" layer."""
         try:
+            if self.server is not None:
+                return self._remote_suggest_ends()
             mask = self.mask()
         except UnwindError as exc:
             self._fail(exc)
             return None
         volume = self.volume
-        if self.server is not None:
-            return self._remote_suggest_ends(mask)
 
         def make() -> Generator[Progress, None, tuple]:
             from ..skeleton import suggest_endpoints
@@ -913,6 +950,11 @@ class UnwindWidget(QWidget):
     def run_skeleton(self) -> Job | None:
         """Estimate the deformation of the selection in a worker (progress, Cancel); the model gets it."""
         try:
+            if self.server is not None:
+                self._check_selection()
+                ends = self.endpoints()
+                self.skeleton_report.setPlainText("computing...")
+                return self._remote_skeleton(ends)
             mask = self.mask()
             ends = self.endpoints()
         except UnwindError as exc:
@@ -920,8 +962,6 @@ class UnwindWidget(QWidget):
             return None
         volume = self.volume
         self.skeleton_report.setPlainText("computing...")
-        if self.server is not None:
-            return self._remote_skeleton(mask, ends)
         # in a child process: the tet mesher holds the GIL for seconds, which would freeze a thread worker's UI
         return self._start(None, "computing the skeleton", self._skeleton_ready, (self.skeleton_cancel,),
                            process=(_SKELETON, (mask, ends),
@@ -1056,13 +1096,63 @@ class UnwindWidget(QWidget):
 
         return make
 
-    def _remote_suggest_ends(self, mask: Any) -> Job | None:
-        from ._remote import suggest_ends_iter
+    def _remote_segment(self, level: int | None) -> Job | None:
+        from ._remote import segment_iter
 
-        server, volume, key = self.server, self.volume, tuple(self.selected)
+        server = self.server
+        pending = self._pending_segmentation
+        k = pending.k if pending is not None and pending.k else self.count_slider.value()
 
         def then(volume_id: str) -> Generator[Progress, None, Any]:
-            ends, mask_id = yield from suggest_ends_iter(server, volume_id, mask, volume)
+            return (yield from segment_iter(server, volume_id, features=k, level=level))
+
+        def done(value: Any) -> None:
+            seg, maxima, features = value
+            self.tree = None
+            self._remote["segmentation"] = seg
+            self._remote.pop("mask", None)
+            self._set_slider(maxima, features.k)
+            self._features_ready(features)
+
+        return self._start(self._with_scan_uploaded(then), "segmenting (server)", done, (self.segment_cancel,))
+
+    def _check_selection(self) -> None:
+        if self.features is None or not self.selected:
+            raise InvalidInputError("no feature is selected: segment the scan and click the specimen (step 2)")
+
+    def _remote_mask(self) -> tuple[Any, Callable[[str], Generator[Progress, None, str]]]:
+        """The selection's full-resolution mask on the server: (its key, ``make(volume_id)`` giving its volume id).
+
+        Features of the server's segmentation: a Select job there (no upload; refine_mask's default isovalue, as
+        :meth:`mask` here). Features made on this computer (segmented before connecting): :meth:`mask` uploaded.
+        The mask is made once per selection and reused by the ends and the skeleton.
+        """
+        from ._remote import mask_volume, select_iter, upload_iter
+
+        self._check_selection()
+        server, volume, f, seg = self.server, self.volume, self.features, self._remote.get("segmentation")
+        key = (seg, f.k, tuple(self.selected)) if seg is not None else (id(f), tuple(self.selected))
+        known = self._remote.get("mask")
+        local = self.mask() if seg is None and (known is None or known[0] != key) else None
+
+        def make(volume_id: str) -> Generator[Progress, None, str]:
+            if known is not None and known[0] == key:
+                return known[1]
+            if seg is not None:
+                return (yield from select_iter(server, seg, key[2], key[1]))
+            return (yield from upload_iter(server, mask_volume(local, volume), labels=True, name="selection"))
+
+        return key, make
+
+    def _remote_suggest_ends(self) -> Job | None:
+        from ._remote import suggest_ends_iter
+
+        server = self.server
+        key, mask = self._remote_mask()
+
+        def then(volume_id: str) -> Generator[Progress, None, Any]:
+            mask_id = yield from mask(volume_id)
+            ends = yield from suggest_ends_iter(server, volume_id, mask_id)
             return ends, mask_id
 
         def done(value: Any) -> None:
@@ -1073,16 +1163,14 @@ class UnwindWidget(QWidget):
 
         return self._start(self._with_scan_uploaded(then), "suggesting the ends", done)
 
-    def _remote_skeleton(self, mask: Any, ends: Any) -> Job | None:
-        from ._remote import _mask_volume, skeleton_iter, upload_iter
+    def _remote_skeleton(self, ends: Any) -> Job | None:
+        from ._remote import skeleton_iter
 
-        server, volume, key = self.server, self.volume, tuple(self.selected)
-        known = self._remote.get("mask")
-        mask_id = known[1] if known is not None and known[0] == key else None
+        server = self.server
+        key, mask = self._remote_mask()
 
         def then(volume_id: str) -> Generator[Progress, None, Any]:
-            mid = mask_id or (yield from upload_iter(server, _mask_volume(mask, volume), labels=True,
-                                                     name="selection"))
+            mid = yield from mask(volume_id)
             session, session_id, warnings = yield from skeleton_iter(server, volume_id, mid, ends)
             return session, session_id, warnings, mid
 

@@ -1,8 +1,10 @@
 """The dock's "server" backend against a real server in a child process on 127.0.0.1 (napari, Qt, Xvfb).
 
-Reference: the same dock's export on "this computer" of the same deformation (the core's export_iter, in process);
-the server must write the same voxels and geometry. Errors: a wrong token is refused in one line; Cancel of a
-server export leaves no file.
+References: the core on this computer. The server's features are the local join tree's simplify(k) labels, its
+selection mask is the local refine_mask of the same features, its skeleton on that mask is the local skeleton
+(within the mesher's run-to-run noise), and its export of a deformation is the same dock's export on "this
+computer" (the core's export_iter, in process). Errors: a wrong token is refused in one line; Cancel of a server
+job cancels it on the server and leaves no file.
 """
 
 import sys
@@ -24,6 +26,8 @@ from napari_unwind.cli import main as unwind_main  # noqa: E402
 from napari_unwind.datasets import fish_phantom  # noqa: E402
 from napari_unwind.deformation import Deformation  # noqa: E402
 from napari_unwind.io import open_volume, write_volume  # noqa: E402
+from napari_unwind.progress import run  # noqa: E402
+from napari_unwind.segmentation import join_tree, refine_mask, select  # noqa: E402
 from unwind_services._proto.unwind.v1 import common_pb2 as pb  # noqa: E402
 
 pytestmark = pytest.mark.gui
@@ -89,12 +93,22 @@ def test_dock_on_a_server_exports_the_voxels_of_the_local_dock(make_napari_viewe
 
     wait(qtbot, w, w.segment())
     qtbot.waitUntil(lambda: w.idle, timeout=30_000)
+    assert w.tree is None and "segmentation" in w._remote  # segmented on the server
     vox = fish_voxel(fish)
     click(w._features_layer, vox * np.asarray(w.volume.spacing) + np.asarray(w.volume.origin), viewer=viewer)
     assert w.selected and fish.mask[tuple(vox)]
 
     wait(qtbot, w, w.suggest_ends())
     assert "volume_id" in w._remote and len(w._ends_layer.data) == 2
+    # the selection's mask was made on the server by a Select job (not uploaded), and is the mask this computer
+    # makes of the same features (refine_mask's default isovalue)
+    mask_id = w._remote["mask"][1]
+    features = join_tree(open_volume(scan)).simplify(w.features.k)
+    expected_mask = refine_mask(open_volume(scan), select(features, ids=w.selected), features=features).compute()
+    with w.server.client() as c:
+        assert c.info(mask_id).origin_kind == "output" and c.job(c.info(mask_id).job_id).kind == pb.JOB_KIND_SELECT
+        assert not [v for v in c.volumes() if v.origin_kind == "upload" and v.name == "selection"]
+        np.testing.assert_array_equal(c.open(mask_id).data.compute().astype(bool), expected_mask)
     ends = (np.asarray(w._ends_layer.data) - np.asarray(w.volume.origin)) / np.asarray(w.volume.spacing)
     true_ends = fish.centerline[[0, -1]]
     assert min(np.linalg.norm(ends - true_ends, axis=1).max(),
@@ -103,6 +117,18 @@ def test_dock_on_a_server_exports_the_voxels_of_the_local_dock(make_napari_viewe
     wait(qtbot, w, w.run_skeleton(), timeout=120_000)
     d = w.model.deformation
     assert d is not None and "server" in w.status.text()
+    assert w._remote["mask"][1] == mask_id  # the ends' mask, reused
+    # the same skeleton on this computer, same mask and ends: the same centre curve within 0.5 voxel and length
+    # within 0.5 % (the tet mesher is not bit-reproducible run to run: ~0.1 voxel between two local runs)
+    from napari_unwind.skeleton import estimate_deformation_iter
+
+    scan_vol = open_volume(scan)
+    local_d = run(estimate_deformation_iter(expected_mask, w.endpoints(), spacing=scan_vol.spacing,
+                                            origin=scan_vol.origin, unit=scan_vol.unit,
+                                            volume=scan_vol.data)).deformation
+    assert abs(local_d.length - d.length) < 0.005 * local_d.length
+    s = np.linspace(0, min(d.length, local_d.length), 60)
+    assert np.abs(d.sample(s)[0] - local_d.sample(s)[0]).max() < 0.5 * min(scan_vol.spacing)
 
     # Cancel of a server export: no file
     cancelled = tmp_path / "cancelled.nrrd"
@@ -127,6 +153,7 @@ def test_dock_on_a_server_exports_the_voxels_of_the_local_dock(make_napari_viewe
         follow = _follow(c, queued)
         first = next(follow)
         assert first.stage == "server job" and first.message == "queued", first
+        assert next(follow) == first  # nothing new: the same record again (a point where Cancel is seen)
         follow.close()  # what Cancel does to the job's generator
         assert c.job(queued.id).state == pb.JOB_STATE_CANCELLED
         c.cancel(blocker.id)
@@ -146,3 +173,86 @@ def test_dock_on_a_server_exports_the_voxels_of_the_local_dock(make_napari_viewe
     assert a.shape == b.shape and a.dtype == b.dtype
     assert a.spacing == pytest.approx(b.spacing) and a.origin == pytest.approx(b.origin)
     np.testing.assert_array_equal(a.data.compute(), b.data.compute())
+
+
+def test_dock_segments_on_the_server_and_its_slider_simplifies_there(make_napari_viewer, qtbot, tmp_path, fish,
+                                                                      server):
+    import psutil
+    from qtpy.QtCore import Qt
+
+    from napari_unwind.session import load_session
+
+    srv, token_file = server
+    scan = tmp_path / "fish.nrrd"
+    write_volume(fish.volume, scan, spacing=fish.spacing, unit=fish.unit)
+    tree = join_tree(open_volume(scan))  # the reference: the core on this computer
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    viewer.window.add_dock_widget(w, name="Unwind")
+    wait(qtbot, w, w.open_scan(scan))
+    _connect(qtbot, w, srv.address, str(token_file))
+
+    wait(qtbot, w, w.segment())
+    qtbot.waitUntil(lambda: w.idle, timeout=30_000)
+    assert w.tree is None and "segmentation" in w._remote
+    np.testing.assert_array_equal(w.features.labels, tree.simplify(5).labels)
+    np.testing.assert_array_equal(np.asarray(w._features_layer.data), tree.simplify(5).labels)
+    assert w.count_slider.isEnabled() and w.count_slider.maximum() == min(100, tree.n_maxima)
+    assert w.table.rowCount() == 5
+
+    # the slider simplifies on the server; during a drag only the latest value is asked for
+    for k in (2, 4, 3):
+        w.count_slider.setValue(k)
+    qtbot.waitUntil(lambda: w.idle and w.features.k == 3, timeout=30_000)
+    f3 = tree.simplify(3)
+    np.testing.assert_array_equal(w.features.labels, f3.labels)
+    np.testing.assert_array_equal(np.asarray(w._features_layer.data), f3.labels)
+    assert w.table.rowCount() == 3
+
+    # a click picks the feature under it (the local tree's label there); shift-click adds another
+    vox = fish_voxel(fish)
+    world = vox * np.asarray(w.volume.spacing) + np.asarray(w.volume.origin)
+    fid = int(f3.ids_at([vox])[0])
+    assert fid
+    click(w._features_layer, world, viewer=viewer)
+    assert w.selected == [fid]
+    other = next(st for st in f3.stats if st.id != fid and st.voxel_count)
+    at = np.asarray(other.max_position_full) * np.asarray(w.volume.spacing) + np.asarray(w.volume.origin)
+    click(w._features_layer, at, shift=True, viewer=viewer)
+    assert w.selected == sorted([fid, other.id])
+    selected_rows = {w.table.item(i.row(), 0).data(Qt.ItemDataRole.UserRole) for i in w.table.selectedItems()}
+    assert selected_rows == {fid, other.id}
+    click(w._features_layer, world, viewer=viewer)
+    assert w.selected == [fid]
+
+    # the session records the segmentation as on this computer
+    wait(qtbot, w, w.save_session(tmp_path / "s.unwind.json"))
+    seg = load_session(tmp_path / "s.unwind.json").segmentation
+    assert (seg.k, seg.level, seg.selected) == (3, f3.level, (fid,))
+    np.testing.assert_allclose(seg.seeds[0], vox)
+
+    # Cancel of a server Segment job cancels it on the server: the server's worker is held (SIGSTOP) so the job
+    # cannot end before the Cancel reaches it, then released
+    workers = psutil.Process(srv.proc.pid).children(recursive=True)
+    for p in workers:
+        p.suspend()
+    try:
+        job = w.segment()
+        with w.server.client() as c:
+            def segment_job():
+                jobs = [j for j in c.jobs() if j.kind == pb.JOB_KIND_SEGMENT]
+                return jobs[0] if len(jobs) and jobs[0].state in (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING) \
+                    else None
+            qtbot.waitUntil(lambda: segment_job() is not None, timeout=30_000)
+            cancelled = segment_job()
+            w.cancel()
+            qtbot.waitUntil(lambda: job.done, timeout=30_000)
+            assert "cancelled" in w.status.text(), w.status.text()
+            for p in workers:
+                p.resume()
+            workers = []
+            qtbot.waitUntil(lambda: c.job(cancelled.id).state == pb.JOB_STATE_CANCELLED, timeout=30_000)
+    finally:
+        for p in workers:
+            p.resume()
+    assert w.features.k == 3 and w.selected == [fid]  # the dock keeps what it had
