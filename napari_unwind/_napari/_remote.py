@@ -19,8 +19,8 @@ import numpy as np
 from ..errors import InvalidInputError
 from ..progress import Progress
 
-__all__ = ["Server", "check_server", "upload_iter", "segment_iter", "simplify", "select_iter", "mask_volume",
-           "suggest_ends_iter", "skeleton_iter", "export_iter"]
+__all__ = ["Server", "check_server", "upload_iter", "register_iter", "segment_iter", "simplify", "select_iter",
+           "mask_volume", "suggest_ends_iter", "skeleton_iter", "export_iter"]
 
 
 @dataclass(frozen=True)
@@ -142,6 +142,21 @@ def upload_iter(server: Server, volume: Any, *, labels: bool = False, name: str 
     with server.client(timeout=3600.0) as c:
         info = c.upload(volume, name=name, labels=labels)
     yield Progress("upload", 1, 1)
+    return info.volume_id
+
+
+def register_iter(server: Server, path: str, volume: Any, *, name: str = "scan") -> Generator[Progress, None, str]:
+    """Register the scan at ``path`` (relative to the server's data root) instead of uploading it; it must be the
+    dock's scan (same shape and spacing). Returns the server's volume id."""
+    yield Progress("register", 0, 1, f"{path} on {server.address}")
+    with server.client() as c:
+        info = c.register(path, name=name)
+    shape, spacing = tuple(info.shape), tuple(info.spacing)
+    if shape != tuple(volume.shape) or not np.allclose(spacing, volume.spacing, rtol=1e-6):
+        raise InvalidInputError(f"the server's {path} holds {shape} voxels of spacing {spacing}, the scan here "
+                                f"{tuple(volume.shape)} of spacing {tuple(volume.spacing)}: give the server's path of "
+                                "this scan, or leave 'path on server' empty to upload it")
+    yield Progress("register", 1, 1)
     return info.volume_id
 
 

@@ -6,7 +6,8 @@ Scan
     An Image layer of the viewer, or a file opened with :func:`napari_unwind.io.open_volume`; shape, spacing and
     unit, and a warning when the spacing is missing (no unit and 1 x 1 x 1: lengths are then in voxels). The
     "backend" row above it: "this computer", or "server" (address, token or token file, CA file for TLS; Connect
-    checks health and the token). On a server the segmentation, the ends, the skeleton and the export run through
+    checks health and the token; "path on server" names a scan the server already holds, which is then registered
+    there instead of uploaded). On a server the segmentation, the ends, the skeleton and the export run through
     :class:`napari_unwind.client.Client` (:mod:`._remote`): the scan is uploaded once, the features' label volume
     comes back to draw and pick, the selection's mask is made there (a Select job), the export is downloaded to
     the chosen path; same progress bar and Cancel (which cancels the server's job).
@@ -242,12 +243,18 @@ class UnwindWidget(QWidget):
         self.server_token.setPlaceholderText("token, or the path of a file holding it")
         self.server_ca = QLineEdit()
         self.server_ca.setPlaceholderText("CA certificate (PEM) for TLS; empty: no TLS")
+        self.server_path = QLineEdit()
+        self.server_path.setPlaceholderText("the scan's path under the server's data root; empty: upload it")
+        self.server_path.setToolTip("A scan the server already holds (relative to its data root) is registered "
+                                    "there instead of uploaded; this computer opens the same file for display")
+        self.server_path.textChanged.connect(self._on_server_path_edited)
         self.connect_button = QPushButton("Connect")
         self.connect_button.clicked.connect(self.connect_server)
         self.backend_info = QLabel("")
         self.backend_info.setWordWrap(True)
-        self._server_rows = (self.server_address, self.server_token, self.server_ca, self.connect_button)
-        for label, widget in zip(("address", "token", "TLS CA", ""), self._server_rows):
+        self._server_rows = (self.server_address, self.server_token, self.server_ca, self.server_path,
+                             self.connect_button)
+        for label, widget in zip(("address", "token", "TLS CA", "path on server", ""), self._server_rows):
             form.addRow(label, widget)
         form.addRow(self.backend_info)
         self._on_backend_chosen()
@@ -260,6 +267,9 @@ class UnwindWidget(QWidget):
         self.server = None
         self._remote = {}
         self.backend_info.setText("jobs run on a server once connected" if server else "jobs run on this computer")
+
+    def _on_server_path_edited(self, text: str) -> None:
+        self._remote = {}  # another scan on the server: its ids (volume, segmentation, mask, session) start again
 
     def connect_server(self) -> Job | None:
         """Check the server's health and the token (with a deadline); on success the dock's jobs run there."""
@@ -1083,15 +1093,18 @@ class UnwindWidget(QWidget):
     # ==============================================================================================================
     def _with_scan_uploaded(self, then: Callable[[str], Generator[Progress, None, Any]]
                             ) -> Callable[[], Generator[Progress, None, Any]]:
-        """``then(volume_id)`` after uploading the scan once (its id is kept for this scan and server)."""
-        from ._remote import upload_iter
+        """``then(volume_id)`` after uploading the scan once (its id is kept for this scan and server), or
+        registering it when "path on server" names it under the server's data root."""
+        from ._remote import register_iter, upload_iter
 
         server, volume, remote = self.server, self.volume, self._remote
         name = self.scan_layer.name if self.scan_layer is not None else "scan"
+        path = self.server_path.text().strip()
 
         def make() -> Generator[Progress, None, Any]:
             if "volume_id" not in remote:
-                remote["volume_id"] = yield from upload_iter(server, volume, name=name)
+                remote["volume_id"] = yield from (register_iter(server, path, volume, name=name) if path
+                                                  else upload_iter(server, volume, name=name))
             return (yield from then(remote["volume_id"]))
 
         return make

@@ -256,3 +256,29 @@ def test_dock_segments_on_the_server_and_its_slider_simplifies_there(make_napari
         for p in workers:
             p.resume()
     assert w.features.k == 3 and w.selected == [fid]  # the dock keeps what it had
+
+
+def test_dock_registers_a_scan_the_server_holds_instead_of_uploading_it(make_napari_viewer, qtbot, fish, server):
+    srv, token_file = server
+    scans = srv.data_root / "scans"
+    scans.mkdir(exist_ok=True)
+    scan = write_volume(fish.volume, scans / "fish_reg.nrrd", spacing=fish.spacing, unit=fish.unit)
+    write_volume(fish.volume[:40], scans / "half.nrrd", spacing=fish.spacing, unit=fish.unit)
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    wait(qtbot, w, w.open_scan(scan))  # this computer opens the same file for display
+    _connect(qtbot, w, srv.address, str(token_file))
+
+    w.server_path.setText("scans/half.nrrd")  # not this scan: refused in one line
+    job = w.segment()
+    qtbot.waitUntil(lambda: job.done, timeout=30_000)
+    text = w.status.text()
+    assert text.startswith("error: the server's scans/half.nrrd holds (40,") and "\n" not in text, text
+
+    w.server_path.setText("scans/fish_reg.nrrd")
+    wait(qtbot, w, w.segment())
+    qtbot.waitUntil(lambda: w.idle, timeout=30_000)
+    with w.server.client() as c:
+        info = c.info(w._remote["volume_id"])
+        assert info.origin_kind == "register" and tuple(info.shape) == fish.volume.shape
+    np.testing.assert_array_equal(w.features.labels, join_tree(open_volume(scan)).simplify(5).labels)
