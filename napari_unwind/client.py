@@ -590,11 +590,13 @@ class Client:
                   progress: bool = False) -> list[dict[str, str]]:
         """Straighten a collection: every item is a scan plus a selection (or ``"all"`` for a tank).
 
-        Up to ``max_parallel`` pipelines run at once. A job interrupted by a server restart is resubmitted (up to
-        ``retries`` times); waiting resumes after the restart. With ``out_dir`` every straight volume (``suffix``
-        format) and its session are downloaded. Returns one summary row per specimen and writes them as CSV to
-        ``summary`` (default ``out_dir/summary.csv`` when ``out_dir`` is given): name, scan, job, state, figures,
-        error.
+        Up to ``max_parallel`` pipelines run at once. The batch outlives a server restart: every call is retried
+        while the server is UNAVAILABLE (for ``retry_seconds``), watching resumes where it stopped, a job that the
+        restart interrupted (or whose dask cluster lost its work: UNAVAILABLE) is resubmitted, up to ``retries``
+        times, and a job that had finished is never run again (its output is fetched). With ``out_dir`` every
+        straight volume (``suffix`` format) and its session are downloaded. Returns one summary row per specimen
+        and writes them as CSV to ``summary`` (default ``out_dir/summary.csv`` when ``out_dir`` is given): name,
+        scan, job, state, figures, the ids of jobs that were interrupted and resubmitted (``resubmitted``), error.
         """
         from unwind_services._proto.unwind.v1 import common_pb2 as pb
 
@@ -609,36 +611,59 @@ class Client:
             with lock:
                 rows.append({k: str(v) for k, v in row.items()})
 
+        def again(fn: Callable[[], Any], what: str) -> Any:
+            """``fn()`` again while the server is UNAVAILABLE (a stream cut by a restart is not retried inside)."""
+            deadline = time.monotonic() + self.retry_seconds
+            delay = 0.2
+            while True:
+                try:
+                    return fn()
+                except RemoteError as exc:
+                    if exc.code != "UNAVAILABLE" or time.monotonic() + delay > deadline:
+                        raise
+                time.sleep(delay * (0.5 + random.random()))
+                delay = min(delay * 2, 5.0)
+
+        def follow(job: Any, resubmitted: list[str]) -> Any:
+            """Wait for ``job``; resubmit it while a restart interrupts it (or the cluster loses it)."""
+            for attempt in range(retries + 1):
+                job = self.wait(job.id, progress=progress, check=False)
+                lost = job.state == pb.JOB_STATE_FAILED and (job.interrupted or job.error.code == "UNAVAILABLE")
+                if not lost or attempt == retries:
+                    break
+                resubmitted.append(job.id)
+                job = self.resubmit(job.id)
+            return job
+
         def volume_of(item: BatchItem) -> str:
             if item.register:
                 return self.register(item.scan).volume_id
             if item.scan.startswith("vol-") and not Path(item.scan).exists():
                 return item.scan
-            return self.upload(item.scan, name=Path(item.scan).name.split(".")[0]).volume_id
+            return again(lambda: self.upload(item.scan, name=Path(item.scan).name.split(".")[0]).volume_id,
+                         f"upload {item.scan}")
 
         def one(item: BatchItem, name: str, scan_label: str, **selection: Any) -> None:
             row: dict[str, Any] = {"name": name, "scan": scan_label, "job": "", "state": "", "error": ""}
+            resubmitted: list[str] = []
             try:
                 request = self.pipeline_request(output_name=f"{name}{suffix}", **selection, **item.options)
-                job = self.submit(request, wait=False, name=name)
-                for attempt in range(retries + 1):
-                    job = self.wait(job.id, progress=progress, check=False)
-                    if job.state == pb.JOB_STATE_FAILED and job.interrupted and attempt < retries:
-                        job = self.resubmit(job.id)
-                        continue
-                    break
-                row.update(job=job.id, state=pb.JobState.Name(job.state)[10:].lower())
+                job = follow(self.submit(request, wait=False, name=name), resubmitted)
+                row.update(job=job.id, state=pb.JobState.Name(job.state)[10:].lower(),
+                           resubmitted=" ".join(resubmitted))
                 if job.state != pb.JOB_STATE_SUCCEEDED:
                     row["error"] = f"{job.error.code}: {job.error.message}"
                 else:
                     row.update(dict(job.result.figures))
                     row["volume_id"] = job.result.volume_id
                     if out is not None:
-                        row["output"] = str(self.download(job.result.volume_id, out / f"{name}{suffix}",
-                                                          overwrite=True))
+                        row["output"] = str(again(lambda: self.download(
+                            job.result.volume_id, out / f"{name}{suffix}", overwrite=True), f"download {name}"))
                         (out / f"{name}.unwind.json").write_text(job.result.session_json)
             except (UnwindError, OSError) as exc:
-                row.update(state=row["state"] or "failed", error=f"{getattr(exc, 'code', 'ERROR')}: {exc}")
+                row.update(state="failed", error=f"{getattr(exc, 'code', 'ERROR')}: {exc}",
+                           resubmitted=" ".join(resubmitted))
+                row.pop("output", None)  # a download that failed left nothing behind: no output to name
             record(row)
 
         def prepare(item: BatchItem) -> list[tuple]:
@@ -647,7 +672,10 @@ class Client:
             if isinstance(item.select, str):
                 if item.select != "all":
                     raise InvalidInputError(f"select must be points or 'all', got {item.select!r}")
-                seg = self.segment(vid, features=item.features).result.segmentation_id
+                job = follow(self.segment(vid, features=item.features, wait=False), [])
+                if job.state != pb.JOB_STATE_SUCCEEDED:
+                    raise RemoteError(f"segmenting {item.scan}: {job.error.message}", job.error.code, job)
+                seg = job.result.segmentation_id
                 info = self.segmentation(seg)
                 return [(item, f"{name}_f{f.id}", item.scan, dict(volume_id=vid, ids=[f.id], segmentation_id=seg))
                         for f in info.feature]
@@ -667,7 +695,7 @@ class Client:
         target = Path(summary) if summary is not None else (out / "summary.csv" if out is not None else None)
         if target is not None:
             columns = ["name", "scan", "job", "state", "volume_id", "length", "unit", "keyframes", "ids", "isovalue",
-                       "seconds", "skeleton_seconds", "export_seconds", "output", "error"]
+                       "seconds", "skeleton_seconds", "export_seconds", "output", "resubmitted", "error"]
             columns += sorted({k for r in rows for k in r} - set(columns))
             with open(target, "w", newline="") as f:
                 w = csv.DictWriter(f, fieldnames=columns, restval="")
