@@ -75,8 +75,13 @@ def volume_info(row: Any, volume: Any) -> volume_pb2.VolumeInfo:
         format=volume.format or "", origin_kind=row.meta.get("origin", ""), created=row.created, job_id=row.job_id)
 
 
+def _number(v: Any) -> float:
+    """A statistic as a double: NaN for None (a saved NaN: JSON has none)."""
+    return float("nan") if v is None else float(v)
+
+
 def feature_msg(st: Any) -> segmentation_pb2.Feature:
     return segmentation_pb2.Feature(
         id=int(st.id), voxel_count=int(st.voxel_count), bbox_full=[int(b) for b in st.bbox_full],
-        value_min=float(st.value_min), value_max=float(st.value_max), threshold=float(st.threshold),
+        value_min=_number(st.value_min), value_max=_number(st.value_max), threshold=_number(st.threshold),
         max_position_full=point_msg(st.max_position_full))

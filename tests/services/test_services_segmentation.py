@@ -104,3 +104,19 @@ def test_select_takes_the_features_it_names_and_cuts_where_refine_mask_cuts(setu
         with pytest.raises(RemoteError) as info:
             c.select(seg, ids=[1], features=7)  # never simplified to 7
         assert info.value.code == "FAILED_PRECONDITION" and "Simplify with features=7" in str(info.value)
+
+
+def test_an_empty_features_statistics_cross_the_wire_as_nan(tmp_path):
+    """A feature with no voxel above its threshold has no value range: its saved statistics hold null (JSON has no
+    NaN), which the message gives as NaN instead of failing the call."""
+    from dataclasses import replace
+
+    from unwind_services import convert
+
+    local = join_tree(_shell_and_ball()).simplify(2)
+    empty = replace(local.stats[1], voxel_count=0, value_min=float("nan"), value_max=float("nan"))
+    features = replace(local, stats=(local.stats[0], empty))
+    loaded = load_features(save_features(features, tmp_path / "f.zarr"))  # what Info and Simplify read
+    assert loaded.stats[1].value_min is None
+    msg = convert.feature_msg(loaded.stats[1])
+    assert np.isnan(msg.value_min) and np.isnan(msg.value_max) and msg.voxel_count == 0
