@@ -252,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="bench-services-"))
     server = raw = None
     try:
-        server, address = _start([sys.executable, "-m", "napari_unwind._cli_remote", "serve", "--data-root",
+        server, address = _start([sys.executable, "-m", "napari_unwind.cli", "serve", "--data-root",
                                   str(tmp / "data"), "--port", "0", "--workers", str(args.workers),
                                   "--max-jobs-per-user", "0", "--log-level", args.log_level],
                                  stderr=None if args.log_level == "info" else subprocess.DEVNULL)

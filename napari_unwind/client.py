@@ -40,7 +40,46 @@ from .progress import Progress, progress_bar
 __all__ = ["Client", "RemoteError", "BatchItem", "DEFAULT_ADDRESS"]
 
 DEFAULT_ADDRESS = "127.0.0.1:50051"
+#: Bytes of voxels per upload message: within the 4 MiB default message limit of servers; larger messages are not
+#: faster (benchmarks/bench_services.py).
 _CHUNK = 2 * 1024 * 1024
+_SLAB_BYTES = 32 * 1024 * 1024  # voxels read from the source per step (ahead of the messages being sent)
+
+
+class _Held:
+    """An ndarray dask sees without the full copy (and hash) ``dask.array.from_array`` makes of arrays."""
+
+    def __init__(self, a: np.ndarray):
+        self.a, self.shape, self.dtype, self.ndim = a, a.shape, a.dtype, a.ndim
+
+    def __getitem__(self, key: Any) -> np.ndarray:
+        return self.a[key]
+
+
+def _lazy(a: np.ndarray) -> Any:
+    import dask.array as da
+
+    return da.from_array(_Held(a), chunks=tuple(min(int(n), 128) for n in a.shape), name=f"array-{uuid.uuid4().hex}")
+
+
+def _slabs(source: Any, dtype: np.dtype, step: int) -> Iterator[np.ndarray]:
+    """C-contiguous slabs of ``step`` planes of ``source`` (an ndarray, or a dask array computed slab by slab),
+    in ``dtype``; the next slab is read in a background thread while the caller sends this one."""
+    starts = range(0, source.shape[0], step)
+
+    def read(z0: int) -> np.ndarray:
+        block = source[z0:z0 + step]
+        if not isinstance(block, np.ndarray):
+            block = block.compute()
+        return np.ascontiguousarray(block, dtype=dtype)  # a view when it already is (no copy)
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="unwind-upload-read") as pool:
+        pending = pool.submit(read, starts[0]) if len(starts) else None
+        for n in range(len(starts)):
+            block = pending.result()
+            if n + 1 < len(starts):
+                pending = pool.submit(read, starts[n + 1])
+            yield block
 
 
 class RemoteError(UnwindError):
@@ -203,37 +242,47 @@ class Client:
         Returns the server's ``VolumeInfo`` (``.volume_id`` names it in later calls).
         """
         from unwind_services._proto.unwind.v1 import volume_pb2
+        from unwind_services.convert import dtype_enum
+        from unwind_services.ingest import encode_chunk, encoder
 
-        from .io import as_volume, open_volume
+        from .io import Volume, as_volume, open_volume
 
+        source = None  # an in-memory array is sent slab by slab as it is, without a dask copy of it
         if isinstance(data, (str, os.PathLike)):
             path = Path(data)
             volume = open_volume(path, **reader_options)
             name = name or path.name.split(".")[0]
-        else:
+        elif isinstance(data, np.ndarray):
+            source = data
+            volume = Volume(_lazy(source).astype(source.dtype.newbyteorder("=")))  # checks shape and dtype
+            name = name or "upload"
+        else:  # a Volume, a dask, zarr... array: read slab by slab
             volume = as_volume(data)
             name = name or "upload"
         volume = as_volume(volume, spacing=spacing, unit=unit, origin=origin)
-        from unwind_services.convert import dtype_enum
-
         header = volume_pb2.UploadHeader(
             name=name, shape=list(volume.shape), dtype=dtype_enum(volume.dtype), spacing=list(volume.spacing),
             unit=volume.unit or "", origin=list(volume.origin),
             labels=labels)
         le = volume.dtype.newbyteorder("<")
+        plane = int(np.prod(volume.shape[1:])) * le.itemsize
+        if source is None:
+            source = volume.data
+            step = max(1, int(source.chunks[0][0]))
+        else:
+            step = max(1, _SLAB_BYTES // plane)
 
         def messages() -> Iterator[Any]:
             yield volume_pb2.UploadRequest(header=header)
-            data = volume.data
-            step = max(1, int(data.chunks[0][0]))
-            for i in range(0, volume.shape[0], step):
-                block = np.ascontiguousarray(data[i:i + step].compute(), dtype=le)
+            for block in _slabs(source, le, step):
                 mv = memoryview(block).cast("B")
                 for a in range(0, len(mv), _CHUNK):
-                    yield volume_pb2.UploadRequest(chunk=bytes(mv[a:a + _CHUNK]))
+                    yield encode_chunk(mv[a:a + _CHUNK])  # encoded here: one copy, not protobuf's three
 
-        return self._retrying(lambda: self.volumes_stub.Upload(messages(), timeout=timeout, metadata=self._metadata),
-                              "upload: ")
+        upload = self._channel.stream_unary("/unwind.v1.VolumeService/Upload",
+                                            request_serializer=encoder(volume_pb2.UploadRequest),
+                                            response_deserializer=volume_pb2.VolumeInfo.FromString)
+        return self._retrying(lambda: upload(messages(), timeout=timeout, metadata=self._metadata), "upload: ")
 
     def register(self, path: str, *, name: str = ""):
         """Register a scan already under the server's data root (``path`` relative to it)."""
@@ -251,24 +300,32 @@ class Client:
 
         return self._unary(self.volumes_stub.Info, volume_pb2.VolumeRef(volume_id=volume_id))
 
-    def _download_stream(self, volume_id: str, fmt: str, level: int, timeout: float) -> tuple[Any, Iterator[bytes]]:
+    def _download_stream(self, volume_id: str, fmt: str, level: int, timeout: float) -> tuple[Any, Iterator[Any]]:
+        """The download's header, and its chunks as bytes-like objects (memoryviews, not copied out of messages)."""
         from unwind_services._proto.unwind.v1 import volume_pb2
+        from unwind_services.ingest import decoder
 
         request = volume_pb2.DownloadRequest(volume_id=volume_id, format=fmt, level=level)
+        download = self._channel.unary_stream("/unwind.v1.VolumeService/Download",
+                                              request_serializer=volume_pb2.DownloadRequest.SerializeToString,
+                                              response_deserializer=decoder(volume_pb2.DownloadResponse))
 
         def start():
-            stream = self.volumes_stub.Download(request, timeout=timeout, metadata=self._metadata)
+            stream = download(request, timeout=timeout, metadata=self._metadata)
             first = next(stream)
             return first, stream
 
         first, stream = self._retrying(start, "download: ")
+        if isinstance(first, memoryview) or first.WhichOneof("part") != "header":
+            stream.cancel()
+            raise RemoteError("download: the server's stream did not start with a header", "DATA_LOSS")
 
-        def chunks() -> Iterator[bytes]:
+        def chunks() -> Iterator[Any]:
             import grpc
 
             try:
                 for msg in stream:
-                    yield msg.chunk
+                    yield msg if isinstance(msg, memoryview) else msg.chunk
             except grpc.RpcError as exc:
                 raise _remote_error(exc, "download: ") from None
 
@@ -278,19 +335,29 @@ class Client:
         """Download a volume's voxels into memory: a :class:`~napari_unwind.io.Volume` with its geometry."""
         from unwind_services.convert import dtype_of
 
-        from .io import as_volume
+        from .io import Volume
 
         header, chunks = self._download_stream(volume_id, "raw", level, timeout)
         dtype = dtype_of(header.dtype).newbyteorder("<")
-        buf = bytearray(header.total_bytes)
+        shape = tuple(int(n) for n in header.shape)
+        total = int(np.prod(shape)) * dtype.itemsize
+        if header.total_bytes != total:
+            raise RemoteError(f"download: the server announced {header.total_bytes} bytes for a {shape} "
+                              f"{dtype.name} volume ({total} bytes)", "DATA_LOSS")
+        arr = np.empty(shape, dtype=dtype)
+        buf = memoryview(arr).cast("B")  # every chunk is copied once, into its place
         pos = 0
         for c in chunks:
-            buf[pos:pos + len(c)] = c
-            pos += len(c)
-        if pos != header.total_bytes:
-            raise RemoteError(f"download: the server sent {pos} bytes of {header.total_bytes}", "DATA_LOSS")
-        arr = np.frombuffer(buf, dtype=dtype).reshape(tuple(header.shape)).astype(dtype.newbyteorder("="), copy=False)
-        return as_volume(arr, spacing=tuple(header.spacing), unit=header.unit or None, origin=tuple(header.origin))
+            n = len(c)
+            if pos + n > total:
+                raise RemoteError(f"download: the server sent more than the {total} bytes it announced", "DATA_LOSS")
+            buf[pos:pos + n] = c
+            pos += n
+        if pos != total:
+            raise RemoteError(f"download: the server sent {pos} bytes of {total}", "DATA_LOSS")
+        arr = arr.astype(dtype.newbyteorder("="), copy=False)
+        return Volume(_lazy(arr), spacing=tuple(header.spacing), unit=header.unit or None,
+                      origin=tuple(header.origin))
 
     def download(self, volume_id: str, path: str | os.PathLike, *, level: int = 0, overwrite: bool = False,
                  timeout: float = 3600.0) -> Path:

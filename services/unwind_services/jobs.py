@@ -138,14 +138,17 @@ class JobManager:
     def closing(self) -> bool:
         return self._closing
 
-    def call_in_worker(self, fn, *args):
-        """Run ``fn(*args)`` in a worker process and return its result (CPU-heavy work off the server's GIL)."""
+    def start_in_worker(self, fn, *args) -> Future:
+        """Start ``fn(*args)`` in a worker process (CPU-heavy work off the server's GIL); its Future."""
         try:
-            fut = self._pool.submit(fn, *args)
+            return self._pool.submit(fn, *args)
         except BrokenProcessPool:
             self._pool = self._new_pool()
-            fut = self._pool.submit(fn, *args)
-        return fut.result()
+            return self._pool.submit(fn, *args)
+
+    def call_in_worker(self, fn, *args):
+        """Run ``fn(*args)`` in a worker process and return its result."""
+        return self.start_in_worker(fn, *args).result()
 
     # -- requests --------------------------------------------------------------------------------------------------
     def submit(self, owner: str, spec: jobs_pb2.SubmitRequest) -> pb.Job:
@@ -253,17 +256,6 @@ def _worker_init(root: str, limits: Limits, scheduler: str | None) -> None:
 
 def _worker_run(job_id: str) -> None:
     run_job(_WORKER["catalog"], job_id, _WORKER["scheduler"])
-
-
-def import_staged(staging: str, shape: tuple, dtype: str, spacing: tuple | None, unit: str | None,
-                  origin: tuple | None, labels: bool, dst: str) -> None:
-    """Import an upload's staged raw bytes into an OME-Zarr pyramid (runs in a worker process)."""
-    import numpy as np
-
-    from napari_unwind.io import as_volume, import_volume
-
-    data = np.memmap(staging, dtype=np.dtype(dtype), mode="r", shape=tuple(shape))
-    import_volume(as_volume(data, spacing=spacing, unit=unit, origin=origin), dst, labels=labels)
 
 
 def run_job(catalog: Catalog, job_id: str, scheduler: str | None = None) -> None:

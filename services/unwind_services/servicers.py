@@ -34,8 +34,9 @@ from ._proto.unwind.v1 import (
 )
 from .catalog import Catalog
 from .errors import LimitError
+from .ingest import UploadPipe, decoder, encode_chunk, encoder, import_stream
 from .interceptor import current_user
-from .jobs import JobManager, import_staged
+from .jobs import JobManager
 from .paths import check_file_name
 
 log = logging.getLogger("unwind_services")
@@ -59,7 +60,7 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
     def Upload(self, request_iterator, context):
         owner, limits, root = current_user(), self.catalog.limits, self.catalog.root
         first = next(request_iterator, None)
-        if first is None or first.WhichOneof("part") != "header":
+        if first is None or isinstance(first, memoryview) or first.WhichOneof("part") != "header":
             raise InvalidInputError("an upload starts with a header message (name, shape, dtype, spacing, unit), "
                                     "then the voxels in chunks")
         h = first.header
@@ -76,31 +77,40 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             raise LimitError(f"the upload would be {expected} bytes, more than this server's limit of "
                              f"{limits.max_upload_bytes}")
         vid = f"vol-{uuid.uuid4().hex[:12]}"
-        staging = root.tmp / f"{vid}.raw"
         dst = root.user_dir(owner) / "volumes" / f"{vid}.zarr"
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        # a job worker imports the voxels while they arrive (see ingest.py): this thread only checks and forwards
+        pipe = UploadPipe(root.tmp, vid, lambda fifo: self.jobs.start_in_worker(
+            import_stream, fifo, tuple(h.shape), dtype.newbyteorder("<").str, tuple(h.spacing) or None,
+            h.unit or None, tuple(h.origin) or None, h.labels, str(dst)))
         try:
-            received, t0 = 0, time.perf_counter()
-            with open(staging, "wb") as f:
-                for msg in request_iterator:
-                    if msg.WhichOneof("part") != "chunk":
-                        raise InvalidInputError("only the first message of an upload is a header; the rest are chunks")
-                    received += len(msg.chunk)
-                    if received > expected:
-                        raise InvalidInputError(f"the chunks hold more bytes than the header's shape {list(h.shape)} "
-                                                f"and dtype {dtype.name} ({expected} bytes)")
-                    f.write(msg.chunk)
-            if received != expected:
-                raise InvalidInputError(f"the header promises {expected} bytes (shape {list(h.shape)}, {dtype.name}) "
-                                        f"but the chunks held {received}")
+            t0 = time.perf_counter()
+            pipe.open(context.is_active)
+            received, stopped = 0, False
+            for msg in request_iterator:
+                if isinstance(msg, memoryview):  # a chunk, not copied out of its message (ingest.decoder)
+                    chunk = msg
+                elif msg.WhichOneof("part") != "chunk":
+                    raise InvalidInputError("only the first message of an upload is a header; the rest are chunks")
+                else:
+                    chunk = msg.chunk
+                received += len(chunk)
+                if received > expected:
+                    raise InvalidInputError(f"the chunks hold more bytes than the header's shape {list(h.shape)} "
+                                            f"and dtype {dtype.name} ({expected} bytes)")
+                if not pipe.write(chunk):
+                    stopped = True  # the import stopped (e.g. NaN voxels): finish() raises its error
+                    break
             t1 = time.perf_counter()
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            self.jobs.call_in_worker(import_staged, str(staging), tuple(h.shape), dtype.newbyteorder("<").str,
-                                     tuple(h.spacing) or None, h.unit or None, tuple(h.origin) or None, h.labels,
-                                     str(dst))
-            log.info("upload %s of %s: %.1f MiB received in %.2f s, imported in %.2f s", vid, owner, expected / 2**20,
-                     t1 - t0, time.perf_counter() - t1)
-        finally:
-            remove_path(staging)
+            if not stopped and received != expected:
+                raise InvalidInputError(f"the header promises {expected} bytes (shape {list(h.shape)}, "
+                                        f"{dtype.name}) but the chunks held {received}")
+            pipe.finish()
+            log.info("upload %s of %s: %.1f MiB received in %.2f s, imported %.2f s after the last byte", vid,
+                     owner, expected / 2**20, t1 - t0, time.perf_counter() - t1)
+        except BaseException:
+            pipe.abandon()  # the worker sees the stream end short and removes its partial store
+            raise
         row, vol = self.catalog.add_volume(owner, dst, name, "upload", object_id=vid)
         return convert.volume_info(row, vol)
 
@@ -160,7 +170,7 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
                         pending = reader.submit(read, starts[n + 1])
                     mv = memoryview(block).cast("B")
                     for a in range(0, len(mv), DOWNLOAD_CHUNK):
-                        yield volume_pb2.DownloadResponse(chunk=bytes(mv[a:a + DOWNLOAD_CHUNK]))
+                        yield encode_chunk(mv[a:a + DOWNLOAD_CHUNK])  # one copy; sent as is (ingest.encoder)
             return
         suffix = fmt if fmt.startswith(".") else "." + fmt
         stem = row.name.split(".")[0] or "volume"
@@ -192,7 +202,7 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             yield volume_pb2.DownloadResponse(header=header)
             with open(send, "rb") as f:
                 while block := f.read(DOWNLOAD_CHUNK):
-                    yield volume_pb2.DownloadResponse(chunk=block)
+                    yield encode_chunk(block)
         finally:
             remove_path(work)
 
@@ -330,10 +340,36 @@ class WarpServicer(warp_pb2_grpc.WarpServiceServicer):
         return warp_pb2.MapPointsResponse(points=[pb.Point(axis0=a, axis1=b, axis2=c) for a, b, c in mapped])
 
 
+def add_volume_service(servicer: VolumeServicer, server) -> None:
+    """``volume_pb2_grpc.add_VolumeServiceServicer_to_server``, with the chunks of Upload and Download encoded and
+    decoded by :mod:`.ingest` (a chunk arrives as a memoryview of its bytes and leaves pre-encoded)."""
+    import grpc
+
+    v = volume_pb2
+    handlers = {
+        "Upload": grpc.stream_unary_rpc_method_handler(
+            servicer.Upload, request_deserializer=decoder(v.UploadRequest),
+            response_serializer=v.VolumeInfo.SerializeToString),
+        "Register": grpc.unary_unary_rpc_method_handler(
+            servicer.Register, request_deserializer=v.RegisterRequest.FromString,
+            response_serializer=v.VolumeInfo.SerializeToString),
+        "List": grpc.unary_unary_rpc_method_handler(
+            servicer.List, request_deserializer=v.ListVolumesRequest.FromString,
+            response_serializer=v.ListVolumesResponse.SerializeToString),
+        "Info": grpc.unary_unary_rpc_method_handler(
+            servicer.Info, request_deserializer=v.VolumeRef.FromString,
+            response_serializer=v.VolumeInfo.SerializeToString),
+        "Download": grpc.unary_stream_rpc_method_handler(
+            servicer.Download, request_deserializer=v.DownloadRequest.FromString,
+            response_serializer=encoder(v.DownloadResponse)),
+    }
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler("unwind.v1.VolumeService", handlers),))
+    server.add_registered_method_handlers("unwind.v1.VolumeService", handlers)
+
+
 #: service name (for --service) -> (full proto name, servicer factory taking (catalog, jobs))
 SERVICES = {
-    "volume": ("unwind.v1.VolumeService", lambda c, j: VolumeServicer(c, j),
-               volume_pb2_grpc.add_VolumeServiceServicer_to_server),
+    "volume": ("unwind.v1.VolumeService", lambda c, j: VolumeServicer(c, j), add_volume_service),
     "segmentation": ("unwind.v1.SegmentationService", lambda c, j: SegmentationServicer(j),
                      segmentation_pb2_grpc.add_SegmentationServiceServicer_to_server),
     "skeleton": ("unwind.v1.SkeletonService", lambda c, j: SkeletonServicer(j),

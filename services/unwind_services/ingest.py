@@ -1,0 +1,200 @@
+"""Bulk voxels in and out: uploads imported while they arrive, and the chunk messages' bytes kept out of protobuf.
+
+Uploads: the gRPC thread feeds a pipe, a job worker imports from it.
+
+The server's Upload handler only moves bytes: it checks each chunk against the header and writes it into a
+named pipe (FIFO) under the data root's ``tmp``. A job worker process (off the server's GIL) reads the pipe plane
+by plane and writes the OME-Zarr pyramid with the core's streaming import (:func:`napari_unwind.io.
+import_slabs_iter`), so the import overlaps the transfer and neither process ever holds the whole scan. The store
+is written atomically: when the stream ends early (the client went away, the chunks disagree with the header) the
+worker sees the pipe close short, the core removes its temporary output, and no volume appears.
+
+Chunk messages (``UploadRequest.chunk`` and ``DownloadResponse.chunk``, field 2 of both) are encoded and decoded
+here by hand, on both sides: a chunk is its tag, its length and its bytes, so encoding is one copy and decoding
+is a memoryview of the received bytes, where protobuf would copy each 2 MiB chunk two or three times. Every
+other message (headers, and anything that does not look like a bare chunk) goes through protobuf.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import os
+import select
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from napari_unwind.errors import InvalidInputError
+
+__all__ = ["UploadPipe", "import_stream", "encode_chunk", "chunk_payload", "encoder", "decoder"]
+
+CHUNK_TAG = b"\x12"  # field 2, wire type 2 (length-delimited): ``chunk`` of UploadRequest and DownloadResponse
+
+_F_SETPIPE_SZ = 1031  # linux/fcntl.h: a larger pipe buffer means fewer wake-ups per MiB
+_PIPE_BYTES = 1 << 20
+#: planes per read of the worker: the store's chunk depth (napari_unwind.io.ome_zarr.DEFAULT_CHUNKS[0])
+_SLAB = 128
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        out.append((n & 0x7F) | (0x80 if n > 0x7F else 0))
+        n >>= 7
+        if not n:
+            return bytes(out)
+
+
+def encode_chunk(part: Any) -> bytes:
+    """The encoded message ``{chunk: part}`` (an UploadRequest or a DownloadResponse), made with one copy."""
+    return b"".join((CHUNK_TAG, _varint(len(part)), part))
+
+
+def chunk_payload(data: bytes) -> memoryview | None:
+    """The bytes of an encoded message that is exactly ``{chunk: ...}``, as a memoryview; else None."""
+    if data[:1] != CHUNK_TAG:
+        return None
+    n, shift, i = 0, 0, 1
+    while i < min(len(data), 11):
+        b = data[i]
+        n |= (b & 0x7F) << shift
+        i += 1
+        if b < 0x80:
+            return memoryview(data)[i:] if i + n == len(data) else None
+        shift += 7
+    return None
+
+
+def encoder(message_type: Any) -> Callable[[Any], bytes]:
+    """A serializer for messages of ``message_type`` that passes chunks already encoded (bytes) as they are."""
+    def encode(message: Any) -> bytes:
+        return message if isinstance(message, bytes) else message_type.SerializeToString(message)
+
+    return encode
+
+
+def decoder(message_type: Any) -> Callable[[bytes], Any]:
+    """A deserializer giving a chunk message as a memoryview of its bytes, any other as ``message_type``."""
+    def decode(data: bytes) -> Any:
+        payload = chunk_payload(data)
+        return payload if payload is not None else message_type.FromString(data)
+
+    return decode
+
+
+class UploadPipe:
+    """The server's end of one streamed import: a FIFO the worker reads, written chunk by chunk.
+
+    ``start(fifo)`` must submit the worker's :func:`import_stream` reading that path and return its Future.
+    """
+
+    def __init__(self, tmp_dir: Path, name: str, start: Callable[[str], Future]):
+        self.path = Path(tmp_dir) / f"{name}.fifo"
+        os.mkfifo(self.path, 0o600)
+        self.fd: int | None = None
+        self.future: Future | None = None
+        try:
+            self.future = start(str(self.path))
+        except BaseException:
+            self.path.unlink(missing_ok=True)
+            raise
+
+    def open(self, alive: Callable[[], bool] = lambda: True) -> None:
+        """Wait until the worker opens its end (it may wait for a free worker), then own the writing end."""
+        while True:
+            try:
+                fd = os.open(self.path, os.O_WRONLY | os.O_NONBLOCK)
+                break
+            except OSError as exc:
+                if exc.errno != errno.ENXIO:  # ENXIO: no reader yet
+                    raise
+            if self.future.done():
+                self.future.result()  # the worker failed before reading: its error
+                raise InvalidInputError("the import ended before the upload started")
+            if not alive():
+                raise InvalidInputError("the client went away before the upload started")
+            time.sleep(0.002)
+        os.set_blocking(fd, True)
+        with contextlib.suppress(OSError):
+            fcntl.fcntl(fd, _F_SETPIPE_SZ, _PIPE_BYTES)
+        self.fd = fd
+
+    def write(self, data: bytes) -> bool:
+        """Send ``data`` to the worker; False when the worker stopped reading (its error is in the Future)."""
+        view = memoryview(data)
+        try:
+            while view:
+                view = view[os.write(self.fd, view):]
+        except BrokenPipeError:
+            return False
+        return True
+
+    def finish(self) -> None:
+        """The last byte is sent: close the pipe and wait for the import (its error, if any, is raised)."""
+        self._close()
+        self.future.result()
+
+    def abandon(self) -> None:
+        """Stop early: the worker sees the stream end short and removes its partial output; wait for that."""
+        self._close()
+        if self.future is not None and not self.future.cancel():
+            with contextlib.suppress(Exception):
+                self.future.result()
+
+    def _close(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+        self.path.unlink(missing_ok=True)
+
+
+def _open_reader(fifo: str) -> int:
+    """Open the reading end without blocking on a writer that may never come, then wait for the first bytes."""
+    fd = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)
+    poll = select.poll()
+    poll.register(fd, select.POLLIN | select.POLLHUP)
+    while not poll.poll(200):  # data, or a writer came and went (the stream ended)
+        if not os.path.exists(fifo):  # the server gave up before writing
+            os.close(fd)
+            raise InvalidInputError("the upload was abandoned before its first byte")
+    os.set_blocking(fd, True)
+    return fd
+
+
+def _planes(fd: int, shape: tuple[int, int, int], dtype: np.dtype) -> Iterator[np.ndarray]:
+    """The voxels from the pipe, slab by slab, each read straight into a new array."""
+    expected = int(np.prod(shape)) * dtype.itemsize
+    got = 0
+    with open(fd, "rb", buffering=0, closefd=False) as f:
+        for z0 in range(0, shape[0], _SLAB):
+            slab = np.empty((min(_SLAB, shape[0] - z0), *shape[1:]), dtype=dtype)
+            view = memoryview(slab).cast("B")
+            pos = 0
+            while pos < len(view):
+                n = f.readinto(view[pos:])
+                if not n:
+                    raise InvalidInputError(f"the upload ended after {got + pos} of its {expected} bytes")
+                pos += n
+            got += pos
+            yield slab
+
+
+def import_stream(fifo: str, shape: tuple, dtype: str, spacing: tuple | None, unit: str | None,
+                  origin: tuple | None, labels: bool, dst: str) -> None:
+    """Import the voxels arriving through ``fifo`` into the OME-Zarr pyramid ``dst`` (runs in a worker process)."""
+    from napari_unwind.io import import_slabs_iter
+    from napari_unwind.progress import run
+
+    shape = tuple(int(n) for n in shape)
+    fd = _open_reader(fifo)
+    try:
+        run(import_slabs_iter(_planes(fd, shape, np.dtype(dtype)), dst, shape=shape, dtype=dtype, spacing=spacing,
+                              unit=unit, origin=origin, labels=labels))
+    finally:
+        os.close(fd)
