@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The compose topology as plain processes on one machine: a dask scheduler, two workers, and the server
-# sending its chunked export to them. Used by the tests and for trying a facility set-up without containers.
+# sending the chunked work of its jobs to them (--scheduler). Used by the tests and for trying a facility set-up without containers.
 #
 #   deploy/local.sh start DATA_ROOT     start everything; prints "server HOST:PORT" and "scheduler tcp://..."
 #   deploy/local.sh stop DATA_ROOT      SIGTERM the server (it drains its jobs), then the workers and scheduler

@@ -157,10 +157,13 @@ class DaskProcesses:
         self.address = wait_for(lambda: (m := re.search(r"Scheduler at:\s+(tcp://[\d.]+:\d+)",
                                                         self.logs["scheduler"].read_text())) and m.group(1),
                                 timeout=60)
+        self.n_workers = n_workers
         for i in range(n_workers):
             self._start(f"worker-{i}", "distributed.cli.dask_worker", self.address, "--host", "127.0.0.1",
                         "--nthreads", "1", "--no-nanny", "--no-dashboard", "--name", f"worker-{i}")
-        for i in range(n_workers):
+
+    def wait_for_workers(self):
+        for i in range(self.n_workers):
             wait_for(lambda i=i: "Registered to" in self.logs[f"worker-{i}"].read_text(), timeout=60)
 
     def _start(self, name, module, *args):
@@ -195,7 +198,8 @@ def test_a_worker_killed_mid_export_fails_the_job_clearly_and_leaves_nothing_tha
     dask = DaskProcesses(tmp_path, 2, env={"DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"})
     srv = None
     try:
-        srv = ServerProcess(tmp_path / "data", "--workers", "1", scheduler=dask.address)
+        srv = ServerProcess(tmp_path / "data", "--workers", "1", scheduler=dask.address)  # while workers start
+        dask.wait_for_workers()
         with DaskClient(dask.address, timeout=30) as dc, Client(srv.address, progress=False) as c:
             vid, mid, sk = _prepare(c, t, fish)
             slow = dict(spacing=0.5, chunks=(1, 512, 512), output_name="slow.zarr")
