@@ -96,7 +96,7 @@ def use_scheduler(scheduler: str | None) -> Iterator[None]:
             yield
     except _lost_work_errors() as exc:
         what = type(exc).__name__
-        detail = str(exc).splitlines()[0] if str(exc) else ""
+        detail = str(exc).split(". ")[0].splitlines()[0] if str(exc) else ""  # the first sentence
         raise SchedulerError(
             f"the dask cluster at {scheduler} lost this work ({what}{': ' + detail if detail else ''}): a worker "
             "died while it held a task, or the scheduler went away; nothing partial was kept. Run it again; if it "

@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from types import SimpleNamespace
 
 import dask
 import numpy as np
@@ -224,6 +225,34 @@ def test_a_worker_killed_mid_export_fails_the_job_clearly_and_leaves_nothing_tha
         if srv is not None:
             srv.stop()
         dask.stop()
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# use_scheduler itself (a LocalCluster of threads in this process: quick)
+# ------------------------------------------------------------------------------------------------------------------
+def test_use_scheduler_reuses_an_enclosing_connection_and_names_lost_work():
+    import dask.array as da
+    from distributed import KilledWorker, LocalCluster
+
+    from napari_unwind.scheduler import SchedulerError, use_scheduler
+
+    x = da.arange(1000, chunks=100)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        address = cluster.scheduler_address
+
+        def clients() -> int:  # connected clients besides the scheduler's own
+            return len([c for c in cluster.scheduler.clients if not c.startswith("fire-and-forget")])
+
+        with use_scheduler(address):
+            assert clients() == 1
+            with use_scheduler(address):  # an export inside a job: no second connection
+                assert clients() == 1 and int(x.sum().compute()) == 499500
+            assert clients() == 1 and int(x.sum().compute()) == 499500  # the inner exit kept it open
+        wait_for(lambda: clients() == 0, timeout=10)
+        with pytest.raises(SchedulerError, match=r"lost this work \(KilledWorker: .*\).*Run it again"):
+            with use_scheduler(address), use_scheduler(address):
+                raise KilledWorker("straighten-abc", SimpleNamespace(address="tcp://127.0.0.1:1"), 0)
+        wait_for(lambda: clients() == 0, timeout=10)
 
 
 def test_serve_refuses_a_scheduler_it_cannot_use(tmp_path):
