@@ -121,15 +121,25 @@ def test_select_refines_on_the_local_cluster_and_writes_the_threads_result(defau
     np.testing.assert_array_equal(c.open(sel.result.volume_id).data.compute().astype(bool), local)
 
 
-def test_sigterm_stops_the_default_server_and_its_local_cluster(tmp_path):
-    srv = ServerProcess(tmp_path / "data", scheduler=None)
+def test_sigterm_drains_the_job_on_the_cluster_then_stops_the_cluster(default_server):
+    """The last test of this server: SIGTERM while an export runs on the cluster. The job is drained (or, past
+    --drain, interrupted), never left running, and then the cluster's processes are gone."""
+    from unwind_services.paths import DataRoot
+    from unwind_services.store import Store
+
+    srv, dc, c, (vid, mid, sk) = default_server
+    procs = _descendants(srv.proc.pid)
+    job = c.straighten(vid, sk.result.session_id, wait=False, spacing=0.5, chunks=(1, 512, 512),
+                       output_name="slow.zarr")
+    wait_for(lambda: c.job(job.id).progress.stage == "write", timeout=60, interval=0.02)
+    assert srv.terminate(timeout=60) == 0
+    assert wait_for(lambda: _all_gone(procs), timeout=30), [p.cmdline() for p in procs if p.is_running()]
+    store = Store(DataRoot(srv.data_root).database)
     try:
-        _scheduler_address(srv.log)
-        procs = wait_for(lambda: len(p := _descendants(srv.proc.pid)) >= 2 and p, timeout=30)  # nanny's worker
-        assert srv.terminate(timeout=60) == 0
-        assert wait_for(lambda: _all_gone(procs), timeout=30), [p.cmdline() for p in procs if p.is_running()]
+        row = store.get_job("local", job.id)
     finally:
-        srv.stop()
+        store.close()
+    assert row.state == pb.JOB_STATE_SUCCEEDED or (row.state == pb.JOB_STATE_FAILED and row.interrupted), row
 
 
 def test_kill_9_of_the_default_server_leaves_no_cluster_process(tmp_path):
