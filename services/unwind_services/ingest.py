@@ -107,6 +107,7 @@ class UploadPipe:
 
     def open(self, alive: Callable[[], bool] = lambda: True) -> None:
         """Wait until the worker opens its end (it may wait for a free worker), then own the writing end."""
+        delay = 0.001
         while True:
             try:
                 fd = os.open(self.path, os.O_WRONLY | os.O_NONBLOCK)
@@ -119,7 +120,8 @@ class UploadPipe:
                 raise InvalidInputError("the import ended before the upload started")
             if not alive():
                 raise InvalidInputError("the client went away before the upload started")
-            time.sleep(0.002)
+            time.sleep(delay)
+            delay = min(0.05, delay * 2)
         os.set_blocking(fd, True)
         with contextlib.suppress(OSError):
             fcntl.fcntl(fd, _F_SETPIPE_SZ, _PIPE_BYTES)
