@@ -200,10 +200,9 @@ class DaskProcesses:
 
 def test_a_worker_killed_mid_export_fails_the_job_clearly_and_leaves_nothing_that_looks_whole(tmp_path, tank):
     """allowed-failures 0: the first worker death fails the task (KilledWorker) instead of retrying it, so the job
-    must fail, say so, and keep nothing; the server goes on."""
+    must fail, say so, and keep nothing; the server goes on. (With dask's default allowed-failures the export goes
+    on on the other worker: tests/services/test_services_deploy.py.)"""
     from distributed import Client as DaskClient
-
-    from napari_unwind.warp import straighten
 
     t, fish = tank
     dask = DaskProcesses(tmp_path, 2, env={"DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"})
@@ -225,12 +224,6 @@ def test_a_worker_killed_mid_export_fails_the_job_clearly_and_leaves_nothing_tha
             user = srv.data_root / ".unwind" / "users" / "local"
             assert not (user / job.id).exists() and not [p for p in user.rglob("*") if "unwind-tmp" in p.name]
             assert healthy(srv.address)
-            # the other worker is still there: a small job runs on the cluster (the retry with dask's default
-            # allowed-failures, where the export goes on, is tests/services/test_services_deploy.py)
-            again = c.straighten(vid, sk.result.session_id, output_name="fish.zarr", spacing=2.0)
-            expected = straighten(as_volume(t.volume, spacing=t.spacing, unit=t.unit), Client.session(sk).deformation,
-                                  spacing=2.0)
-            np.testing.assert_array_equal(c.open(again.result.volume_id).data.compute(), expected.data.compute())
     finally:
         if srv is not None:
             srv.stop()
