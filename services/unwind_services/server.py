@@ -40,7 +40,7 @@ class ServerConfig:
     port: int = 50051
     listen: str = "127.0.0.1"
     services: Sequence[str] = ()
-    scheduler: str | None = None
+    scheduler: str | None = None  # None: a LocalCluster of this server; "threads"; or "tcp://host:port"
     tokens: Path | None = None
     tls_cert: Path | None = None
     tls_key: Path | None = None
