@@ -185,3 +185,30 @@ def test_the_volume_service_registers_every_rpc_of_its_contract():
     add_volume_service(volume_pb2_grpc.VolumeServiceServicer(), Recorder())
     methods = {m.name for m in volume_pb2.DESCRIPTOR.services_by_name["VolumeService"].methods}
     assert got == {"unwind.v1.VolumeService": methods}
+
+
+def test_a_server_killed_mid_upload_leaves_no_volume_after_its_restart(server):
+    header = volume_pb2.UploadRequest(header=volume_pb2.UploadHeader(name="killed", shape=[300, 20, 270],
+                                                                     dtype=pb.DTYPE_UINT16))
+    sent = threading.Event()
+
+    def messages():
+        yield header
+        for _ in range(2):
+            yield volume_pb2.UploadRequest(chunk=b"\3" * (1 << 20))
+        sent.set()
+        time.sleep(30)
+
+    with grpc.insecure_channel(server.address) as ch:
+        fut = volume_pb2_grpc.VolumeServiceStub(ch).Upload.future(messages(), timeout=60)
+        assert sent.wait(20)
+        deadline = time.monotonic() + 10  # the worker has begun the store
+        while not any("unwind-tmp" in p for p in _leftovers(server)) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert any("unwind-tmp" in p for p in _leftovers(server))
+        server.kill()
+        fut.cancel()
+    server.start()
+    assert not _leftovers(server)  # the partial store and the pipe were swept at the start
+    with Client(server.address, progress=False) as c:
+        assert "killed" not in {v.name for v in c.volumes()}
