@@ -10,7 +10,6 @@ import tempfile
 import time
 import uuid
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +33,7 @@ from ._proto.unwind.v1 import (
 )
 from .catalog import Catalog
 from .errors import LimitError
-from .ingest import UploadPipe, decoder, encode_chunk, encoder, import_stream
+from .ingest import UploadPipe, decoder, encode_chunk, encoder, import_stream, level_slabs
 from .interceptor import current_user
 from .jobs import JobManager
 from .paths import check_file_name
@@ -156,21 +155,10 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             header.format, header.total_bytes = "raw", int(np.prod(level.shape)) * dtype.itemsize
             header.file_name = f"{row.name.split('.')[0]}.raw"
             yield volume_pb2.DownloadResponse(header=header)
-            step = max(1, int(level.chunks[0][0]))
-            starts = list(range(0, level.shape[0], step))
-
-            def read(i: int) -> np.ndarray:
-                return np.ascontiguousarray(level[i:i + step].compute(), dtype=dtype)
-
-            with ThreadPoolExecutor(max_workers=1) as reader:  # read the next slab while this one is sent
-                pending = reader.submit(read, starts[0])
-                for n in range(len(starts)):
-                    block = pending.result()
-                    if n + 1 < len(starts):
-                        pending = reader.submit(read, starts[n + 1])
-                    mv = memoryview(block).cast("B")
-                    for a in range(0, len(mv), DOWNLOAD_CHUNK):
-                        yield encode_chunk(mv[a:a + DOWNLOAD_CHUNK])  # one copy; sent as is (ingest.encoder)
+            for block in level_slabs(vol, request.level, dtype):  # the next slab is read while this one is sent
+                mv = memoryview(block).cast("B")
+                for a in range(0, len(mv), DOWNLOAD_CHUNK):
+                    yield encode_chunk(mv[a:a + DOWNLOAD_CHUNK])  # one copy; sent as is (ingest.encoder)
             return
         suffix = fmt if fmt.startswith(".") else "." + fmt
         stem = row.name.split(".")[0] or "volume"
