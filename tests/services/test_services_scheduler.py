@@ -72,7 +72,7 @@ def default_server(tmp_path_factory, tank):
     t, fish = tank
     srv = ServerProcess(tmp_path_factory.mktemp("default") / "data", "--workers", "1", scheduler=None)
     address = _scheduler_address(srv.log)
-    with DaskClient(address, timeout=30) as dc, Client(srv.address, progress=False) as c:
+    with DaskClient(address, timeout=30, set_as_default=False) as dc, Client(srv.address, progress=False) as c:
         dc.get_task_stream()  # the scheduler records every task from now on
         yield srv, dc, c, _prepare(c, t, fish)
     srv.stop()
@@ -210,7 +210,7 @@ def test_a_worker_killed_mid_export_fails_the_job_clearly_and_leaves_nothing_tha
     try:
         srv = ServerProcess(tmp_path / "data", "--workers", "1", scheduler=dask.address)  # while workers start
         dask.wait_for_workers()
-        with DaskClient(dask.address, timeout=30) as dc, Client(srv.address, progress=False) as c:
+        with DaskClient(dask.address, timeout=30, set_as_default=False) as dc, Client(srv.address, progress=False) as c:
             vid, mid, sk = _prepare(c, t, fish)
             slow = dict(spacing=0.5, chunks=(1, 512, 512), output_name="slow.zarr")
             job = c.straighten(vid, sk.result.session_id, wait=False, **slow)
