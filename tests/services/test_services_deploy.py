@@ -54,7 +54,7 @@ def test_an_export_survives_kill_9_of_a_worker(cluster):
         from distributed import Client as DaskClient
 
         sched = (root / ".local-run" / "scheduler.address").read_text().strip()
-        with DaskClient(sched, timeout=30) as dc:
+        with DaskClient(sched, timeout=30, set_as_default=False) as dc:
             busy = wait_for(lambda: [a for a, tasks in dc.processing().items() if tasks], timeout=120, interval=0.01)
             name = dc.scheduler_info()["workers"][busy[0]]["name"]
             os.kill(int(Path(root / ".local-run" / f"{name}.pid").read_text()), signal.SIGKILL)
