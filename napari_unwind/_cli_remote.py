@@ -80,7 +80,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
                           tokens=Path(args.tokens) if args.tokens else None,
                           tls_cert=Path(args.tls_cert) if args.tls_cert else None,
                           tls_key=Path(args.tls_key) if args.tls_key else None, limits=limits, workers=args.workers,
-                          drain_seconds=args.drain)
+                          imports=args.imports or 0, drain_seconds=args.drain)
     UnwindServer(config).serve_forever()
     return 0
 
@@ -317,6 +317,9 @@ def add_remote_commands(subparsers: Any) -> None:
     p.add_argument("--max-jobs-per-user", type=_positive_int, default=4,
                    help="jobs one user may have queued or running (default 4; 0: no limit)")
     p.add_argument("--workers", type=int, default=2, help="jobs running at once (default 2)")
+    p.add_argument("--imports", type=_positive_int, default=None,
+                   help="uploads imported at once, in processes of their own so that a slow client holds no job "
+                        "worker (default: as many as --workers); a further upload waits for a free one")
     p.add_argument("--drain", type=float, default=10.0,
                    help="on SIGTERM, seconds running jobs may finish before they are interrupted (default 10)")
     p.add_argument("--log-level", default="info", help="debug, info (default), warning, error")

@@ -1,13 +1,14 @@
 """Bulk voxels in and out: uploads imported while they arrive, and the chunk messages' bytes kept out of protobuf.
 
-Uploads: the gRPC thread feeds a pipe, a job worker imports from it.
+Uploads: the gRPC thread feeds a pipe, a process of the import pool imports from it.
 
-The server's Upload handler only moves bytes: it checks each chunk against the header and writes it into a
-named pipe (FIFO) under the data root's ``tmp``. A job worker process (off the server's GIL) reads the pipe plane
-by plane and writes the OME-Zarr pyramid with the core's streaming import (:func:`napari_unwind.io.
-import_slabs_iter`), so the import overlaps the transfer and neither process ever holds the whole scan. The store
-is written atomically: when the stream ends early (the client went away, the chunks disagree with the header) the
-worker sees the pipe close short, the core removes its temporary output, and no volume appears.
+The server's Upload handler only moves bytes: it checks each chunk against the header and writes it into a named pipe
+(FIFO) under the data root's ``tmp``. A process of the import pool (off the server's GIL, apart from the job workers, so
+a slow client holds no job worker) reads the pipe plane by plane and writes the OME-Zarr pyramid with the core's
+streaming import (:func:`napari_unwind.io.import_slabs_iter`), so the import overlaps the transfer and neither process
+ever holds the whole scan. The store is written atomically: when the stream ends early (the client went away, the chunks
+disagree with the header) the worker sees the pipe close short, the core removes its temporary output, and no volume
+appears.
 
 Chunk messages (``UploadRequest.chunk`` and ``DownloadResponse.chunk``, field 2 of both) are encoded and decoded
 here by hand, on both sides: a chunk is its tag, its length and its bytes, so encoding is one copy and decoding

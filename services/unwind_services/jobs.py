@@ -60,12 +60,15 @@ _WATCH_POLL = 0.2  # seconds between two looks at the store while watching
 class JobManager:
     """Submit, run, cancel and watch jobs; durable through the store."""
 
-    def __init__(self, catalog: Catalog, *, workers: int = 2, scheduler: str | None = None):
+    def __init__(self, catalog: Catalog, *, workers: int = 2, scheduler: str | None = None,
+                 imports: int | None = None):
         self.catalog = catalog
         self.store = catalog.store
         self.scheduler = scheduler
         self.workers = max(1, int(workers))
         self._pool: ProcessPoolExecutor | None = None
+        self.imports = max(1, int(imports or self.workers))
+        self._import_pool: ProcessPoolExecutor | None = None
         self._futures: dict[str, Future] = {}
         self._cond = threading.Condition()
         self._closing = False
@@ -130,6 +133,8 @@ class JobManager:
             self.store.request_stop(job_id, "interrupt")
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._import_pool is not None:  # the gRPC server has stopped: open uploads were cancelled, their imports end
+            self._import_pool.shutdown(wait=True, cancel_futures=True)
 
     def _running_ids(self) -> list[str]:
         return [j for j in list(self._futures) if self.store.job_row(j)["state"] == pb.JOB_STATE_RUNNING]
@@ -138,17 +143,22 @@ class JobManager:
     def closing(self) -> bool:
         return self._closing
 
-    def start_in_worker(self, fn, *args) -> Future:
-        """Start ``fn(*args)`` in a worker process (CPU-heavy work off the server's GIL); its Future."""
-        try:
-            return self._pool.submit(fn, *args)
-        except BrokenProcessPool:
-            self._pool = self._new_pool()
-            return self._pool.submit(fn, *args)
+    def start_import(self, fn, *args) -> Future:
+        """Start ``fn(*args)`` (an upload's import) in a process of the import pool; its Future.
 
-    def call_in_worker(self, fn, *args):
-        """Run ``fn(*args)`` in a worker process and return its result."""
-        return self.start_in_worker(fn, *args).result()
+        Imports have their own processes (``imports`` of them, spawned on first use): an import lasts as long as its
+        client sends, and a slow or stalled client must not hold a job worker.
+        """
+        with self._cond:
+            if self._import_pool is None:
+                self._import_pool = ProcessPoolExecutor(max_workers=self.imports,
+                                                        mp_context=multiprocessing.get_context("spawn"))
+            try:
+                return self._import_pool.submit(fn, *args)
+            except BrokenProcessPool:
+                self._import_pool = ProcessPoolExecutor(max_workers=self.imports,
+                                                        mp_context=multiprocessing.get_context("spawn"))
+                return self._import_pool.submit(fn, *args)
 
     # -- requests --------------------------------------------------------------------------------------------------
     def submit(self, owner: str, spec: jobs_pb2.SubmitRequest) -> pb.Job:

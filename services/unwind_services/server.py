@@ -46,6 +46,7 @@ class ServerConfig:
     tls_key: Path | None = None
     limits: Limits = field(default_factory=Limits)
     workers: int = 2
+    imports: int = 0  # uploads imported at once, in their own processes (0: as many as workers)
     dask_threads: int = 0  # threads of the in-process LocalCluster's worker (0: one per core)
     grpc_threads: int = 64
     drain_seconds: float = 10.0
@@ -137,7 +138,8 @@ class UnwindServer:
         self.store = Store(self.root.database)
         self.catalog = Catalog(self.store, self.root, config.limits)
         self.auth = TokenAuth(config.tokens)
-        self.jobs = JobManager(self.catalog, workers=config.workers, scheduler=config.scheduler)
+        self.jobs = JobManager(self.catalog, workers=config.workers, scheduler=config.scheduler,
+                               imports=config.imports or None)
         size = config.limits.max_message_bytes or 64 * 1024**2
         self.server = grpc.server(
             ThreadPoolExecutor(max_workers=config.grpc_threads, thread_name_prefix="unwind-rpc"),

@@ -78,8 +78,8 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
         vid = f"vol-{uuid.uuid4().hex[:12]}"
         dst = root.user_dir(owner) / "volumes" / f"{vid}.zarr"
         dst.parent.mkdir(parents=True, exist_ok=True)
-        # a job worker imports the voxels while they arrive (see ingest.py): this thread only checks and forwards
-        pipe = UploadPipe(root.tmp, vid, lambda fifo: self.jobs.start_in_worker(
+        # a process of the import pool imports the voxels while they arrive (ingest.py); this thread checks, forwards
+        pipe = UploadPipe(root.tmp, vid, lambda fifo: self.jobs.start_import(
             import_stream, fifo, tuple(h.shape), dtype.newbyteorder("<").str, tuple(h.spacing) or None,
             h.unit or None, tuple(h.origin) or None, h.labels, str(dst)))
         try:

@@ -232,3 +232,36 @@ def test_a_server_killed_mid_upload_leaves_no_volume_after_its_restart(server):
     assert not _leftovers(server)  # the partial store and the pipe were swept at the start
     with Client(server.address, progress=False) as c:
         assert "killed" not in {v.name for v in c.volumes()}
+
+
+def test_a_stalled_upload_does_not_hold_back_jobs(server):
+    """The import of an upload runs in its own worker pool: a client that stops sending mid-upload must not keep
+    the (single, here) job worker from running other users' jobs."""
+    rng = np.random.default_rng(5)
+    small = (rng.random((24, 20, 20)) * 100).astype(np.uint16)
+    small[8:16, 8:12, 8:12] = 1000
+    with Client(server.address, progress=False) as c:
+        vid = c.upload(small, name="small").volume_id
+    header = volume_pb2.UploadRequest(header=volume_pb2.UploadHeader(name="stalled", shape=[300, 20, 270],
+                                                                     dtype=pb.DTYPE_UINT16))
+    sent, release = threading.Event(), threading.Event()
+
+    def messages():
+        yield header
+        yield volume_pb2.UploadRequest(chunk=b"\1" * (1 << 20))
+        sent.set()
+        release.wait(60)  # the client stalls mid-upload
+
+    with grpc.insecure_channel(server.address) as ch:
+        fut = volume_pb2_grpc.VolumeServiceStub(ch).Upload.future(messages(), timeout=90)
+        try:
+            assert sent.wait(20)
+            time.sleep(1.0)  # the upload's import has started and waits for bytes
+            with Client(server.address, progress=False) as c:
+                job = c.segment(vid, features=2, wait=False)
+                done = c.wait(job.id, timeout=45)
+            assert done.state == pb.JOB_STATE_SUCCEEDED, done
+            assert not fut.done()  # the stalled upload was still open while the job ran
+        finally:
+            fut.cancel()
+            release.set()
