@@ -485,6 +485,66 @@ def _downsample2(block: np.ndarray, *, labels: bool) -> np.ndarray:
     return acc.astype(block.dtype, copy=False)
 
 
+#: Threads encoding and writing the chunks of a slab (blosc and file writes release the GIL).
+_ENCODE_THREADS = max(2, min(8, os.cpu_count() or 2))
+_SHUFFLE_CODE = {"noshuffle": Blosc.NOSHUFFLE, "shuffle": Blosc.SHUFFLE, "bitshuffle": Blosc.BITSHUFFLE}
+
+
+class _DirectWriter:
+    """Write chunk-aligned slabs of a new array of this module's codecs (bytes, blosc, crc32c) without zarr.
+
+    The mirror of :class:`_ZarrChunks`' direct read: each chunk (an edge chunk padded with the fill value, as zarr
+    stores it) is blosc-encoded with the codec's own settings (cname, level, shuffle, block size, type size), its
+    crc32c appended little-endian, and written to the file zarr names it; the bytes are those zarr writes
+    (tested), at 4-6x the speed on 2 cores (zarr's asynchronous pipeline copies and schedules every chunk). Chunks
+    are encoded on ``pool``'s threads (blosc and the file writes release the GIL).
+    """
+
+    def __init__(self, array: zarr.Array, store: str, pool: ThreadPoolExecutor):
+        self.locate = _ZarrChunks(array, store, complete=True)
+        self.shape, self.grid, self.dtype = self.locate.shape, self.locate.grid, self.locate.dtype
+        self.fill = array.fill_value
+        self.pool = pool
+        codecs = list(array.metadata.codecs)
+        b = next((c for c in codecs if isinstance(c, BloscCodec)), None)
+        self.blosc = None if b is None else Blosc(cname=b.cname.value, clevel=b.clevel,
+                                                  shuffle=_SHUFFLE_CODE[b.shuffle.value], blocksize=b.blocksize,
+                                                  typesize=b.typesize)
+        self.crc = isinstance(codecs[-1], Crc32cCodec)
+
+    @staticmethod
+    def usable(array: zarr.Array) -> bool:
+        return _direct_codecs(array) is not None and array.shards is None
+
+    def write(self, z0: int, data: np.ndarray) -> None:
+        """Planes ``z0 .. z0 + len(data)`` (``z0`` a multiple of the chunk depth; the end one too, or the array's
+        last plane)."""
+        if data.shape[0] == 0:
+            return
+        c0 = z0 // self.grid[0]
+        rows = range(c0, (z0 + data.shape[0] - 1) // self.grid[0] + 1)
+        coords = list(itertools.product(rows, *[range(-(-n // g)) for n, g in zip(self.shape[1:], self.grid[1:])]))
+        for _ in self.pool.map(lambda c: self._chunk(c, z0, data), coords):
+            pass
+
+    def _chunk(self, coords: tuple[int, ...], z0: int, data: np.ndarray) -> None:
+        lo = [c * g for c, g in zip(coords, self.grid)]
+        hi = [min(n, a + g) for a, n, g in zip(lo, self.shape, self.grid)]
+        part = data[lo[0] - z0:hi[0] - z0, lo[1]:hi[1], lo[2]:hi[2]]
+        if part.shape == self.grid:
+            chunk = np.ascontiguousarray(part, dtype=self.dtype.newbyteorder("<"))
+        else:
+            chunk = np.full(self.grid, self.fill, dtype=self.dtype.newbyteorder("<"))
+            chunk[tuple(slice(0, n) for n in part.shape)] = part
+        encoded = self.blosc.encode(chunk) if self.blosc is not None else chunk.tobytes()
+        path = self.locate.chunk_file(coords)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path, "wb") as fh:
+            fh.write(encoded)
+            if self.crc:
+                fh.write(google_crc32c.value(encoded).to_bytes(4, "little"))
+
+
 class _Cascade:
     """Build every pyramid level from consecutive slabs of level 0, each written once, chunk-aligned.
 
@@ -492,9 +552,11 @@ class _Cascade:
     partner before 2x2x2 averaging into level k+1. Memory is about 1/8 + 1/64 + ... of the incoming slab.
     """
 
-    def __init__(self, arrays: list, *, labels: bool, writer: ThreadPoolExecutor):
+    def __init__(self, arrays: list, *, labels: bool, writer: ThreadPoolExecutor,
+                 direct: list[_DirectWriter | None] | None = None):
         self.arrays = arrays
         self.writer = writer  # level writes run here while the next level is averaged
+        self.direct = direct or [None] * len(arrays)  # levels written without zarr's pipeline
         self.labels = labels
         self.pending: list[list[np.ndarray]] = [[] for _ in arrays]  # planes waiting for a chunk-aligned write
         self.carry: list[np.ndarray | None] = [None] * len(arrays)  # an odd plane waiting for its partner
@@ -510,7 +572,10 @@ class _Cascade:
         data = np.concatenate(self.pending[level]) if len(self.pending[level]) > 1 else self.pending[level][0]
         n = have if last else (have // depth) * depth
         z0 = self.written[level]
-        write = self.writer.submit(arr.__setitem__, slice(z0, z0 + n), data[:n])
+        if self.direct[level] is not None:
+            write = self.writer.submit(self.direct[level].write, z0, data[:n])
+        else:
+            write = self.writer.submit(arr.__setitem__, slice(z0, z0 + n), data[:n])
         try:
             self.written[level] += n
             self.pending[level] = [data[n:]] if n < have else []
@@ -673,8 +738,10 @@ def write_ome_zarr(
         return slab
 
     # read the next slab while this one is written
-    with ThreadPoolExecutor(max_workers=1) as reader, ThreadPoolExecutor(max_workers=len(arrays)) as writer:
-        pyr = _Cascade(arrays, labels=labels, writer=writer)
+    with ThreadPoolExecutor(max_workers=1) as reader, ThreadPoolExecutor(max_workers=len(arrays)) as writer, \
+            ThreadPoolExecutor(max_workers=_ENCODE_THREADS) as encoders:
+        direct = [_DirectWriter(a, str(path), encoders) if _DirectWriter.usable(a) else None for a in arrays]
+        pyr = _Cascade(arrays, labels=labels, writer=writer, direct=direct)
         pending = reader.submit(read_slab, starts[0])
         for i, z0 in enumerate(starts):
             slab = pending.result()

@@ -291,3 +291,38 @@ def test_lengths_without_a_unit_are_labelled_voxels():
     assert unit_label(None) == "voxels" and unit_label("") == "voxels"
     assert unit_label("micrometer") == "um" and unit_label("millimeter") == "mm"
     assert unit_label("inch") == "inch"  # a unit we have no abbreviation for keeps its name
+
+
+@pytest.mark.parametrize("dtype, options", [("uint16", {}), ("uint8", {}), ("float32", {}), ("int16", {}),
+                                            ("uint16", {"compression": "zstd", "shuffle": "bit"}),
+                                            ("uint16", {"compression": "none"}), ("uint8", {"labels": True})])
+def test_stores_are_written_without_zarrs_pipeline_with_the_bytes_zarr_writes(tmp_path, monkeypatch, dtype,
+                                                                               options):
+    """Our writer encodes chunks itself (faster); every file is the one zarr's own pipeline writes for the same
+    array (zarr writes the reference store here), edge chunks and every pyramid level included."""
+    rng = np.random.default_rng(7)
+    a = (rng.normal(100, 30, (37, 29, 21)) if dtype == "float32" else rng.integers(0, 200, (37, 29, 21)))
+    a = a.astype(dtype)
+    calls = []
+    real = zarr.Array.__setitem__
+
+    def through_zarr(self, key, value):
+        calls.append(key)
+        return real(self, key, value)
+
+    monkeypatch.setattr(zarr.Array, "__setitem__", through_zarr)
+    ours = write_volume(a, tmp_path / "ours.zarr", chunks=(8, 16, 16), max_side=8, **options)
+    assert calls == []
+    from napari_unwind.io import ome_zarr
+
+    monkeypatch.setattr(ome_zarr._DirectWriter, "usable", staticmethod(lambda array: False))
+    ref = write_volume(a, tmp_path / "ref.zarr", chunks=(8, 16, 16), max_side=8, **options)
+    assert calls, "the reference store was not written by zarr"
+
+    def files(root):
+        return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("c/**/*")) if p.is_file()}
+
+    mine, theirs = files(ours), files(ref)
+    assert len(theirs) > 20 and mine.keys() == theirs.keys()
+    assert [k for k in theirs if mine[k] != theirs[k]] == []
+    np.testing.assert_array_equal(zarr.open_array(str(ours / "0"), mode="r")[...], a)
