@@ -86,6 +86,9 @@ def open_volume(path: str | os.PathLike, *, format: str | None = None, **options
     InvalidInputError
         The file is recognised but malformed (truncated, inconsistent slices, several DICOM series...).
     """
+    if not isinstance(path, str | os.PathLike):
+        raise InvalidInputError(f"open_volume needs a path (str or path-like), got {type(path).__name__}; wrap an "
+                                "array in memory with as_volume(array, spacing=..., unit=...)")
     # absolute before any lazy graph is built: dask.distributed workers run in other folders
     path = Path(path).expanduser().absolute()
     if not path.exists():
@@ -260,7 +263,7 @@ def import_volume_iter(
 ) -> Iterator[Progress]:
     """Generator form of :func:`import_volume`: yields progress, returns the opened result."""
     if not isinstance(src, Volume):
-        src = open_volume(src, **reader_options)
+        src = open_volume(src, **reader_options) if isinstance(src, str | os.PathLike) else as_volume(src)
     dst = Path(dst)
     # None: the writer's defaults (napari_unwind.io.ome_zarr.DEFAULT_COMPRESSION, imported only when writing)
     codec = {k: v for k, v in (("compression", compression), ("compression_level", compression_level))
@@ -378,8 +381,9 @@ def import_volume(
 
     Parameters
     ----------
-    src : path-like or Volume
-        Anything :func:`open_volume` reads.
+    src : path-like, Volume or array
+        Anything :func:`open_volume` reads, or an array in memory (numpy, dask, zarr; ``spacing`` and ``unit``
+        give its geometry).
     dst : path-like
         The ``*.zarr`` folder to create (atomically).
     chunks : int or tuple of 3 int, optional

@@ -326,3 +326,12 @@ def test_stores_are_written_without_zarrs_pipeline_with_the_bytes_zarr_writes(tm
     assert len(theirs) > 20 and mine.keys() == theirs.keys()
     assert [k for k in theirs if mine[k] != theirs[k]] == []
     np.testing.assert_array_equal(zarr.open_array(str(ours / "0"), mode="r")[...], a)
+
+
+def test_import_volume_takes_an_array_and_open_volume_refuses_one(tmp_path):
+    a = np.random.default_rng(8).integers(0, 999, (20, 12, 9)).astype(np.uint16)
+    v = import_volume(a, tmp_path / "a.zarr", spacing=(2.0, 1.0, 1.0), unit="um", chunks=8)
+    np.testing.assert_array_equal(v.data.compute(), a)
+    assert v.spacing == (2.0, 1.0, 1.0) and v.unit == "micrometer"
+    with pytest.raises(InvalidInputError, match="open_volume needs a path .* got ndarray; .*as_volume"):
+        open_volume(a)
