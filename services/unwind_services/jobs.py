@@ -151,14 +151,16 @@ class JobManager:
         """
         with self._cond:
             if self._import_pool is None:
-                self._import_pool = ProcessPoolExecutor(max_workers=self.imports,
-                                                        mp_context=multiprocessing.get_context("spawn"))
+                self._import_pool = self._new_import_pool()
             try:
                 return self._import_pool.submit(fn, *args)
             except BrokenProcessPool:
-                self._import_pool = ProcessPoolExecutor(max_workers=self.imports,
-                                                        mp_context=multiprocessing.get_context("spawn"))
+                self._import_pool = self._new_import_pool()
                 return self._import_pool.submit(fn, *args)
+
+    def _new_import_pool(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(max_workers=self.imports, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_die_with_server)
 
     # -- requests --------------------------------------------------------------------------------------------------
     def submit(self, owner: str, spec: jobs_pb2.SubmitRequest) -> pb.Job:
@@ -236,8 +238,9 @@ class _Stop(Exception):
 _WORKER: dict = {}
 
 
-def _worker_init(root: str, limits: Limits, scheduler: str | None) -> None:
-    """Once per worker process: die with the server, leave SIGTERM/SIGINT to it, open the store, warm imports."""
+def _die_with_server() -> None:
+    """In a worker process (jobs or imports): end when the server ends, even by kill -9; leave SIGTERM/SIGINT to
+    the server (it decides: drain, then interrupt)."""
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # pragma: no cover - not Linux
@@ -254,6 +257,11 @@ def _worker_init(root: str, limits: Limits, scheduler: str | None) -> None:
     threading.Thread(target=orphan_watch, name="unwind-orphan-watch", daemon=True).start()
     signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the server decides: drain, then interrupt
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _worker_init(root: str, limits: Limits, scheduler: str | None) -> None:
+    """Once per job worker process: die with the server, open the store, warm imports."""
+    _die_with_server()
     warnings.filterwarnings("ignore", category=UserWarning, module="napari_unwind.warp")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     data_root = DataRoot(root)

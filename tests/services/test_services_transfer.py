@@ -11,6 +11,7 @@ from pathlib import Path
 import dask.array as da
 import grpc
 import numpy as np
+import psutil
 import pytest
 from _servers import ServerProcess
 
@@ -226,8 +227,13 @@ def test_a_server_killed_mid_upload_leaves_no_volume_after_its_restart(server):
         while not any("unwind-tmp" in p for p in _leftovers(server)) and time.monotonic() < deadline:
             time.sleep(0.05)
         assert any("unwind-tmp" in p for p in _leftovers(server))
+        children = psutil.Process(server.proc.pid).children(recursive=True)  # job workers, the import's process
+        assert children
         server.kill()
         fut.cancel()
+    # none outlives the server (an orphan would hold memory and the pipe forever)
+    _, alive = psutil.wait_procs(children, timeout=10)
+    assert not alive, [p.cmdline() for p in alive]
     server.start()
     assert not _leftovers(server)  # the partial store and the pipe were swept at the start
     with Client(server.address, progress=False) as c:
