@@ -523,7 +523,7 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
 
 def _segment_select(volume: Any, args: argparse.Namespace) -> tuple[Any, Any, str]:
     """Join tree, the features under the ``--select`` points, refined at full resolution (lazy)."""
-    from .segmentation import refine_mask_iter, segment_iter, select, selected_ids
+    from .segmentation import default_isovalue, refine_mask_iter, segment_iter, select, selected_ids
     from .session import Segmentation
 
     k = 5 if args.features is None else args.features
@@ -532,7 +532,7 @@ def _segment_select(volume: Any, args: argparse.Namespace) -> tuple[Any, Any, st
     dt = time.perf_counter() - t0
     ids = selected_ids(features, seeds=args.select)
     working = select(features, ids=ids, fill_holes=args.fill_holes)
-    iso = args.isovalue if args.isovalue is not None else min(features.stat(i).threshold for i in ids)
+    iso = args.isovalue if args.isovalue is not None else default_isovalue(features, working)
     lazy = _run_with_bar(refine_mask_iter(volume, working, features=features, isovalue=iso), args.quiet)
     segmentation = Segmentation(k=k, level=features.level, selected=tuple(ids),
                                 seeds=tuple(tuple(p) for p in args.select), isovalue=iso, fill_holes=args.fill_holes)
@@ -811,7 +811,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--full-resolution", metavar="INPUT", default=None,
                    help="refine the mask at full resolution on this scan, chunk by chunk")
     p.add_argument("--isovalue", type=_finite, default=None,
-                   help="full-resolution threshold (default: the selected features' own)")
+                   help="full-resolution threshold (default: the lowest threshold of the features the mask covers)")
     p.add_argument("--fill-holes", action="store_true", help="fill cavities of the mask")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
@@ -848,7 +848,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--level", type=_whole(0), default=None,
                    help="pyramid level to segment (default: every side <= 256)")
     p.add_argument("--isovalue", type=_finite, default=None,
-                   help="full-resolution threshold of the mask (default: the selected features' own)")
+                   help="full-resolution threshold of the mask (default: the lowest threshold of the features it "
+                   "covers, an enclosed one too with --fill-holes)")
     p.add_argument("--fill-holes", action="store_true", help="fill cavities of the mask")
     p.add_argument("--session", default=None,
                    help="the session file to write (default: OUTPUT's name + .unwind.json beside OUTPUT)")

@@ -216,7 +216,7 @@ def run_demo(output: Path, *, quiet: bool = False, overwrite: bool = False, n_fi
     from .io import import_volume_iter, write_volume
     from .io._volume import unit_label
     from .progress import run
-    from .segmentation import refine_mask_iter, segment_iter, select, selected_ids
+    from .segmentation import default_isovalue, refine_mask_iter, segment_iter, select, selected_ids
     from .session import Segmentation, Session, SourceInfo, save_session
     from .skeleton import estimate_deformation_iter
     from .warp import FoldWarning, export_iter
@@ -262,7 +262,7 @@ def run_demo(output: Path, *, quiet: bool = False, overwrite: bool = False, n_fi
         click = fish.centerline[len(fish.centerline) // 2]  # where a user would click: inside the fish
         ids = selected_ids(features, seeds=[click])
         working = select(features, ids=ids)
-        iso = min(features.stat(j).threshold for j in ids)
+        iso = default_isovalue(features, working)
         mask = run(refine_mask_iter(imported, working, features=features, isovalue=iso)).compute()
         t_sel = time.perf_counter() - t1
         with warnings.catch_warnings(record=True) as caught:

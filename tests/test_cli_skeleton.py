@@ -323,3 +323,33 @@ def test_a_fold_over_no_specimen_voxel_is_a_warning_and_one_over_the_specimen_is
             _check_folds(folding, False, folded=folded)
     _check_folds(folding, True, folded=0.01)
     assert "1 % of the specimen" in capsys.readouterr().err
+
+
+def test_run_with_fill_holes_refines_at_the_lowest_threshold_the_mask_covers(tmp_path):
+    """One isovalue rule everywhere (dock, unwind select, the server's jobs, unwind run): a closed shell selected
+    with --fill-holes covers the dimmer rod inside it, so the mask is cut at the rod's threshold, not the shell's."""
+    from scipy import ndimage
+
+    from napari_unwind.segmentation import segment
+
+    z, y, x = np.mgrid[:96, :40, :40].astype(float)
+    along = np.clip(z, 20, 76)
+    d = np.sqrt((z - along) ** 2 + (y - 19.5) ** 2 + (x - 19.5) ** 2)  # distance to the capsule's axis segment
+    v = np.full(d.shape, 100.0)
+    v[(d > 10) & (d < 13)] = 1000.0  # the shell
+    v[d < 4] = 400.0  # the rod inside
+    v = (v + np.random.default_rng(1).normal(0, 5, v.shape)).astype(np.uint16)
+    scan = write_volume(v, tmp_path / "capsule.nrrd", spacing=(1.0, 1.0, 1.0), unit="um")
+    click = (48.0, 19.5 + 11.5, 19.5)  # in the shell's wall
+    out = tmp_path / "capsule_straight.nrrd"
+    code, _, err = _run("run", scan, "--select", _arg(click), "--features", "2", "--fill-holes", "-o", out, "-q")
+    assert code == 0, err
+    seg = load_session(tmp_path / "capsule_straight.unwind.json").segmentation
+    # the reference: the same segmentation, the shell filled by scipy, the lowest threshold of what it covers
+    features = segment(open_volume(scan), features=2)
+    shell = features.labels[tuple(np.floor(np.asarray(click) + 0.5).astype(int))]
+    covered = np.unique(features.labels[ndimage.binary_fill_holes(features.labels == shell)])
+    thresholds = {int(i): features.stat(int(i)).threshold for i in covered if i > 0}
+    assert len(thresholds) == 2 and min(thresholds.values()) < thresholds[int(shell)]  # the rod is covered, dimmer
+    assert seg.selected == (int(shell),) and seg.fill_holes
+    assert seg.isovalue == pytest.approx(min(thresholds.values()))

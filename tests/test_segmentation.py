@@ -446,3 +446,19 @@ def test_a_tree_saved_before_the_noise_level_still_loads(tank3_tree):
     d["version"] = np.array(99)
     with pytest.raises(InvalidInputError, match="version 99"):
         JoinTree.from_dict(d)
+
+
+def test_default_isovalue_refuses_a_mask_of_another_shape_or_covering_nothing():
+    from napari_unwind.errors import InvalidInputError
+    from napari_unwind.segmentation import default_isovalue, segment
+
+    v = np.full((20, 20, 20), 10.0)
+    v[5:9, 5:9, 5:9] = 100.0
+    v[12:16, 12:16, 12:16] = 60.0
+    f = segment(v, features=2, smooth=0.0)
+    both = f.labels > 0
+    assert default_isovalue(f, both) == min(s.threshold for s in f.stats)
+    with pytest.raises(InvalidInputError, match=r"the mask has shape \(20, 20, 19\) but the features"):
+        default_isovalue(f, both[:, :, :19])
+    with pytest.raises(InvalidInputError, match="covers no feature"):
+        default_isovalue(f, np.zeros_like(both))

@@ -19,6 +19,7 @@ from ._jointree import JoinTree, join_tree, join_tree_iter, sweep_order
 from ._segment import segment, segment_iter
 from ._select import (
     check_segmentation_output,
+    default_isovalue,
     load_features,
     refine_mask,
     refine_mask_iter,
@@ -32,6 +33,7 @@ from ._select import (
 __all__ = [
     "MAX_FEATURES",
     "check_segmentation_output",
+    "default_isovalue",
     "FeatureStats",
     "Features",
     "JoinTree",

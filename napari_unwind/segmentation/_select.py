@@ -209,11 +209,7 @@ def _refine(
     if isovalue is None:
         if features is None:
             raise InvalidInputError("give isovalue= or the features= the mask came from (for their thresholds)")
-        covered = np.unique(features.labels[mask])
-        covered = covered[covered > 0]
-        if covered.size == 0:
-            raise InvalidInputError("the mask covers no feature; give isovalue=")
-        isovalue = float(min(features.stats[int(i) - 1].threshold for i in covered))
+        isovalue = default_isovalue(features, mask)
     allowed = ndimage.binary_dilation(mask, structure=np.ones((3, 3, 3), bool))
     if features is not None:
         allowed &= mask | (features.labels == 0)
@@ -222,6 +218,30 @@ def _refine(
     if np.issubdtype(data.dtype, np.integer):  # compare integers exactly: v >= iso <=> v >= ceil(iso)
         iso = float(np.ceil(isovalue))
     return data.map_blocks(_refine_block, allowed=allowed, scale=scale, iso=iso, dtype=bool), isovalue
+
+
+def default_isovalue(features: Features, mask: Any) -> float:
+    """The full-resolution threshold a working-resolution ``mask`` is refined at by default: the smallest
+    threshold of the features it covers (with ``fill_holes`` that includes a feature enclosed by the selection).
+
+    One rule for the dock, ``unwind select``, ``unwind run`` and the server's jobs.
+
+    Parameters
+    ----------
+    features : Features
+        The segmentation the mask came from.
+    mask : ndarray of bool, shape ``features.shape``
+        The selection at working resolution (:func:`select`).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != features.labels.shape:
+        raise InvalidInputError(f"the mask has shape {mask.shape} but the features {features.labels.shape}; select "
+                                "the mask from these features")
+    covered = np.unique(features.labels[mask])
+    covered = covered[covered > 0]
+    if covered.size == 0:
+        raise InvalidInputError("the mask covers no feature; give isovalue=")
+    return float(min(features.stats[int(i) - 1].threshold for i in covered))
 
 
 def refine_mask(

@@ -225,7 +225,14 @@ def bend(ctx: TaskContext, req: Any) -> TaskGen:
 
 def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
     """``unwind run`` as a job: segment (or a mask), select, refine, skeleton, session, straighten."""
-    from napari_unwind.segmentation import load_features, refine_mask_iter, segment_iter, select, selected_ids
+    from napari_unwind.segmentation import (
+        default_isovalue,
+        load_features,
+        refine_mask_iter,
+        segment_iter,
+        select,
+        selected_ids,
+    )
     from napari_unwind.session import Segmentation, Session, SourceInfo
     from napari_unwind.skeleton import estimate_deformation_iter
     from napari_unwind.warp import export_iter
@@ -262,7 +269,7 @@ def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
             features = yield from segment_iter(volume, features=k, level=req.level if req.has_level else None)
             ids = selected_ids(features, seeds=seeds)
         working = select(features, ids=ids, fill_holes=req.fill_holes)
-        iso = req.isovalue if req.has_isovalue else min(features.stat(i).threshold for i in ids)
+        iso = req.isovalue if req.has_isovalue else default_isovalue(features, working)
         mask = yield from refine_mask_iter(volume, working, features=features, isovalue=iso)
         segmentation = Segmentation(k=k, level=features.level, selected=tuple(ids),
                                     seeds=tuple(tuple(p) for p in seeds.tolist()), isovalue=iso,
