@@ -1,9 +1,10 @@
 """Where dask computations run: threads, the synchronous scheduler, or a ``dask.distributed`` cluster.
 
-:func:`use_scheduler` is the one place that chooses. :func:`napari_unwind.warp.export` takes its ``scheduler=``;
-the server's job workers run every job (refine, segment, skeleton, straighten, bend, writes, imports) inside one
-``use_scheduler`` of the server's ``--scheduler``. Entered again with the address of a cluster that is already in
-use (an export inside such a job), it reuses that connection instead of opening a second one.
+:func:`use_scheduler` is the one place that chooses. :func:`napari_unwind.warp.export` takes its ``scheduler=``; the
+server's job workers run every job (refine, segment, skeleton, straighten, bend, writes) inside one ``use_scheduler``
+of the server's ``--scheduler`` (an upload's streamed import runs in its own process, no dask). Entered again with
+the address of a cluster that is already in use (an export inside such a job), it reuses that connection instead of
+opening a second one.
 
 A cluster that loses the work (a worker killed while it held the task, the scheduler gone, no worker left) ends
 the computation with :class:`SchedulerError`, one line saying what happened and what to do, never a partial
