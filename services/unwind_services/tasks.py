@@ -139,7 +139,7 @@ def segment(ctx: TaskContext, req: Any) -> TaskGen:
 
 
 def select(ctx: TaskContext, req: Any) -> TaskGen:
-    from napari_unwind.segmentation import load_features, refine_mask_iter, select, selected_ids
+    from napari_unwind.segmentation import default_isovalue, load_features, refine_mask_iter, select, selected_ids
 
     seg = ctx.catalog.segmentation(ctx.owner, req.segmentation_id)
     _, volume = ctx.catalog.volume(ctx.owner, seg.meta["volume_id"])
@@ -156,14 +156,10 @@ def select(ctx: TaskContext, req: Any) -> TaskGen:
     features = load_features(path)
     ids = selected_ids(features, seeds=seeds if len(seeds) else None, ids=list(req.ids) or None)
     working = select(features, ids=ids, fill_holes=req.fill_holes)
-    # no isovalue: refine_mask's default (the lowest threshold of the features the mask covers), as on this computer
-    written = yield from refine_mask_iter(volume, working, features=features,
-                                          isovalue=req.isovalue if req.has_isovalue else None, output=out)
-    vid = ctx.register(written, out.name)
-    refined = (ctx.catalog.volume(ctx.owner, vid)[1].metadata.get("unwind") or {}).get("refined_mask") or {}
-    iso = req.isovalue if req.has_isovalue else refined.get("isovalue")
-    return pb.JobResult(volume_id=vid, figures=_figures(ids=ids, features=k, **(
-        {} if iso is None else {"isovalue": float(iso)})))
+    iso = req.isovalue if req.has_isovalue else default_isovalue(features, working)  # the rule of every face
+    written = yield from refine_mask_iter(volume, working, features=features, isovalue=iso, output=out)
+    return pb.JobResult(volume_id=ctx.register(written, out.name),
+                        figures=_figures(ids=ids, features=k, isovalue=float(iso)))
 
 
 def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:
