@@ -3,7 +3,8 @@
 A session (``*.unwind.json``, :mod:`napari_unwind.session`) opens as the layers that restore the work on its scan:
 
 - the scan (Image, lazy, with the session's spacing and unit and the deformation's origin);
-- the selection (Labels, the selected features of the segmentation the session records, recomputed from the scan);
+- the selection (Labels, the selected features of the segmentation the session records, recomputed from the scan;
+  left to the Unwind dock when the viewer has one: it rebuilds it in a worker instead of the UI thread);
 - the ends (Points named ``"ends"``: head and tail, or every part's start and end for a specimen in pieces);
 - the curve of the deformation (a Shapes path named ``"curve"``).
 
@@ -24,6 +25,7 @@ import numpy as np
 from ..errors import UnknownFormatError
 from ..io import detect_format, open_volume
 from ..session import SESSION_SUFFIX, Session, SourceChangedError, SourceMissingError, load_session
+from ._docks import current_viewer_has_dock
 
 __all__ = ["get_reader", "get_session_reader", "read", "read_session", "session_layers"]
 
@@ -81,7 +83,9 @@ def read_session(path: str | list[str]) -> list:
     if isinstance(path, list):
         path = path[0]
     session_path = Path(path).expanduser().absolute()
-    return session_layers(load_session(session_path), session_path=session_path)
+    # with an Unwind dock in the viewer, the dock rebuilds the selection in a worker (not on the UI thread)
+    return session_layers(load_session(session_path), session_path=session_path,
+                          selection=not current_viewer_has_dock())
 
 
 def session_layers(session: Session, *, session_path: str | Path | None = None, selection: bool = True) -> list:
@@ -97,7 +101,8 @@ def session_layers(session: Session, *, session_path: str | Path | None = None, 
         Recompute the selected features (default). This runs the segmentation's join tree on its working level:
         0.3 s for the fish phantom, about 20 s for a noisy 256^3 level, all of it blocking the caller (napari's
         readers run on the UI thread). The dock passes False and recomputes it in a worker from the segmentation
-        record, which the image layer's metadata then holds as ``"segmentation"``.
+        record, which the image layer's metadata then holds as ``"segmentation"``; so does :func:`read_session`
+        when napari's current viewer has an Unwind dock.
 
     Returns
     -------

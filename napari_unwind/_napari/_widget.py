@@ -72,6 +72,7 @@ from ..errors import InvalidInputError, UnwindError
 from ..io import Volume, open_volume
 from ..io._volume import normalise_unit, unit_label
 from ..progress import Progress
+from . import _docks
 from ._workers import Job, JobCancelled, prewarm, start_job, start_process_job
 
 __all__ = ["UnwindWidget", "volume_from_layer"]
@@ -197,6 +198,7 @@ class UnwindWidget(QWidget):
 
         self.viewer.layers.events.inserted.connect(self._on_layers_changed)
         self.viewer.layers.events.removed.connect(self._on_layers_changed)
+        _docks.register(self.viewer, self)  # a session opened by napari's reader leaves its selection to us
         self.model.deformation_changed.connect(self._on_deformation_changed)
         self._refresh_layer_combo()
         self._update_needs()

@@ -143,7 +143,21 @@ def test_saving_a_session_needs_the_scan_file(make_napari_viewer):
     assert w.status.text().startswith("error: the scan 'in memory' was not opened from a file")
 
 
-def test_a_session_opened_by_napari_gives_the_dock_its_deformation(make_napari_viewer, qtbot, tmp_path):
+def test_a_session_opened_by_napari_gives_the_dock_its_deformation(make_napari_viewer, qtbot, tmp_path,
+                                                                   monkeypatch):
+    import threading
+
+    from napari_unwind._napari import _reader
+
+    ui_thread = threading.current_thread()
+    segmented_on = []
+    real_selection = _reader._selection_layer
+
+    def watched(*args, **kwargs):  # the reader's recomputation of the selection (a join tree: seconds on big scans)
+        segmented_on.append(threading.current_thread())
+        return real_selection(*args, **kwargs)
+
+    monkeypatch.setattr(_reader, "_selection_layer", watched)
     scan = tmp_path / "rod.nrrd"
     write_volume(rod(), scan, spacing=(1.0, 1.0, 1.0), unit="micrometer")
     d = rod_deformation(unit="micrometer")
@@ -160,6 +174,8 @@ def test_a_session_opened_by_napari_gives_the_dock_its_deformation(make_napari_v
     qtbot.waitUntil(lambda: w.idle and bool(w.selected), timeout=60_000)  # the selection, rebuilt in a worker
     assert w.features.k == 3 and w.selected == [1]
     assert [lyr.name for lyr in viewer.layers].count("selection") == 1
+    # with the dock open, the UI thread does not segment: the dock rebuilds the selection in its worker only
+    assert ui_thread not in segmented_on
     rod_voxels = rod() == 3000
     chosen = np.isin(w.features.labels, [1])
     assert (chosen & rod_voxels).sum() > 0.8 * rod_voxels.sum()
