@@ -246,6 +246,18 @@ def write_volume(
                                  overwrite=overwrite, nan_value=nan_value, **options), progress)
 
 
+def _import_target(dst: str | os.PathLike, compression: str | None,
+                   compression_level: int | None) -> tuple[Path, dict[str, Any]]:
+    """An import's output (an ``*.zarr`` folder, else an error) and its codec options (None: the writer's defaults,
+    napari_unwind.io.ome_zarr.DEFAULT_COMPRESSION, imported only when writing)."""
+    dst = Path(dst)
+    if not dst.name.lower().endswith(".zarr"):
+        raise InvalidInputError(f"import writes an OME-Zarr folder; name the output *.zarr, got {dst}")
+    codec = {k: v for k, v in (("compression", compression), ("compression_level", compression_level))
+             if v is not None}
+    return dst, codec
+
+
 def import_volume_iter(
     src: Any,
     dst: str | os.PathLike,
@@ -264,12 +276,7 @@ def import_volume_iter(
     """Generator form of :func:`import_volume`: yields progress, returns the opened result."""
     if not isinstance(src, Volume):
         src = open_volume(src, **reader_options) if isinstance(src, str | os.PathLike) else as_volume(src)
-    dst = Path(dst)
-    # None: the writer's defaults (napari_unwind.io.ome_zarr.DEFAULT_COMPRESSION, imported only when writing)
-    codec = {k: v for k, v in (("compression", compression), ("compression_level", compression_level))
-             if v is not None}
-    if not dst.name.lower().endswith(".zarr"):
-        raise InvalidInputError(f"import writes an OME-Zarr folder; name the output *.zarr, got {dst}")
+    dst, codec = _import_target(dst, compression, compression_level)
     written = yield from write_volume_iter(src, dst, spacing=spacing, unit=unit, format="ome-zarr",
                                            overwrite=overwrite, nan_value=nan_value, chunks=chunks,
                                            max_side=max_side, labels=labels, pyramid=True, **codec)
@@ -348,11 +355,7 @@ def import_slabs_iter(
         if parts:
             yield ready(np.concatenate(parts))
 
-    dst = Path(dst)
-    codec = {k: v for k, v in (("compression", compression), ("compression_level", compression_level))
-             if v is not None}
-    if not dst.name.lower().endswith(".zarr"):
-        raise InvalidInputError(f"import writes an OME-Zarr folder; name the output *.zarr, got {dst}")
+    dst, codec = _import_target(dst, compression, compression_level)
     return (yield from write_volume_iter(placeholder, dst, format="ome-zarr", overwrite=overwrite, chunks=chunks,
                                          max_side=max_side, labels=labels, pyramid=True, slabs=slabs(), **codec))
 
