@@ -44,8 +44,6 @@ CHUNK_TAG = b"\x12"  # field 2, wire type 2 (length-delimited): ``chunk`` of Upl
 
 _F_SETPIPE_SZ = 1031  # linux/fcntl.h: a larger pipe buffer means fewer wake-ups per MiB
 _PIPE_BYTES = 1 << 20
-#: planes per read of the worker: the store's chunk depth (napari_unwind.io.ome_zarr.DEFAULT_CHUNKS[0])
-_SLAB = 128
 
 
 def _varint(n: int) -> bytes:
@@ -228,11 +226,13 @@ def _open_reader(fifo: str) -> int:
 
 def _planes(fd: int, shape: tuple[int, int, int], dtype: np.dtype) -> Iterator[np.ndarray]:
     """The voxels from the pipe, slab by slab, each read straight into a new array."""
+    from napari_unwind.io.ome_zarr import DEFAULT_CHUNKS
+
     expected = int(np.prod(shape)) * dtype.itemsize
     got = 0
     with open(fd, "rb", buffering=0, closefd=False) as f:
-        for z0 in range(0, shape[0], _SLAB):
-            slab = np.empty((min(_SLAB, shape[0] - z0), *shape[1:]), dtype=dtype)
+        for z0 in range(0, shape[0], DEFAULT_CHUNKS[0]):  # planes per read: the store's chunk depth
+            slab = np.empty((min(DEFAULT_CHUNKS[0], shape[0] - z0), *shape[1:]), dtype=dtype)
             view = memoryview(slab).cast("B")
             pos = 0
             while pos < len(view):
