@@ -514,7 +514,7 @@ class _DirectWriter:
 
     @staticmethod
     def usable(array: zarr.Array) -> bool:
-        return _direct_codecs(array) is not None and array.shards is None
+        return _direct_codecs(array) is not None  # (None for a sharded array too)
 
     def write(self, z0: int, data: np.ndarray) -> None:
         """Planes ``z0 .. z0 + len(data)`` (``z0`` a multiple of the chunk depth; the end one too, or the array's
