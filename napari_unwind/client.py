@@ -65,6 +65,8 @@ def _lazy(a: np.ndarray) -> Any:
 def _slabs(source: Any, dtype: np.dtype, step: int) -> Iterator[np.ndarray]:
     """C-contiguous slabs of ``step`` planes of ``source`` (an ndarray, or a dask array computed slab by slab),
     in ``dtype``; the next slab is read in a background thread while the caller sends this one."""
+    from .io._lazy import read_ahead
+
     starts = range(0, source.shape[0], step)
 
     def read(z0: int) -> np.ndarray:
@@ -73,13 +75,7 @@ def _slabs(source: Any, dtype: np.dtype, step: int) -> Iterator[np.ndarray]:
             block = block.compute()
         return np.ascontiguousarray(block, dtype=dtype)  # a view when it already is (no copy)
 
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="unwind-upload-read") as pool:
-        pending = pool.submit(read, starts[0]) if len(starts) else None
-        for n in range(len(starts)):
-            block = pending.result()
-            if n + 1 < len(starts):
-                pending = pool.submit(read, starts[n + 1])
-            yield block
+    yield from read_ahead(read, starts, name="unwind-upload-read")
 
 
 class RemoteError(UnwindError):

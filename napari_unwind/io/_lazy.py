@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import dask.array as da
@@ -13,7 +14,7 @@ from dask.base import tokenize
 from ..errors import InvalidInputError
 from ._volume import Volume
 
-__all__ = ["SLAB_BYTES", "RawFileArray", "iter_slabs", "slab_depth", "write_slab_depth"]
+__all__ = ["SLAB_BYTES", "RawFileArray", "iter_slabs", "read_ahead", "slab_depth", "write_slab_depth"]
 
 SLAB_BYTES = 64 * 2**20
 
@@ -101,3 +102,15 @@ def iter_slabs(volume: Volume, depth: int) -> Iterator[tuple[int, int, np.ndarra
     for z0 in range(0, n0, depth):
         z1 = min(n0, z0 + depth)
         yield z0, z1, np.ascontiguousarray(np.asarray(volume.data[z0:z1].compute()))
+
+
+def read_ahead(read: Callable[[int], Any], starts: Sequence[int], *, name: str = "unwind-read-ahead") -> Iterator[Any]:
+    """``read(start)`` for each of ``starts`` in order, the next one read in a background thread while the caller
+    works on this one (sending it, writing it)."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix=name) as pool:
+        pending = pool.submit(read, starts[0]) if len(starts) else None
+        for n in range(len(starts)):
+            block = pending.result()
+            if n + 1 < len(starts):
+                pending = pool.submit(read, starts[n + 1])
+            yield block

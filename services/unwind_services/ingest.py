@@ -182,11 +182,13 @@ def _chunk_reader(vol: Any, index: int) -> Any:
 
 def level_slabs(vol: Any, index: int, dtype: np.dtype) -> Iterator[np.ndarray]:
     """Pyramid level ``index`` of ``vol`` as C-contiguous slabs (of its chunk depth) in ``dtype``, read ahead."""
+    from napari_unwind.io._lazy import read_ahead
+
     level = vol.levels[index]
     shape = tuple(int(n) for n in level.shape)
     chunks = _chunk_reader(vol, index)
     step = max(1, chunks.grid[0] if chunks is not None else int(level.chunks[0][0]))
-    with ThreadPoolExecutor(max_workers=1) as ahead, ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
 
         def read(z0: int) -> np.ndarray:
             z1 = min(shape[0], z0 + step)
@@ -202,13 +204,7 @@ def level_slabs(vol: Any, index: int, dtype: np.dtype) -> Iterator[np.ndarray]:
             list(pool.map(one, itertools.product(range(0, shape[1], g1), range(0, shape[2], g2))))
             return slab
 
-        starts = range(0, shape[0], step)
-        pending = ahead.submit(read, starts[0])
-        for n in range(len(starts)):
-            block = pending.result()
-            if n + 1 < len(starts):
-                pending = ahead.submit(read, starts[n + 1])
-            yield block
+        yield from read_ahead(read, range(0, shape[0], step), name="unwind-download-read")
 
 
 def _open_reader(fifo: str) -> int:

@@ -104,3 +104,28 @@ def test_nan_in_a_streamed_float_volume_is_refused_with_its_voxel_or_replaced(tm
                           nan_value=-1))
     want = np.where(np.isnan(a), np.float32(-1), a)
     np.testing.assert_array_equal(open_volume(tmp_path / "y.zarr").data.compute(), want)
+
+
+def test_read_ahead_gives_every_read_in_order_the_next_one_already_under_way():
+    import threading
+
+    from napari_unwind.io._lazy import read_ahead
+
+    started = []
+    cond = threading.Condition()
+
+    def read(z0):
+        with cond:
+            started.append(z0)
+            cond.notify_all()
+        return z0 * 10
+
+    out = []
+    for value in read_ahead(read, range(0, 50, 10)):
+        z0 = value // 10
+        if z0 + 10 < 50:  # while the caller holds this block, the next read starts without it asking
+            with cond:
+                assert cond.wait_for(lambda nxt=z0 + 10: nxt in started, timeout=5)
+        out.append(value)
+    assert out == [0, 100, 200, 300, 400] and started == [0, 10, 20, 30, 40]
+    assert list(read_ahead(read, range(0))) == []
