@@ -7,14 +7,15 @@
 3. :func:`select` turns features chosen by seed points (full-resolution voxel coordinates) or ids into a mask;
    :func:`refine_mask` / :func:`refine_mask_iter` upsample it to full resolution chunk by chunk and refine it
    with an isovalue.
-4. :func:`specimens` keeps the specimen-like features: elongated, inside the scan, not containers (a tube, a
-   dish: features that touch the scan's border or enclose others, marked ``container`` in the statistics).
+4. :func:`candidates` gives every feature (or part of one) as a candidate specimen, kept or rejected with its
+   reason (the one definition of a specimen); :func:`specimens` returns the statistics of the kept ones.
 5. :func:`save_features` / :func:`load_features` keep a segmentation as OME-Zarr labels with its statistics;
    :meth:`JoinTree.to_npz` / :meth:`JoinTree.from_npz` cache a tree.
 """
 
+from ._candidates import Candidate, candidates, specimens
 from ._common import MAX_FEATURES
-from ._features import Features, FeatureStats, simplify, specimens
+from ._features import Features, FeatureStats, simplify
 from ._jointree import JoinTree, join_tree, join_tree_iter, sweep_order
 from ._segment import segment, segment_iter
 from ._select import (
@@ -32,6 +33,8 @@ from ._select import (
 
 __all__ = [
     "MAX_FEATURES",
+    "Candidate",
+    "candidates",
     "check_segmentation_output",
     "default_isovalue",
     "FeatureStats",

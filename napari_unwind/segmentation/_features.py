@@ -39,7 +39,7 @@ from numba import njit
 from ..errors import InvalidInputError
 from ._common import check_features_count
 
-__all__ = ["Features", "FeatureStats", "simplify", "specimens"]
+__all__ = ["Features", "FeatureStats", "simplify"]
 
 _NBINS = 1024  # histogram bins per feature for its threshold
 
@@ -661,45 +661,4 @@ def simplify(tree: Any, k: int = 5) -> Features:
         unit=tree.unit,
         feature_of_branch=fid,
         source=tree.source,
-    )
-
-
-def specimens(features: Features, *, min_elongation: float = 3.0, min_voxels: int = 1) -> tuple[FeatureStats, ...]:
-    """The specimen-like features: elongated, inside the scan, not containers.
-
-    Parameters
-    ----------
-    features : Features
-        A segmentation (:func:`segment`, :meth:`JoinTree.simplify` or :func:`load_features`).
-    min_elongation : float
-        Smallest principal-axis ratio (:attr:`FeatureStats.elongation`) of a specimen (default 3: a fish is
-        about 6, a tube about 2, a blob of noise about 1-2).
-    min_voxels : int
-        Smallest labelled voxel count at working resolution (default 1: any non-empty feature).
-
-    Returns
-    -------
-    tuple of FeatureStats
-        By id (importance). Features loaded from a file saved before these statistics existed have NaN
-        elongations and are never specimens: segment again.
-
-    Raises
-    ------
-    InvalidInputError
-        For something that is not a :class:`Features` or a bad option.
-    """
-    if not isinstance(features, Features):
-        raise InvalidInputError(f"specimens needs Features (from segment or load_features), got {type(features)}")
-    try:
-        min_elongation = float(min_elongation)
-    except (TypeError, ValueError):
-        raise InvalidInputError(f"min_elongation must be a number >= 1, got {min_elongation!r}") from None
-    if not np.isfinite(min_elongation) or min_elongation < 1:
-        raise InvalidInputError(f"min_elongation must be a finite number >= 1, got {min_elongation}")
-    if isinstance(min_voxels, (bool, np.bool_)) or not isinstance(min_voxels, (int, np.integer)) or min_voxels < 1:
-        raise InvalidInputError(f"min_voxels must be an integer >= 1, got {min_voxels!r}")
-    return tuple(
-        s for s in features.stats
-        if s.voxel_count >= min_voxels and not s.container and s.elongation is not None
-        and s.elongation >= min_elongation
     )
