@@ -23,7 +23,7 @@ def _scene() -> tuple[np.ndarray, dict[str, np.ndarray]]:
         "rod_a": (i >= 8) & (i < 36) & (abs(j - 17) <= 1) & (abs(k - 21) <= 1),
         "rod_b": (i >= 8) & (i < 34) & (abs(j - 26) <= 1) & (abs(k - 22) <= 1),
         "rod_out": (i >= 10) & (i < 34) & (abs(j - 3) <= 1) & (abs(k - 3) <= 1),
-        "ball": (i - 22) ** 2 + (j - 40) ** 2 + (k - 36) ** 2 <= 9,
+        "ball": (i - 22) ** 2 + (j - 36) ** 2 + (k - 36) ** 2 <= 9,
     }
     for m, v in zip(parts.values(), (5.0, 10.0, 9.0, 8.0, 7.0)):
         vol[m] = v
