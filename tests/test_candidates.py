@@ -54,9 +54,9 @@ def test_every_feature_is_a_candidate_with_a_status_and_a_reason():
     assert by_id[which["ball"]].status == "rejected"
     assert by_id[which["ball"]].reason.startswith("not elongated: ")
     assert [c.stats for c in found if c.status == "specimen"] == list(specimens(features))
-    small = {i: c for c in candidates(features, min_voxels=50) for i in c.ids}
+    small = {i: c for c in candidates(features, min_voxels=500) for i in c.ids}
     n = features.stat(which["rod_out"]).voxel_count
-    assert small[which["rod_out"]].reason == f"too small: {n} voxels < 50"
+    assert small[which["rod_out"]].reason == f"too small: {n} voxels < 500"
 
 
 def test_candidates_refuses_bad_input_naming_the_value():
