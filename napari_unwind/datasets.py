@@ -77,6 +77,7 @@ __all__ = [
     "FLESH",
     "HARD_KINDS",
     "HARD_SPACINGS",
+    "HardTank",
     "SPINE",
     "TUBE",
     "UNIT",
@@ -85,6 +86,7 @@ __all__ = [
     "cylinder_phantom",
     "fish_phantom",
     "hard_fish_phantom",
+    "hard_tank_phantom",
     "tank_phantom",
 ]
 
@@ -1741,3 +1743,167 @@ def hard_fish_phantom(
         f"no valid hard {kind} phantom found for seed {seed} in {max_tries} draws (last: {reason}); use another "
         "seed or a larger max_tries"
     )
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# hard tanks: walls cut by the field of view, touching fish, fish cut by a face of the scan
+# ------------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class HardTank:
+    """A tank scanned with a field of view that cuts its wall into arcs and its fish at a face, with ground truth.
+
+    Attributes
+    ----------
+    volume : ndarray of uint16, shape (N0, N1, N2)
+        The scan (bright spines inside softer bodies, a dense noisy wall).
+    labels : ndarray of int32, shape (N0, N1, N2)
+        0 for background and wall, ``i + 1`` for the voxels of fish ``i`` (the whole body: flesh, fin and spine).
+    spine : ndarray of bool, shape (N0, N1, N2)
+        The bright spines: fish voxels at least half the way from the flesh to the spine value.
+    wall : ndarray of bool, shape (N0, N1, N2)
+        The voxels of the tube wall (its inner to outer radius), whatever of it the field of view keeps.
+    n_fish : int
+    spacing : tuple of 3 float
+    unit : str
+    touching : tuple of (int, int)
+        The pairs of fish labels whose masks touch (a voxel of one is a 26-neighbour of a voxel of the other).
+    wall_cut : bool
+        The field of view cuts the wall into arcs (False: the whole tube ring is in the scan).
+    cut_fish : tuple of int
+        Labels of the fish that the field of view cuts (their mask reaches a face of the scan).
+    seed : int
+    """
+
+    volume: np.ndarray
+    labels: np.ndarray
+    spine: np.ndarray
+    wall: np.ndarray
+    n_fish: int
+    spacing: tuple[float, float, float]
+    unit: str
+    touching: tuple[tuple[int, int], ...]
+    wall_cut: bool
+    cut_fish: tuple[int, ...]
+    seed: int
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(int(n) for n in self.volume.shape)  # type: ignore[return-value]
+
+    def __repr__(self) -> str:
+        return (f"HardTank(seed={self.seed}, n_fish={self.n_fish}, shape={self.shape}, touching={self.touching}, "
+                f"wall_cut={self.wall_cut}, cut_fish={self.cut_fish})")
+
+    def to_volume(self) -> Volume:
+        """The scan as a :class:`napari_unwind.io.Volume`."""
+        return Volume(data=da.from_array(self.volume, chunks=(64, 128, 128)), spacing=self.spacing, unit=self.unit,
+                      source="napari_unwind.datasets:hard_tank", format=None,
+                      metadata={"phantom": "hard_tank", "n_fish": self.n_fish, "seed": self.seed})
+
+
+def _touching_pairs(labels: np.ndarray, n: int) -> tuple[tuple[int, int], ...]:
+    pairs = set()
+    for i in range(1, n + 1):
+        grown = ndimage.binary_dilation(labels == i, structure=np.ones((3, 3, 3), bool))
+        for j in np.unique(labels[grown]).tolist():
+            if j > i:
+                pairs.add((i, int(j)))
+    return tuple(sorted(pairs))
+
+
+def hard_tank_phantom(
+    seed: int,
+    *,
+    n_fish: int | None = None,
+    touching: bool | None = None,
+    wall_cut: bool | None = None,
+    face_cut: bool | None = None,
+    length: float = 110.0,
+    body_radius: float = 6.0,
+) -> HardTank:
+    """A tank drawn from ``seed``: 3 to 12 fish, a dense wall that the field of view cuts into arcs, fish touching
+    each other and cut by a face of the scan.
+
+    The tank is :func:`tank_phantom` with a dense, noisy wall (3000 +- 600, five voxels thick), scanned through a
+    field of view that (when ``wall_cut``) is a square around the fish in (axis1, axis2), narrower than the tube
+    so the ring falls apart into four arcs in the corners, and (when ``face_cut``) stops short of the fish's
+    upper ends along axis0 (10-30 % of one fish's length lies outside). Each fish has a bright spine (2500)
+    inside a softer body (flesh 1000, medium 100). With ``touching`` the fish are packed until the closest are
+    about one voxel apart (usually one or two touching pairs; :attr:`HardTank.touching` lists them).
+
+    Parameters
+    ----------
+    seed : int
+        Seed of every draw below (not given options are drawn from it too).
+    n_fish : int, optional
+        Number of fish, 1..12 (default: drawn in 3..12).
+    touching : bool, optional
+        Pack the fish until some touch (default: drawn, 2 in 3 tanks).
+    wall_cut : bool, optional
+        Cut the wall into arcs by the field of view (default: drawn, 3 in 4 tanks).
+    face_cut : bool, optional
+        Cut the fish at the upper face along axis0 (default: drawn, 1 in 2 tanks).
+    length, body_radius : float
+        Typical fish length and half height (voxels; unit spacing).
+
+    Returns
+    -------
+    HardTank
+        The scan and its ground truth (fish labels, spines, wall).
+
+    Raises
+    ------
+    InvalidInputError
+        For a bad option.
+    """
+    seed = _seed(seed)
+    if seed is None:
+        raise InvalidInputError("hard_tank_phantom needs an integer seed, got None")
+    rng = np.random.default_rng([seed, 18])
+    if n_fish is None:
+        n_fish = int(rng.integers(3, 13))
+    if isinstance(n_fish, (bool, np.bool_)) or not isinstance(n_fish, (int, np.integer)) or not 1 <= n_fish <= 12:
+        raise InvalidInputError(f"n_fish must be an integer in 1..12, got {n_fish!r}")
+    draws = rng.random(3)
+    touching = bool(draws[0] < 2 / 3) if touching is None else bool(touching)
+    wall_cut = bool(draws[1] < 3 / 4) if wall_cut is None else bool(wall_cut)
+    face_cut = bool(draws[2] < 1 / 2) if face_cut is None else bool(face_cut)
+    tank = tank_phantom(n_fish=int(n_fish), seed=seed, length=length, body_radius=body_radius,
+                        gap=0.0 if touching else float(rng.uniform(2.0, 3.0)), wall_value=3000.0,
+                        wall_thickness=5.0, wall_noise=600.0, max_tries=40)
+    labels = tank.labels
+    # the wall, from the tank's radii (unit spacing)
+    c1, c2 = tank.tube_center
+    r_in, r_out = tank.tube_radii
+    jj, kk = np.mgrid[: tank.shape[1], : tank.shape[2]]
+    rho = np.hypot(jj - c1, kk - c2)
+    wall = np.broadcast_to(((rho >= r_in) & (rho <= r_out))[None], tank.shape)
+    lo = [0, 0, 0]
+    hi = list(tank.shape)
+    if wall_cut:  # a square field of view just around the fish: the ring shows in its corners only
+        fish_any = labels.any(axis=0)
+        pts = np.argwhere(fish_any)
+        h = float(np.max(np.maximum(np.abs(pts[:, 0] - c1), np.abs(pts[:, 1] - c2)))) + 1.0
+        h += float(rng.uniform(0.0, 2.0))
+        for a, c in ((1, c1), (2, c2)):
+            lo[a] = max(int(np.floor(c - h)), 0)
+            hi[a] = min(int(np.ceil(c + h)) + 1, tank.shape[a])
+    if face_cut:  # the upper face along axis0 cuts one fish by 10-30 % of its length (and its neighbours with it)
+        ext = [np.flatnonzero((labels == i + 1).any(axis=(1, 2))) for i in range(int(n_fish))]
+        f = int(rng.integers(int(n_fish)))
+        a, b = int(ext[f][0]), int(ext[f][-1])
+        hi[0] = b + 1 - int(round(rng.uniform(0.1, 0.3) * (b - a + 1)))
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    labels = np.ascontiguousarray(labels[box])
+    volume = np.ascontiguousarray(tank.volume[box])
+    wall = np.ascontiguousarray(wall[box])
+    spine = (labels > 0) & (volume >= (FLESH + SPINE) / 2.0)
+    faces = np.zeros(labels.shape, bool)
+    faces[[0, -1]] = True
+    faces[:, [0, -1]] = True
+    faces[:, :, [0, -1]] = True
+    cut = tuple(int(i) for i in np.unique(labels[faces]) if i > 0)
+    return HardTank(volume=volume, labels=labels, spine=spine, wall=wall, n_fish=int(n_fish),
+                    spacing=tuple(float(v) for v in tank.spacing), unit=tank.unit,
+                    touching=_touching_pairs(labels, int(n_fish)), wall_cut=wall_cut, cut_fish=cut, seed=seed)
+
