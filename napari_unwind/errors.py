@@ -12,6 +12,7 @@ __all__ = [
     "UnknownFormatError",
     "OutputError",
     "SeriesSelectionError",
+    "FoldError",
     "finite_number",
 ]
 
@@ -44,6 +45,11 @@ class SeriesSelectionError(InvalidInputError):
 
 class OutputError(UnwindError, OSError):
     """An output cannot be written (unwritable folder, existing file without ``overwrite``...)."""
+
+
+class FoldError(UnwindError):
+    """A deformation folds over the specimen and the export was refused (the one fold rule,
+    :func:`napari_unwind.pipeline.fold_rule`); allow folds to export anyway."""
 
 
 def finite_number(name: str, value: object) -> float:
