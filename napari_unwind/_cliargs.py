@@ -226,3 +226,27 @@ def _default_session_path(output: str | os.PathLike) -> Path:
     stem = Path(name).stem if Path(name).suffix else name
     stem = stem.rstrip("_-. ") or "straight"
     return out.with_name(stem + SESSION_SUFFIX)
+
+
+def _skeleton_options(args: argparse.Namespace):
+    """The :class:`~napari_unwind.pipeline.SkeletonOptions` of the skeleton options given (the rest default)."""
+    from .pipeline import SkeletonOptions
+
+    given = dict(estimate_twist=False if args.no_twist else None, n_levels=args.levels,
+                 smoothing_iterations=args.smoothing_iterations, cage_radius=args.cage_radius,
+                 tolerance=args.tolerance, snap_tolerance=args.snap_tolerance, half_extent=getattr(args, "cage", None),
+                 cage_margin=getattr(args, "cage_margin", None))
+    return SkeletonOptions(**{k: v for k, v in given.items() if v is not None})
+
+
+def _pipeline_options(args: argparse.Namespace):
+    """The :class:`~napari_unwind.pipeline.PipelineOptions` of ``unwind run`` (the options not given default)."""
+    from .pipeline import ExportOptions, PipelineOptions, SegmentOptions
+
+    seg = {k: v for k, v in dict(features=args.features, level=args.level, isovalue=args.isovalue,
+                                  fill_holes=args.fill_holes or None).items() if v is not None}
+    exp = {k: v for k, v in dict(order=args.order, spacing=args.spacing, pad=args.pad, chunks=args.chunks,
+                                  allow_folds=args.allow_folds or None).items() if v is not None}
+    if hasattr(args, "max_output"):
+        exp["max_output"] = args.max_output
+    return PipelineOptions(SegmentOptions(**seg), _skeleton_options(args), ExportOptions(**exp))

@@ -4,7 +4,8 @@ Every subcommand parses its options, calls one core function (driving its progre
 prints a short report. A user's mistake prints one clear ``unwind: error: ...`` line and exits 1; a traceback
 means a bug.
 
-Exit status: 0 success; 1 an error, a wrong option included (one line ``unwind: error: ...``); 130 interrupted
+Exit status: 0 success; 1 an error, a wrong option included (one line ``unwind: error: ...``); 3 (``unwind
+run``) a specimen straightened only in part (:data:`napari_unwind.pipeline.EXIT_PARTIAL`); 130 interrupted
 (Ctrl-C, SIGINT); 143 terminated (SIGTERM), 129 hung up (SIGHUP). Interrupted or terminated, no partial output
 is left behind. Before any work, every command refuses an output that is, contains or lies inside one of its
 inputs.
@@ -36,9 +37,11 @@ from ._cliargs import (  # noqa: F401 (parse_size and the checks are part of thi
     _finite,
     _non_negative,
     _number,
+    _pipeline_options,
     _positive,
     _reader_options,
     _series,
+    _skeleton_options,
     _spacing3,
     _triple,
     _whole,
@@ -55,6 +58,12 @@ EPILOG = """exit status: 0 success; 1 an error, a wrong option included (one lin
 interrupted (Ctrl-C); 143 terminated (SIGTERM); 129 hung up (SIGHUP). Outputs are written atomically: an
 interrupted run leaves no partial output, an existing output is replaced only with --overwrite, and an output
 that is, contains or lies inside an input is refused."""
+
+RUN_EPILOG = """status of a specimen: ok (straightened to the goals: at least 99 % of the mask inside the cage, no
+lost interval, no fold over it), partial (written, but short of a goal: the reason is printed), failed, rejected
+(--all: a feature that is not a specimen, with its reason in specimens.csv). Exit status: 0 when every specimen is
+ok; 3 when one is partial (and none failed); 1 when one failed, on any error, or when --all finds nothing
+specimen-like; 130 interrupted (Ctrl-C); 143 terminated (SIGTERM); 129 hung up (SIGHUP)."""
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -180,26 +189,17 @@ def _load_session_for(args: argparse.Namespace, input_path: str | None, outputs:
 
 
 def _check_folds(deformation, allow: bool, folded: float | None = None) -> None:
-    """Refuse a folding deformation unless ``allow``; ``folded`` is the fraction of the specimen's mask where it
-    folds (None: unknown, no mask). A fold over no specimen voxel (``folded == 0``) is only a warning."""
-    from .io._volume import unit_label
+    """The one fold rule (:func:`napari_unwind.pipeline.fold_rule`): refuse a fold over the specimen (or where
+    that is unknown, ``folded`` None) unless ``allow``; a fold the rule lets through is one warning line."""
+    from .errors import FoldError
+    from .pipeline import fold_rule
 
-    folds = deformation.folds()
-    if not folds:
+    verdict = fold_rule(deformation, folded=folded, allow_folds=allow)
+    if verdict is None:
         return
-    where = ", ".join(f"s = {a:.4g}..{b:.4g}" for a, b in folds)
-    msg = (f"the deformation folds where the cage is larger than the radius of curvature ({where} "
-           f"{unit_label(deformation.unit)}); shrink the cage there: unwind skeleton/run --cage RX,RY (half extents) "
-           "or --cage-margin M, or edit the keyframes' cages in the session (Deformation.set_cage)")
-    if folded is not None and folded == 0:
-        print(f"unwind: warning: {msg}; no voxel of the specimen's mask lies in the folds (only empty cage "
-              "corners), so the export goes ahead", file=sys.stderr)
-        return
-    if folded is not None:
-        msg += f"; {100 * folded:.2g} % of the specimen's mask lies in the folds"
-    if not allow:
-        raise UnwindError(msg + ", or pass --allow-folds to export anyway")
-    print(f"unwind: warning: {msg}", file=sys.stderr)
+    if verdict.refused:
+        raise FoldError(verdict.message)
+    print(f"unwind: warning: {verdict.message}", file=sys.stderr)
 
 
 def cmd_straighten(args: argparse.Namespace) -> int:
@@ -404,23 +404,16 @@ def _mask_geometry(mask: Any, scan: Any, mask_path: Any) -> tuple[tuple, tuple, 
 
 def _estimate(mask_data: Any, endpoints: Any, *, spacing: Sequence[float], origin: Sequence[float],
               unit: str | None, volume: Any, args: argparse.Namespace) -> tuple[Any, list[str]]:
-    """Run the skeleton solve with a progress bar; returns the SkeletonResult and its warnings (one line each)."""
-    from .skeleton import estimate_deformation_iter
+    """Run the skeleton solve (:func:`napari_unwind.pipeline.skeleton_step`) with a progress bar; returns the
+    SkeletonResult and its warnings (one line each)."""
+    from .pipeline import skeleton_step
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        result = _run_with_bar(
-            estimate_deformation_iter(mask_data, endpoints, spacing=spacing, origin=origin, unit=unit,
-                                      volume=volume, estimate_twist=not args.no_twist, n_levels=args.levels,
-                                      smoothing_iterations=args.smoothing_iterations, cage_radius=args.cage_radius,
-                                      tolerance=args.tolerance, snap_tolerance=args.snap_tolerance,
-                                      half_extent=getattr(args, "cage", None),
-                                      cage_margin=getattr(args, "cage_margin", 0.1)),
-            args.quiet,
-        )
-    messages = list(result.warnings)
-    messages += [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
-    return result, [" ".join(m.split()) for m in dict.fromkeys(messages)]
+    result = _run_with_bar(
+        skeleton_step(mask_data, endpoints, spacing=spacing, origin=origin, unit=unit, volume=volume,
+                      options=_skeleton_options(args)),
+        args.quiet,
+    )
+    return result, list(result.warnings)
 
 
 def _skeleton_report(result: Any, args: argparse.Namespace) -> list[str]:
@@ -521,31 +514,20 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
     return 0
 
 
-def _segment_select(volume: Any, args: argparse.Namespace) -> tuple[Any, Any, str]:
-    """Join tree, the features under the ``--select`` points, refined at full resolution (lazy)."""
-    from .segmentation import default_isovalue, refine_mask_iter, segment_iter, select, selected_ids
-    from .session import Segmentation
-
-    k = 5 if args.features is None else args.features
-    t0 = time.perf_counter()
-    features = _run_with_bar(segment_iter(volume, features=k, level=args.level), args.quiet)
-    dt = time.perf_counter() - t0
-    ids = selected_ids(features, seeds=args.select)
-    working = select(features, ids=ids, fill_holes=args.fill_holes)
-    iso = args.isovalue if args.isovalue is not None else default_isovalue(features, working)
-    lazy = _run_with_bar(refine_mask_iter(volume, working, features=features, isovalue=iso), args.quiet)
-    segmentation = Segmentation(k=k, level=features.level, selected=tuple(ids),
-                                seeds=tuple(tuple(p) for p in args.select), isovalue=iso, fill_holes=args.fill_holes)
-    report = (f"segmented {args.input} at level {features.level} ({_fmt_triple(features.shape)}) into {features.k} "
-              f"features in {dt:.1f} s; selected feature{'s' if len(ids) > 1 else ''} "
-              f"{', '.join(map(str, ids))} under {', '.join(_fmt_point(p) for p in args.select)}, refined at full "
-              f"resolution (isovalue {iso:.4g})")
-    return lazy, segmentation, report
+def _say_results(results: Sequence[Any], say: Callable[..., Any]) -> None:
+    """One line per specimen or candidate: ok and rejected on stdout, partial and failed on stderr."""
+    for r in results:
+        if r.status == "failed":
+            print(f"unwind: error: {r.name} failed: {_one_line(r.reason)}", file=sys.stderr)
+        elif r.status == "partial":
+            print(f"unwind: partial: {_one_line(r.summary())}", file=sys.stderr)
+        else:
+            say(r.summary())
 
 
 def _run_all(args: argparse.Namespace) -> int:
-    """``unwind run SCAN --all -o OUTDIR``: every specimen, no click (napari_unwind.batch)."""
-    from .batch import straighten_all_iter
+    """``unwind run SCAN --all -o OUTDIR``: every specimen, no click (:func:`napari_unwind.pipeline.run_all_iter`)."""
+    from .pipeline import exit_status, run_all_iter
 
     clash = [name for name, given in (("--mask", args.mask), ("--select", args.select), ("--head", args.head),
                                       ("--tail", args.tail), ("--chain", args.chain), ("--session", args.session),
@@ -554,31 +536,27 @@ def _run_all(args: argparse.Namespace) -> int:
     if clash:
         raise UnwindError(f"--all finds every specimen and its ends itself; it does not take {', '.join(clash)}")
     say = (lambda *a: None) if args.quiet else print
-    skeleton = dict(estimate_twist=not args.no_twist, n_levels=args.levels,
-                    smoothing_iterations=args.smoothing_iterations, cage_radius=args.cage_radius,
-                    tolerance=args.tolerance, snap_tolerance=args.snap_tolerance,
-                    half_extent=getattr(args, "cage", None), cage_margin=getattr(args, "cage_margin", 0.1))
+    options = _pipeline_options(args)
     _check_io([args.output], [args.input])
     result = _run_with_bar(
-        straighten_all_iter(args.input, args.output, features=args.features, level=args.level,
-                            allow_folds=args.allow_folds, order=args.order, overwrite=args.overwrite,
-                            reader_options=_reader_options(args, args.input), skeleton=skeleton),
+        run_all_iter(args.input, args.output, options=options, overwrite=args.overwrite,
+                     reader_options=_reader_options(args, args.input)),
         args.quiet,
     )
     feats = result.features
+    found = [r for r in result.specimens if r.status != "rejected"]
     say(f"segmented {args.input} at level {feats.level} ({_fmt_triple(feats.shape)}) into {feats.k} features; "
-        f"{len(result.rows)} specimen(s)")
-    for r in result.rows:
-        if r["status"] == "ok":
-            tilt = "" if r.get("max_tilt") is None else f", largest tilt {r['max_tilt']:.3g} deg"
-            cov = "" if r.get("coverage") is None else f", coverage {r['coverage']:.3f}"
-            say(f"specimen {r['specimen']}: length {r['length']:.4g} {r['unit'] or 'voxels'}, {r['keyframes']} "
-                f"keyframes{tilt}{cov} -> {r['output']}")
-    for r in result.failed:
-        print(f"unwind: error: specimen {r['specimen']} failed: {r['reason']}", file=sys.stderr)
-    say(f"summary -> {result.table} ({len(result.rows) - len(result.failed)} straightened, {len(result.failed)} "
-        f"failed) in {result.seconds:.1f} s")
-    return 1 if result.failed else 0
+        f"{len(found)} specimen(s), {len(result.specimens) - len(found)} rejected")
+    _say_results(result.specimens, say)
+    if not found:
+        print(f"unwind: error: nothing specimen-like found in {args.input}: every one of the {len(result.specimens)} "
+              f"features was rejected (reasons in {result.table}); try more features (--features N) or straighten "
+              "a mask (unwind run --mask)", file=sys.stderr)
+        return 1
+    counts = {s: sum(r.status == s for r in result.specimens) for s in ("ok", "partial", "failed", "rejected")}
+    say(f"summary -> {result.table} ({counts['ok']} straightened, {counts['partial']} partial, {counts['failed']} "
+        f"failed, {counts['rejected']} rejected) in {result.seconds:.1f} s")
+    return exit_status(result.specimens)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -589,8 +567,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         return run_remote(args)
     from .io import open_volume
-    from .session import Session, save_session
-    from .warp import FoldWarning, export_iter
+    from .pipeline import exit_status, run_iter
 
     if args.mask and args.select:
         raise UnwindError("give either --mask MASK or --select A0,A1,A2 (segmentation), not both")
@@ -601,6 +578,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                       or args.level is not None):
         raise UnwindError("--features, --level, --isovalue and --fill-holes choose the segmentation; they do not "
                           "apply with --mask")
+    options = _pipeline_options(args)
     _check_output(args.output, args.overwrite)
     session_path = Path(args.session) if args.session else _default_session_path(args.output)
     target = _check_session_path(session_path, args.overwrite)
@@ -611,54 +589,35 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     volume = open_volume(args.input, **_reader_options(args, args.input))
     notes: list[str] = []
+    mask = None
     if args.mask:
         mask_vol = open_volume(args.mask)
         _, _, _, notes = _mask_geometry(mask_vol, volume, args.mask)
-        mask, segmentation = mask_vol.data, None
-        what = f"mask {args.mask}"
-    else:
-        mask, segmentation, what = _segment_select(volume, args)
-        say(what)
-        what = "the selected features"
-    t0 = time.perf_counter()
-    result, messages = _estimate(mask, endpoints, spacing=volume.spacing, origin=volume.origin, unit=volume.unit,
-                                 volume=volume.data, args=args)
-    dt = time.perf_counter() - t0
-    if result.deformation.folds():  # reported once, by the fold check below
-        messages = [m for m in messages if not m.startswith("the deformation folds")]
-    _warn_lines(notes + messages)
-    _say_endpoints(result, say)
-    say(f"skeleton of {what} in {dt:.1f} s")
-    for line in _skeleton_report(result, args):
-        say(line)
-
-    deformation = result.deformation
+        mask = mask_vol.data
     source = _source_info(args.input, volume, args.quiet)
-    session = Session(source=source, deformation=deformation, segmentation=segmentation, endpoints=result.endpoints,
-                      notes="unwind run" + (f": mask {Path(args.mask).absolute()}" if args.mask else "")
-                            + ("; suggested endpoints" if result.suggested else ""))
-    written_session = save_session(session, target, overwrite=args.overwrite)
-    say(f"session -> {written_session}")
-    try:
-        _check_folds(deformation, args.allow_folds, folded=result.folded)
-    except UnwindError as exc:
-        raise UnwindError(f"{exc}; the session was saved: edit it, or export as it is with unwind straighten "
-                          f"{args.input} --session {written_session} -o {args.output} --allow-folds") from None
-    t1 = time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FoldWarning)  # reported above
-        written = _run_with_bar(
-            export_iter(volume, deformation, args.output, order=args.order, spacing=args.spacing, pad=args.pad,
-                        chunks=args.chunks, overwrite=args.overwrite, session=session.to_dict(),
-                        **_max_output(args)),
-            args.quiet,
-        )
+    result = _run_with_bar(
+        run_iter(volume, mask=mask, seeds=args.select, endpoints=endpoints, options=options, output=args.output,
+                 session_path=target, source=source, overwrite=args.overwrite,
+                 notes="unwind run" + (f": mask {Path(args.mask).absolute()}" if args.mask else "")),
+        args.quiet,
+    )
+    _warn_lines(notes + list(result.warnings))
+    seg = result.session.segmentation
+    if seg is not None:
+        say(f"segmented {args.input} at level {seg.level} into {seg.k} features; selected feature"
+            f"{'s' if len(seg.selected) > 1 else ''} {', '.join(map(str, seg.selected))} under "
+            f"{', '.join(_fmt_point(p) for p in seg.seeds)}, refined at full resolution (isovalue {seg.isovalue:.4g})")
+    _say_endpoints(result.skeleton, say)
+    for line in _skeleton_report(result.skeleton, args):
+        say(line)
+    say(f"session -> {result.session_path}")
     if not args.quiet:
-        out = open_volume(written)
-        print(f"straightened {args.input} -> {written} in {time.perf_counter() - t1:.1f} s: shape "
-              f"{_fmt_triple(out.shape)} (s x y x x), spacing {_fmt_triple(out.spacing)} {out.unit_abbreviation}")
+        out = open_volume(result.output)
+        print(f"straightened {args.input} -> {result.output}: shape {_fmt_triple(out.shape)} (s x y x x), spacing "
+              f"{_fmt_triple(out.spacing)} {out.unit_abbreviation}")
         print(f"done in {time.perf_counter() - t_all:.1f} s")
-    return 0
+    _say_results([result], lambda *a: None)
+    return exit_status([result])
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -696,23 +655,33 @@ def _add_skeleton_options(p: argparse.ArgumentParser) -> None:
                    "tail (the first starts at the head, the last ends at the tail)")
     p.add_argument("--no-twist", action="store_true",
                    help="do not estimate the twist (frames by parallel transport)")
-    p.add_argument("--levels", type=_whole(2, 10000), default=100,
-                   help="level sets of the harmonic field, 2-10000 (default 100)")
-    p.add_argument("--smoothing-iterations", type=_whole(0, 100000), default=50,
-                   help="curve smoothing iterations, 0-100000 (default 50)")
-    p.add_argument("--cage-radius", type=_positive, default=10.0,
+    d = _skeleton_default
+    p.add_argument("--levels", type=_whole(2, 10000), default=None,
+                   help=f"level sets of the harmonic field, 2-10000 (default {d('n_levels')})")
+    p.add_argument("--smoothing-iterations", type=_whole(0, 100000), default=None,
+                   help=f"curve smoothing iterations, 0-100000 (default {d('smoothing_iterations')})")
+    p.add_argument("--cage-radius", type=_positive, default=None,
                    help="half size (voxels) of the box whose centre and corners the keyframes must reproduce within "
-                   "--tolerance (default 10): larger, more keyframes")
-    p.add_argument("--tolerance", type=_positive, default=1.0,
-                   help="how far (voxels) the keyframed box may stray from the dense curve's (default 1): larger, "
-                   "fewer keyframes")
-    p.add_argument("--snap-tolerance", type=_non_negative, default=5.0,
-                   help="ends outside the mask move onto it when within this many voxels (default 5)")
+                   f"--tolerance (default {d('cage_radius')}): larger, more keyframes")
+    p.add_argument("--tolerance", type=_positive, default=None,
+                   help="how far (voxels) the keyframed box may stray from the dense curve's (default "
+                   f"{d('tolerance')}): larger, fewer keyframes")
+    p.add_argument("--snap-tolerance", type=_non_negative, default=None,
+                   help="ends outside the mask move onto it when within this many voxels (default "
+                   f"{d('snap_tolerance')})")
     p.add_argument("--cage", type=_cage_pair, default=None, metavar="RX,RY",
                    help="cage half extents along u and v for every keyframe, in the scan's unit (default: fitted "
                    "per keyframe and per side to the specimen's sections)")
-    p.add_argument("--cage-margin", type=_non_negative, default=0.1, metavar="M",
-                   help="relative margin of the fitted cages (default 0.1: 10 %%; 2 voxels are added besides)")
+    p.add_argument("--cage-margin", type=_non_negative, default=None, metavar="M",
+                   help=f"relative margin of the fitted cages (default {d('cage_margin')}: "
+                   f"{100 * d('cage_margin'):.0f} %%; 2 voxels are added besides)")
+
+
+def _skeleton_default(name: str) -> Any:
+    """The default of a skeleton option: the one in :class:`napari_unwind.pipeline.SkeletonOptions`."""
+    from .pipeline import SkeletonOptions
+
+    return SkeletonOptions.__dataclass_fields__[name].default
 
 
 def _cage_pair(text: str) -> tuple[float, float]:
@@ -830,15 +799,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_input_options(p)
     p.set_defaults(func=cmd_skeleton)
 
-    p = sub.add_parser("run", help="the whole pipeline: segment, select, skeleton, straighten")
+    p = sub.add_parser("run", help="the whole pipeline: segment, select, skeleton, straighten",
+                       epilog=RUN_EPILOG)
     p.add_argument("input", help="the scan, any supported format")
     p.add_argument("-o", "--output", required=True, help="the straight volume to write; the suffix chooses the format "
                    "(with --all: a folder)")
     p.add_argument("--all", action="store_true",
                    help="straighten every specimen (elongated, inside the scan, not a container such as the tube) "
-                   "with no click: -o OUTDIR gets specimen-ID.zarr, specimen-ID.unwind.json and specimens.csv (length, "
-                   "keyframes, min Jacobian, tilt, coverage); a specimen that fails is reported with its reason and "
-                   "the others go on; exit status 1 if any failed, after doing the rest")
+                   "with no click: -o OUTDIR gets specimen-ID.zarr, specimen-ID.unwind.json and specimens.csv "
+                   "(length, keyframes, min Jacobian, tilt, coverage, status and reason; every candidate feature has "
+                   "a row, rejected ones too); a specimen that fails is reported with its reason and the others go on")
     p.add_argument("--mask", default=None, help="the specimen's mask (same shape as INPUT) instead of segmenting")
     p.add_argument("--select", type=_triple, action="append", metavar="A0,A1,A2",
                    help="a point inside the specimen, full-resolution voxels (repeatable: several features)")
@@ -854,9 +824,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--session", default=None,
                    help="the session file to write (default: OUTPUT's name + .unwind.json beside OUTPUT)")
     _add_skeleton_options(p)
-    p.add_argument("--order", type=int, choices=(0, 1, 3), default=1,
+    p.add_argument("--order", type=int, choices=(0, 1, 3), default=None,
                    help="interpolation: 0 nearest (labels), 1 linear (default), 3 cubic")
-    p.add_argument("--pad", type=_whole(0), default=0, help="extra slices at both ends (default 0)")
+    p.add_argument("--pad", type=_whole(0), default=None, help="extra slices at both ends (default 0)")
     p.add_argument("--spacing", type=_positive, default=None, help="output voxel size (default: finest scan spacing)")
     p.add_argument("--chunks", type=_chunks, default=None, help="output chunk shape (default 64 x cross-section)")
     _add_max_output(p)

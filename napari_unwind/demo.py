@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -209,17 +208,15 @@ def _distance_vox(a: Any, b: Any, spacing: Any) -> float:
 
 
 def run_demo(output: Path, *, quiet: bool = False, overwrite: bool = False, n_fish: int = 3, seed: int = 0) -> int:
-    """Run the demo into the folder ``output``; returns 0 on success (the CLI's exit status)."""
+    """Run the demo into the folder ``output`` through :func:`napari_unwind.pipeline.run_iter`; returns the CLI's exit
+    status: 0 on success, 3 when a fish is straightened only in part (partial), 1 otherwise."""
     from ._report import describe, disk_usage, human_bytes
     from ._report import run_with_bar as _run_with_bar
     from .datasets import tank_phantom
     from .io import import_volume_iter, write_volume
     from .io._volume import unit_label
-    from .progress import run
-    from .segmentation import default_isovalue, refine_mask_iter, segment_iter, select, selected_ids
-    from .session import Segmentation, Session, SourceInfo, save_session
-    from .skeleton import estimate_deformation_iter
-    from .warp import FoldWarning, export_iter
+    from .pipeline import EXIT_PARTIAL, PipelineOptions, SegmentOptions, run_iter, segment_step
+    from .session import SourceInfo
 
     say = (lambda *a: None) if quiet else print
     output = Path(output)
@@ -250,76 +247,57 @@ def run_demo(output: Path, *, quiet: bool = False, overwrite: bool = False, n_fi
 
     t1 = time.perf_counter()
     k = max(5, n_fish + 2)  # the fish, the tube wall and a spare
-    features = _run_with_bar(segment_iter(imported, features=k), quiet)
+    options = PipelineOptions(segment=SegmentOptions(features=k))  # every other option: the pipeline's defaults
+    features = _run_with_bar(segment_step(imported, options.segment), quiet)
     say(f"segmented the tank into {features.k} features at level {features.level} "
         f"({'x'.join(map(str, features.shape))}) in {time.perf_counter() - t1:.1f} s")
     source = SourceInfo.from_path(store, volume=imported)
 
     say("")
-    rows, worst, swapped = [], 1.0, False
+    rows, worst, swapped, partial = [], 1.0, False, False
     for i, fish in enumerate(tank.fish, start=1):
         t1 = time.perf_counter()
         click = fish.centerline[len(fish.centerline) // 2]  # where a user would click: inside the fish
-        ids = selected_ids(features, seeds=[click])
-        working = select(features, ids=ids)
-        iso = default_isovalue(features, working)
-        mask = run(refine_mask_iter(imported, working, features=features, isovalue=iso)).compute()
-        t_sel = time.perf_counter() - t1
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            result = _run_with_bar(
-                estimate_deformation_iter(mask, None, spacing=imported.spacing, origin=imported.origin,
-                                          unit=imported.unit, volume=imported.data, estimate_twist=True),
-                quiet)
-        t_skel = time.perf_counter() - t1 - t_sel
-        deformation, ends = result.deformation, result.endpoints
+        target = output / f"fish_{i}.zarr"
+        r = _run_with_bar(
+            run_iter(imported, features=features, seeds=[click], options=options, output=target,
+                     session_path=output / f"fish_{i}.unwind.json", source=source, overwrite=True,
+                     notes="unwind demo: segmented, selected by a click, suggested endpoints, automatic twist"),
+            quiet)
+        t_run = time.perf_counter() - t1
+        result, deformation, ends = r.skeleton, r.deformation, r.session.endpoints
         d_head = _distance_vox(ends.head, fish.head, tank.spacing)
         d_tail = _distance_vox(ends.tail, fish.tail, tank.spacing)
         flipped = _distance_vox(ends.head, fish.tail, tank.spacing) < d_head
         swapped |= flipped
-        say(f"fish {i}: clicked {_pt(click)} -> feature {', '.join(map(str, ids))} ({int(mask.sum())} voxels); "
+        say(f"fish {i}: clicked {_pt(click)} -> feature {', '.join(map(str, r.ids))} ({r.voxels} working voxels); "
             f"suggested head {_pt(ends.head)} ({d_head:.1f} voxels from the true head), tail {_pt(ends.tail)} "
             f"({d_tail:.1f} from the true tail){'  HEAD AND TAIL SWAPPED' if flipped else ''}")
-        folds = deformation.folds()
-        for m in dict.fromkeys([*result.warnings, *(str(w.message) for w in caught
-                                                    if issubclass(w.category, UserWarning))]):
-            if not (folds and m.startswith("the deformation folds")):  # said once, below
-                say(f"  warning: {' '.join(m.split())}")
+        for m in r.warnings:
+            say(f"  warning: {m}")
         say(f"  {result.report()}")
-        if folds:
-            say(f"  warning: the deformation folds at s = {', '.join(f'{a:.3g}..{b:.3g}' for a, b in folds)} "
-                f"{unit}; exported anyway")
-
-        session = Session(source=source, deformation=deformation, endpoints=ends,
-                          segmentation=Segmentation(k=features.k, level=features.level, selected=tuple(ids),
-                                                    seeds=(tuple(float(c) for c in click),), isovalue=iso),
-                          notes="unwind demo: segmented, selected by a click, suggested endpoints, automatic twist")
-        save_session(session, output / f"fish_{i}.unwind.json")
-        target = output / f"fish_{i}.zarr"
-        t2 = time.perf_counter()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", FoldWarning)  # reported above
-            run(export_iter(imported, deformation, target, overwrite=overwrite, session=session.to_dict()))
+        say(f"  {r.summary()}")
+        partial |= r.status != "ok"
         from .io import open_volume
 
+        t2 = time.perf_counter()
         straight = open_volume(target).data.compute()
         _mip_png(straight, output / f"fish_{i}_mip.png", axis=2)
-        t_exp = time.perf_counter() - t2
         acc = accuracy(fish, deformation)
         worst = min(worst, acc["dice"])
-        rows.append((i, deformation, straight.shape, acc, t_sel, t_skel, t_exp))
+        rows.append((i, deformation, straight.shape, acc, t_run, time.perf_counter() - t2))
 
     say("")
     say(f"{'fish':>4} {'length':>9} {'keys':>4} {'straight':>12} {'RMS':>5} {'max':>5} {'length':>6} "
         f"{'twist':>11} {'Dice':>6} {'Dice':>6} {'seconds':>17}")
     say(f"{'':>4} {unit:>9} {'':>4} {'shape':>12} {'vox':>5} {'vox':>5} {'err %':>6} {'max/med deg':>11} "
-        f"{'':>6} {'truth':>6} {'select/skel/warp':>17}")
-    for i, d, shape, acc, t_sel, t_skel, t_exp in rows:
+        f"{'':>6} {'truth':>6} {'pipeline/check':>17}")
+    for i, d, shape, acc, t_run, t_check in rows:
         ref = accuracy(tank.fish[i - 1], true_deformation(tank.fish[i - 1]))["dice"]
         say(f"{i:>4} {d.length:>9.1f} {len(d):>4} {'x'.join(map(str, shape)):>12} {acc['centreline_rms']:>5.2f} "
             f"{acc['centreline_max']:>5.2f} {acc['arclength_error']:>+6.2f} "
             f"{acc['twist_max']:>5.1f}/{acc['twist_median']:<5.1f} {acc['dice']:>6.3f} {ref:>6.3f} "
-            f"{t_sel:>5.1f}/{t_skel:>4.1f}/{t_exp:>4.1f}")
+            f"{t_run:>11.1f}/{t_check:>4.1f}")
     say("")
     say(f"round trip scan -> OME-Zarr -> array identical, spacing kept: {'yes' if same else 'NO'}")
     say(f"MIPs: {output / 'tank_mip.png'} (before) and fish_N_mip.png (after); sessions: fish_N.unwind.json")
@@ -329,7 +307,9 @@ def run_demo(output: Path, *, quiet: bool = False, overwrite: bool = False, n_fi
         "against the true straight mask (s axes aligned at the closest true point of our head); Dice truth: the "
         "same with keyframes on the true centreline and frames (what the warp alone achieves)")
     say(f"total {time.perf_counter() - t_start:.1f} s")
-    return 0 if same and worst >= MIN_DICE and not swapped else 1
+    if not (same and worst >= MIN_DICE and not swapped):
+        return 1
+    return EXIT_PARTIAL if partial else 0
 
 
 def _pt(p: Any) -> str:
