@@ -19,7 +19,14 @@ from ..progress import Progress, ProgressGenerator, run
 from ..session import Endpoints
 from ._curve import arclength, regularise_ends, resample_curve, select_keyframes, smooth_curve
 from ._foldfree import coverage, format_lost, max_tilt, unfold
-from ._harmonic import decimate_surface, harmonic_field, level_set_centroids, surface_mesh, tet_mesh
+from ._harmonic import (
+    decimate_surface,
+    harmonic_field,
+    lattice_tet_mesh,
+    level_set_centroids,
+    surface_mesh,
+    tet_mesh,
+)
 
 __all__ = ["estimate_deformation", "estimate_deformation_iter", "SkeletonResult", "WorkingMask", "working_mask"]
 
@@ -339,7 +346,7 @@ def _normalise_endpoints(endpoints: Any) -> Endpoints | None:
 def _part_curve(
     wm: WorkingMask, labels: np.ndarray, head_w: np.ndarray, tail_w: np.ndarray, *, what: str, chained: bool,
     n_levels: int, level_spacing: str, timings: dict[str, float], mesh_info: list[dict[str, int]],
-    note: Any, max_triangles: int | None, mesher: dict[str, Any],
+    note: Any, max_triangles: int | None, mesher: dict[str, Any], tet_mesher: str, lattice_nodes: int,
 ) -> ProgressGenerator[np.ndarray]:
     """Centroid curve (physical, origin 0) of the part of the working mask holding ``head_w`` and ``tail_w``."""
     t = time.perf_counter()
@@ -368,17 +375,25 @@ def _part_curve(
             raise InvalidInputError(
                 f"the {what} start and end lie in different parts of the mask that dilation by 3 working voxels "
                 f"does not join: start in part {lh}, end in part {lt} ({parts}); {hint}")
-    yield Progress("surface", 0, 1, what)
-    verts, faces = surface_mesh(occupancy, spacing=tuple(wsp), offset=tuple(wm.offset))
-    n_mc = len(faces)
-    if max_triangles:
-        verts, faces = decimate_surface(verts, faces, max_faces=max_triangles)
-    t = _stage("surface", timings, t)
-    yield Progress("tet mesh", 0, 1, f"{what}: {len(faces)} triangles")
-    mesh = tet_mesh(verts, faces, **mesher)
-    t = _stage("tet mesh", timings, t)
-    mesh_info.append({"marching_cubes_triangles": int(n_mc), "triangles": int(len(faces)),
-                      "vertices": int(len(mesh.vertices)), "tets": int(len(mesh.tets))})
+    if tet_mesher == "lattice":
+        yield Progress("tet mesh", 0, 1, what)
+        cell = max(1.0, (float(np.count_nonzero(occupancy >= 0.5)) / lattice_nodes) ** (1 / 3))
+        mesh = lattice_tet_mesh(occupancy, spacing=tuple(wsp), offset=tuple(wm.offset), cell=cell)
+        t = _stage("tet mesh", timings, t)
+        mesh_info.append({"mesher": "lattice", "cell": round(cell, 6), "triangles": int(len(mesh.surface[1])),
+                          "vertices": int(len(mesh.vertices)), "tets": int(len(mesh.tets))})
+    else:  # the paper's: marching cubes, decimation, fTetWild (its mesh varies from run to run)
+        yield Progress("surface", 0, 1, what)
+        verts, faces = surface_mesh(occupancy, spacing=tuple(wsp), offset=tuple(wm.offset))
+        n_mc = len(faces)
+        if max_triangles:
+            verts, faces = decimate_surface(verts, faces, max_faces=max_triangles)
+        t = _stage("surface", timings, t)
+        yield Progress("tet mesh", 0, 1, f"{what}: {len(faces)} triangles")
+        mesh = tet_mesh(verts, faces, **mesher)
+        t = _stage("tet mesh", timings, t)
+        mesh_info.append({"mesher": "ftetwild", "marching_cubes_triangles": int(n_mc), "triangles": int(len(faces)),
+                          "vertices": int(len(mesh.vertices)), "tets": int(len(mesh.tets))})
     yield Progress("harmonic", 0, 1, f"{what}: {len(mesh.vertices)} vertices, {len(mesh.tets)} tets")
     head = wm.from_working(head_w) * np.asarray(wm.spacing)
     tail = wm.from_working(tail_w) * np.asarray(wm.spacing)
@@ -480,6 +495,8 @@ def estimate_deformation_iter(
     unit: str | None = None,
     max_triangles: int | None = 3000,
     mesher: dict[str, Any] | None = None,
+    tet_mesher: str = "lattice",
+    lattice_nodes: int = 20000,
     end_window_factor: float = 2.0,
     fold_free: bool = True,
     cage_margin: float = 0.1,
@@ -521,6 +538,10 @@ def estimate_deformation_iter(
         raise InvalidInputError(f"min_jacobian must be a number in (0, 1), got {min_jacobian!r}")
     if level_spacing not in ("arclength", "uniform"):
         raise InvalidInputError(f"level_spacing must be 'arclength' or 'uniform', got {level_spacing!r}")
+    if tet_mesher not in ("lattice", "ftetwild"):
+        raise InvalidInputError(f"tet_mesher must be 'lattice' or 'ftetwild', got {tet_mesher!r}")
+    if not isinstance(lattice_nodes, (int, np.integer)) or lattice_nodes < 1000:
+        raise InvalidInputError(f"lattice_nodes must be an integer >= 1000, got {lattice_nodes!r}")
     if smoothing not in ("taubin", "laplacian"):
         raise InvalidInputError(f"smoothing must be 'taubin' or 'laplacian', got {smoothing!r}")
     ends = _normalise_endpoints(endpoints)
@@ -584,7 +605,8 @@ def estimate_deformation_iter(
         pts = yield from _part_curve(wm, labels, wm.to_working(pa), wm.to_working(pb), what=what,
                                      chained=len(snapped) > 1, n_levels=int(n_levels), level_spacing=level_spacing,
                                      timings=timings, mesh_info=mesh_info, note=note,
-                                     max_triangles=max_triangles, mesher=dict(mesher or {}))
+                                     max_triangles=max_triangles, mesher=dict(mesher or {}),
+                                     tet_mesher=tet_mesher, lattice_nodes=int(lattice_nodes))
         t = time.perf_counter()
         yield Progress("smoothing", i, len(snapped), what)
         piece = resample_curve(smooth_curve(pts, iterations=int(smoothing_iterations), method=smoothing),
@@ -726,9 +748,12 @@ def estimate_deformation(
         ``smoothing`` ("taubin" or the paper's "laplacian"), ``level_spacing`` ("arclength" or the paper's
         "uniform"), ``tolerance`` (1 voxel), ``half_extent`` and ``pad`` (physical; default proposed from the
         cross-sections), ``max_side`` (128), ``snap_tolerance`` (5 voxels), ``up`` (world direction for the first
-        frame's v without twist estimation), ``origin``, ``unit``, ``max_triangles`` (3000: the marching-cubes
-        surface is decimated to this many triangles before meshing, None for no decimation; the mesher's time
-        grows with the surface), ``mesher`` (options of :func:`tet_mesh`, e.g. ``edge_length_fac``) and
+        frame's v without twist estimation), ``origin``, ``unit``, ``tet_mesher`` ("lattice", the default: the
+        deterministic :func:`lattice_tet_mesh` of the working occupancy, about ``lattice_nodes`` (20000) nodes
+        inside the body; "ftetwild": the paper's marching cubes + fTetWild, whose mesh varies from run to run
+        even on one thread, so its results are not reproducible), ``max_triangles`` (fTetWild only, 3000: the
+        marching-cubes surface is decimated to this many triangles before meshing, None for no decimation),
+        ``mesher`` (fTetWild only: options of :func:`tet_mesh`, e.g. ``edge_length_fac``) and
         ``end_window_factor`` (2: the curve's ends, over this many times the largest inscribed radius, are
         replaced by a quadratic fit, see :func:`~napari_unwind.skeleton.regularise_ends`; 0 keeps them),
         ``fold_free`` (True: each keyframe's cage fitted per side to the sections there, and inner sides shrunk

@@ -9,6 +9,7 @@ from napari_unwind.errors import InvalidInputError
 from napari_unwind.skeleton import (
     TetMesh,
     harmonic_field,
+    lattice_tet_mesh,
     level_set_centroids,
     surface_mesh,
     tet_mesh,
@@ -123,3 +124,111 @@ def test_decimation_keeps_the_shape(cylinder_mesh):
 def test_empty_occupancy_is_refused():
     with pytest.raises(InvalidInputError, match="no voxel"):
         surface_mesh(np.zeros((5, 5, 5), np.float32), spacing=(1.0, 1.0, 1.0))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the deterministic lattice mesher (the default)
+# ---------------------------------------------------------------------------------------------------------------
+
+def _ball_occupancy(radius=9.0, n=25, centre=(12.3, 11.8, 12.1)):
+    """The exact fraction of each voxel inside a ball (supersampled 4^3): its 0.5 isosurface is the sphere."""
+    s = (np.arange(4) + 0.5) / 4 - 0.5
+    g = np.mgrid[:n, :n, :n].astype(float)
+    occ = np.zeros((n, n, n))
+    for dz in s:
+        for dy in s:
+            for dx in s:
+                r2 = (g[0] + dz - centre[0]) ** 2 + (g[1] + dy - centre[1]) ** 2 + (g[2] + dx - centre[2]) ** 2
+                occ += r2 <= radius ** 2
+    return (occ / 64).astype(np.float32)
+
+
+def _signed_volumes(mesh):
+    p = mesh.vertices[mesh.tets]
+    return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6
+
+
+@pytest.mark.parametrize("cell", [1.0, 1.7, 3.0])
+def test_lattice_mesh_of_a_ball_is_closed_conforming_and_has_its_volume(cell):
+    mesh = lattice_tet_mesh(_ball_occupancy(), spacing=(1.0, 1.0, 1.0), cell=cell)
+    assert (_signed_volumes(mesh) > 0).all()  # positively oriented, none flat
+    # conforming: every interior triangle is shared by exactly two tets, so the boundary is a closed surface
+    # (every boundary edge in exactly two boundary triangles) with Euler characteristic 2 (a sphere)
+    V, F = mesh.surface
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    edges, counts = np.unique(e, axis=0, return_counts=True)
+    assert (counts == 2).all()
+    assert len(np.unique(F)) - len(edges) + len(F) == 2
+    faces = np.sort(mesh.tets[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3), axis=1)
+    assert np.unique(faces, axis=0, return_counts=True)[1].max() == 2
+    # the boundary lies on the sphere within half a cell (marching cubes' accuracy at that step); a coarse
+    # lattice's secants and the smoothing that widens the step to a cell lose volume on a convex body
+    r = np.linalg.norm(V[np.unique(F)] - (12.3, 11.8, 12.1), axis=1)
+    assert np.abs(r - 9.0).max() < 0.5 * cell
+    assert abs((r - 9.0).mean()) < 0.1 * cell
+    assert mesh.volume == pytest.approx(4 / 3 * np.pi * 9.0 ** 3, rel=0.01 + 0.06 * (cell - 1))
+
+
+def test_lattice_mesh_spacing_and_offset_are_physical():
+    occ = _ball_occupancy()
+    a = lattice_tet_mesh(occ, spacing=(1.0, 1.0, 1.0))
+    b = lattice_tet_mesh(occ, spacing=(2.0, 0.5, 1.5), offset=(10.0, -3.0, 7.0))
+    np.testing.assert_array_equal(a.tets, b.tets)
+    np.testing.assert_allclose(b.vertices, a.vertices * (2.0, 0.5, 1.5) + (10.0, -3.0, 7.0), atol=1e-9)
+
+
+@pytest.mark.parametrize("cell", [1.0, 1.7])
+def test_lattice_mesh_passes_the_patch_test(cell):
+    # on a conforming P1 mesh the cotangent Laplacian of a linear function vanishes at every interior vertex
+    # (its hat function is zero on the boundary), whatever the boundary's shape; a crack (a shared quad cut by
+    # different diagonals on its two sides) or a flipped tet breaks it
+    import igl
+
+    mesh = lattice_tet_mesh(_ball_occupancy(), spacing=(1.0, 0.8, 1.3), cell=cell)
+    L = igl.cotmatrix(mesh.vertices, mesh.tets.astype(np.int64))
+    interior = np.ones(len(mesh.vertices), bool)
+    interior[np.unique(mesh.surface[1])] = False
+    assert interior.sum() > 100
+    for axis in range(3):
+        r = L @ mesh.vertices[:, axis]
+        assert np.abs(r[interior]).max() < 1e-9 * np.abs(L).max()
+
+
+def test_lattice_mesh_refuses_bad_options():
+    occ = _ball_occupancy()
+    with pytest.raises(InvalidInputError, match="no voxel"):
+        lattice_tet_mesh(np.zeros((5, 5, 5), np.float32), spacing=(1.0, 1.0, 1.0))
+    with pytest.raises(InvalidInputError, match=r"cell must be a number >= 1 \(voxels\), got 0.5"):
+        lattice_tet_mesh(occ, spacing=(1.0, 1.0, 1.0), cell=0.5)
+    with pytest.raises(InvalidInputError, match=r"snap must be in \(0, 0.5\), got 0.7"):
+        lattice_tet_mesh(occ, spacing=(1.0, 1.0, 1.0), snap=0.7)
+
+
+_SOLVE_SCRIPT = """
+import hashlib, json, os, sys, warnings
+import numpy as np
+from napari_unwind.datasets import fish_phantom
+from napari_unwind.skeleton import estimate_deformation
+ph = fish_phantom(seed=5, curve="s-bend", twist=np.pi / 3, noise=0.05, tube=False)
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    d = estimate_deformation(ph.mask, spacing=ph.spacing, volume=ph.volume)
+print(hashlib.sha256(json.dumps(d.to_dict(), sort_keys=True).encode()).hexdigest())
+"""
+
+
+def test_skeleton_is_byte_identical_across_processes_and_thread_counts():
+    # the same mask gives the same deformation in separate processes, with one BLAS/numba thread or several
+    # (fTetWild gave a different mesh each run: 37, 37 and 40 keyframes on the aorta)
+    import os
+    import subprocess
+    import sys
+
+    digests = set()
+    for threads in ("1", "2", "1"):
+        env = dict(os.environ, OMP_NUM_THREADS=threads, OPENBLAS_NUM_THREADS=threads, NUMBA_NUM_THREADS=threads,
+                   MKL_NUM_THREADS=threads)
+        out = subprocess.run([sys.executable, "-c", _SOLVE_SCRIPT], env=env, capture_output=True, text=True,
+                             timeout=300, check=True)
+        digests.add(out.stdout.strip().splitlines()[-1])
+    assert len(digests) == 1, digests

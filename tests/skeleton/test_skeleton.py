@@ -138,7 +138,7 @@ def test_result_describes_the_run(solved):
     assert res.keyframe_indices[0] == 0 and res.keyframe_indices[-1] == len(res.curve) - 1
     np.testing.assert_allclose(res.curve[res.keyframe_indices] * ph.spacing, dfm.positions, atol=1e-9)
     assert 2 <= len(dfm.keyframes) <= 60
-    assert {"surface", "tet mesh", "harmonic", "level sets", "smoothing", "frames", "twist", "keyframes"} <= set(
+    assert {"tet mesh", "harmonic", "level sets", "smoothing", "frames", "twist", "keyframes"} <= set(
         res.timings)
     # the true ends c(0) and c(L) are the tips of the body; the used ends are snapped into the working mask
     np.testing.assert_allclose(res.endpoints.head, ph.head, atol=2.5)
@@ -158,7 +158,7 @@ def test_generator_reports_stages_in_order_and_plain_function_agrees():
     ph = fish_phantom(seed=2, curve="c-bend", noise=0, tube=False)
     res, stages = _solve(ph.mask, (ph.head, ph.tail), spacing=ph.spacing, estimate_twist=False)
     order = [s for i, s in enumerate(stages) if i == 0 or stages[i - 1] != s]
-    expected = ["working mask", "surface", "tet mesh", "harmonic", "level sets", "smoothing", "frames", "cage",
+    expected = ["working mask", "tet mesh", "harmonic", "level sets", "smoothing", "frames", "cage",
                 "keyframes"]
     assert [s for s in order if s in expected] == expected
     with warnings.catch_warnings():
