@@ -1,0 +1,196 @@
+"""napari_unwind.pipeline: its options' defaults and checks, the fold rule, the status rule, and the command
+line's exit statuses (partial -> 3, nothing specimen-like -> 1).
+
+References: the skeleton solver's own signature (for the defaults), phantoms whose fish is known to fit a cage,
+and a cage given far too small (so part of the fish is left out of it, whatever the solver does).
+"""
+
+from __future__ import annotations
+
+import csv
+import inspect
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from conftest import run_unwind
+from napari_unwind.datasets import fish_phantom
+from napari_unwind.errors import FoldError, InvalidInputError
+from napari_unwind.io import write_volume
+from napari_unwind.pipeline import (
+    EXIT_PARTIAL,
+    ExportOptions,
+    PipelineOptions,
+    SegmentOptions,
+    SkeletonOptions,
+    SpecimenResult,
+    exit_status,
+    fold_rule,
+    judge,
+)
+
+
+def _arg(p):
+    return ",".join(f"{float(v):.3f}" for v in p)
+
+
+@pytest.fixture(scope="module")
+def fish(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("pipeline")
+    f = fish_phantom(length=80, seed=3, tube=False)
+    mask = write_volume(f.mask.astype(np.uint8), tmp / "mask.nrrd", spacing=f.spacing, unit=f.unit)
+    scan = write_volume(f.volume, tmp / "scan.nrrd", spacing=f.spacing, unit=f.unit)
+    return tmp, f, mask, scan
+
+
+def _folding():
+    from napari_unwind.deformation import Deformation
+
+    t = np.linspace(0, np.pi / 2, 40)
+    pos = np.stack([np.zeros_like(t), 10 * np.sin(t), 10 * (1 - np.cos(t))], axis=1)
+    n = np.stack([np.zeros_like(t), np.cos(t), np.sin(t)], axis=1)
+    v = np.tile([1.0, 0.0, 0.0], (len(t), 1))
+    return Deformation.from_keyframes(pos, np.stack([np.cross(v, n), v, n], axis=1), 12.0)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# options
+# ------------------------------------------------------------------------------------------------------------------
+def test_skeleton_defaults_are_the_solvers_own():
+    """One source: every SkeletonOptions default equals estimate_deformation_iter's."""
+    from napari_unwind.skeleton import estimate_deformation_iter
+
+    sig = inspect.signature(estimate_deformation_iter).parameters
+    for name, f in SkeletonOptions.__dataclass_fields__.items():
+        assert f.default == sig[name].default, name
+    assert set(SkeletonOptions().kwargs()) <= set(sig)
+
+
+def test_export_defaults_are_the_warps_own(tmp_path):
+    from napari_unwind.warp import export_iter
+
+    sig = inspect.signature(export_iter).parameters
+    kw = ExportOptions().kwargs(tmp_path / "x.zarr")
+    assert "max_output" not in kw  # the warp's DEFAULT_MAX_OUTPUT applies
+    for name in ("order", "spacing", "pad", "chunks"):
+        assert kw[name] == sig[name].default, name
+    assert ExportOptions(chunks=(8, 16, 16)).kwargs(tmp_path / "x.zarr")["file_chunks"] == (8, 16, 16)
+    assert "file_chunks" not in ExportOptions(chunks=(8, 16, 16)).kwargs(tmp_path / "x.tif")
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda: SegmentOptions(features=0), "features must be a whole number 1..100, got 0"),
+    (lambda: SegmentOptions(isovalue=float("nan")), "isovalue must be a finite number, got nan"),
+    (lambda: SkeletonOptions(n_levels=1), "n_levels must be a whole number 2..10000, got 1"),
+    (lambda: SkeletonOptions(tolerance=-1), "tolerance must be a positive number, got -1"),
+    (lambda: SkeletonOptions(cage_margin="a"), "cage_margin must be a number, got 'a'"),
+    (lambda: SkeletonOptions(half_extent=(1, 2, 3)), "half_extent must be two positive numbers"),
+    (lambda: ExportOptions(order=2), "order must be 0, 1 or 3, got 2"),
+    (lambda: ExportOptions(chunks=(1, 2)), "chunks must be 3 sizes"),
+    (lambda: PipelineOptions.from_values(cage=3), "unknown pipeline option 'cage'"),
+])
+def test_bad_options_are_refused_up_front_with_the_value(make, words):
+    with pytest.raises(InvalidInputError) as info:
+        make()
+    assert words in str(info.value) and "\n" not in str(info.value)
+
+
+def test_options_from_flat_values():
+    o = PipelineOptions.from_values(features=8, cage_margin=0.2, order=3, level=None)
+    assert o.segment.features == 8 and o.segment.level is None and o.skeleton.cage_margin == 0.2
+    assert o.export.order == 3 and o.skeleton.n_levels == SkeletonOptions().n_levels
+    assert SegmentOptions().k == 5 and SegmentOptions(features=7).k == 7
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# the fold rule and the status rule
+# ------------------------------------------------------------------------------------------------------------------
+def test_fold_rule():
+    d = _folding()
+    assert d.folds()
+    corners = fold_rule(d, folded=0.0)
+    assert not corners.refused and "no voxel of the specimen" in corners.message and "--cage" in corners.message
+    for folded in (0.01, None, float("nan")):
+        v = fold_rule(d, folded=folded)
+        assert v.refused and "--allow-folds" in v.message, folded
+    allowed = fold_rule(d, folded=0.01, allow_folds=True)
+    assert not allowed.refused and "1 % of the specimen" in allowed.message
+    from napari_unwind.deformation import Deformation
+
+    straight = Deformation.from_polyline(np.stack([np.arange(20.0), np.zeros(20), np.zeros(20)], 1), spacing=1.0,
+                                         cage_half_extent=2.0)
+    assert fold_rule(straight) is None
+
+
+def test_export_step_applies_the_fold_rule(tmp_path):
+    from napari_unwind.io import as_volume
+    from napari_unwind.pipeline import export_step
+    from napari_unwind.progress import run
+
+    vol = as_volume(np.zeros((30, 30, 30), np.float32), spacing=1.0)
+    with pytest.raises(FoldError, match="--allow-folds"):
+        run(export_step(vol, _folding(), tmp_path / "x.nrrd"))
+    assert not (tmp_path / "x.nrrd").exists()
+    with pytest.warns(UserWarning, match="no voxel of the specimen"):
+        run(export_step(vol, _folding(), tmp_path / "x.nrrd", folded=0.0))
+    assert (tmp_path / "x.nrrd").exists()
+
+
+def _skel(coverage=1.0, lost=(), folded=0.0, folds=()):
+    d = SimpleNamespace(unit="micrometer", folds=lambda: list(folds))
+    return SimpleNamespace(coverage=coverage, lost=lost, folded=folded, deformation=d)
+
+
+def test_status_rule():
+    assert judge(_skel()) == ("ok", "")
+    assert judge(_skel(coverage=0.99)) == ("ok", "")
+    assert judge(_skel(coverage=float("nan"))) == ("ok", "")  # not measured: no verdict on it
+    status, reason = judge(_skel(coverage=0.985))
+    assert status == "partial" and "coverage 98.5 %" in reason
+    status, reason = judge(_skel(lost=((10.0, 20.0, 0.004),)))
+    assert status == "partial" and "lost" in reason and "10" in reason
+    status, reason = judge(_skel(folded=0.02, folds=[(1.0, 2.0)]))
+    assert status == "partial" and "folds over 2 %" in reason
+    assert judge(_skel(folded=0.0, folds=[(1.0, 2.0)])) == ("ok", "")  # only empty cage corners
+
+
+def test_exit_status():
+    ok, part = SpecimenResult("ok"), SpecimenResult("partial", "coverage")
+    failed, rejected = SpecimenResult("failed", "x"), SpecimenResult("rejected", "a container")
+    assert exit_status([ok, rejected]) == 0
+    assert exit_status([ok, part, rejected]) == EXIT_PARTIAL == 3
+    assert exit_status([ok, part, failed]) == 1
+    assert exit_status([rejected]) == 1 and exit_status([]) == 1
+    with pytest.raises(InvalidInputError, match="status must be one of"):
+        SpecimenResult("fine")
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# the command line's statuses
+# ------------------------------------------------------------------------------------------------------------------
+def test_run_with_a_fitting_cage_is_ok_and_a_too_small_cage_is_partial(fish, tmp_path):
+    tmp, f, mask, scan = fish
+    ends = ["--head", _arg(f.head), "--tail", _arg(f.tail)]
+    code, out, err = run_unwind("run", scan, "--mask", mask, *ends, "-o", tmp_path / "ok.nrrd", "-q")
+    assert code == 0, err
+    # half extents of 1 voxel on a body several voxels thick: much of the mask lies outside the cage
+    code, out, err = run_unwind("run", scan, "--mask", mask, *ends, "--cage", "1,1", "-o", tmp_path / "small.nrrd")
+    assert code == EXIT_PARTIAL, err
+    partial = [line for line in err.splitlines() if line.startswith("unwind: partial: ")]
+    assert len(partial) == 1 and "coverage" in partial[0] and "Traceback" not in err, err
+    assert (tmp_path / "small.nrrd").exists() and (tmp_path / "small.unwind.json").exists()  # written, not success
+    assert "--cage" in run_unwind("run", "--help")[1] and "3 when one is partial" in run_unwind("run", "--help")[1]
+
+
+def test_run_all_on_a_scan_with_nothing_specimen_like_says_so_and_exits_1(tmp_path):
+    z, y, x = np.mgrid[:40, :40, :40]
+    ball = ((z - 20) ** 2 + (y - 20) ** 2 + (x - 20) ** 2 <= 8 ** 2).astype(np.float32) * 1000
+    scan = write_volume(ball, tmp_path / "ball.nrrd", spacing=1.0)
+    code, out, err = run_unwind("run", scan, "--all", "-o", tmp_path / "out")
+    assert code == 1 and "nothing specimen-like" in err and "Traceback" not in err, err
+    with open(tmp_path / "out" / "specimens.csv", newline="") as fh:
+        table = list(csv.DictReader(fh))
+    assert table and all(r["status"] == "rejected" and r["reason"] for r in table)
+    assert "not elongated" in table[0]["reason"]
+    assert "rejected" in out  # a summary line per candidate
