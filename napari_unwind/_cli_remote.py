@@ -223,14 +223,22 @@ def run_remote(args: argparse.Namespace) -> int:
 
     Takes the namespace of ``unwind run`` (plus ``server``, ``token``, ``tls``); writes the same files as the
     local run: the straight volume at ``--output`` and the session beside it (or at ``--session``), whose source
-    is the local scan.
+    is the local scan. Returns the same exit status as the local run: 0 ok, 3 partial (the job's ``status``).
     """
     import time
 
-    from ._cliargs import _check_io, _check_session_path, _default_session_path, _endpoints_from_args, _reader_options
+    from ._cliargs import (
+        _check_io,
+        _check_session_path,
+        _default_session_path,
+        _endpoints_from_args,
+        _pipeline_options,
+        _reader_options,
+    )
     from .io import open_volume
     from .io._atomic import check_writable
     from .io._formats import output_format
+    from .pipeline import EXIT_PARTIAL
     from .session import Session, SourceInfo, save_session
 
     if args.mask and args.select:
@@ -257,15 +265,11 @@ def run_remote(args: argparse.Namespace) -> int:
         mask_id = ""
         if args.mask:
             mask_id = client.upload(open_volume(args.mask), name="mask").volume_id
-        skeleton = dict(no_twist=args.no_twist, levels=args.levels, smoothing_iterations=args.smoothing_iterations,
-                        cage_radius=args.cage_radius, tolerance=args.tolerance, snap_tolerance=args.snap_tolerance)
         job = client.pipeline(
-            vid, select=args.select, mask_volume_id=mask_id, features=args.features, level=args.level,
-            isovalue=args.isovalue, fill_holes=args.fill_holes,
+            vid, select=args.select, mask_volume_id=mask_id, options=_pipeline_options(args),
             head=None if endpoints is None else endpoints.head, tail=None if endpoints is None else endpoints.tail,
-            chain=None if endpoints is None else endpoints.chain, skeleton=skeleton,
-            output_name="straight" + _suffix(args.output), order=args.order, spacing=args.spacing, pad=args.pad,
-            chunks=args.chunks, allow_folds=args.allow_folds, name=Path(str(args.output)).name)
+            chain=None if endpoints is None else endpoints.chain, output_name="straight" + _suffix(args.output),
+            name=Path(str(args.output)).name)
         for w in job.result.warnings:
             print(f"unwind: warning: {w}", file=sys.stderr)
         written = client.download(job.result.volume_id, args.output, overwrite=args.overwrite)
@@ -280,7 +284,11 @@ def run_remote(args: argparse.Namespace) -> int:
         f"{f.get('keyframes', '?')} keyframes")
     say(f"straightened {args.input} -> {written}; session -> {written_session}; done in "
         f"{time.perf_counter() - t0:.1f} s")
-    return 0
+    status = f.get("status", "ok")
+    if status == "partial":  # the same verdict and exit status as the local run (napari_unwind.pipeline)
+        print(f"unwind: partial: the specimen: {' '.join(f.get('reason', '').split())}", file=sys.stderr)
+        return EXIT_PARTIAL
+    return 0 if status == "ok" else 1
 
 
 # ------------------------------------------------------------------------------------------------------------------

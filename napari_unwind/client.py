@@ -569,21 +569,35 @@ class Client:
         return msg
 
     @staticmethod
-    def _skeleton_options(no_twist: bool = False, levels: int = 100, smoothing_iterations: int = 50,
-                          cage_radius: float = 10.0, tolerance: float = 1.0, snap_tolerance: float = 5.0):
-        from unwind_services._proto.unwind.v1 import skeleton_pb2
+    def _skeleton_options(options: Any = None, **given: Any):
+        """The SkeletonOptions message of a :class:`~napari_unwind.pipeline.SkeletonOptions` or of its fields
+        (``no_twist`` and ``levels`` are accepted for ``estimate_twist`` and ``n_levels``; the rest default)."""
+        from unwind_services import convert
 
-        return skeleton_pb2.SkeletonOptions(no_twist=no_twist, levels=levels, smoothing_iterations=smoothing_iterations,
-                                            has_smoothing_iterations=True, cage_radius=cage_radius,
-                                            tolerance=tolerance, snap_tolerance=snap_tolerance)
+        from .pipeline import SkeletonOptions
+
+        if options is None:
+            if "no_twist" in given:
+                given["estimate_twist"] = not given.pop("no_twist")
+            if "levels" in given:
+                given["n_levels"] = given.pop("levels")
+            options = SkeletonOptions(**{k: v for k, v in given.items() if v is not None})
+        elif given:
+            raise InvalidInputError("give either SkeletonOptions or its fields, not both")
+        return convert.skeleton_options_msg(options)
 
     @staticmethod
-    def _export_options(output_name: str = "", order: int = 1, spacing: float | None = None, pad: int = 0,
-                        chunks: Sequence[int] | None = None, allow_folds: bool = False):
-        from unwind_services._proto.unwind.v1 import warp_pb2
+    def _export_options(output_name: str = "", options: Any = None, **given: Any):
+        """The ExportOptions message of a :class:`~napari_unwind.pipeline.ExportOptions` or of its fields."""
+        from unwind_services import convert
 
-        return warp_pb2.ExportOptions(order=order, has_order=True, spacing=spacing or 0.0, pad=pad,
-                                      chunks=list(chunks or ()), allow_folds=allow_folds, output_name=output_name)
+        from .pipeline import ExportOptions
+
+        if options is None:
+            options = ExportOptions(**{k: v for k, v in given.items() if v is not None})
+        elif given:
+            raise InvalidInputError("give either ExportOptions or its fields, not both")
+        return convert.export_options_msg(options, output_name)
 
     def skeleton(self, mask_volume_id: str, *, volume_id: str = "", head: Any = None, tail: Any = None,
                  chain: Any = None, wait: bool = True, **options: Any):
@@ -627,23 +641,42 @@ class Client:
                          segmentation_id: str = "", mask_volume_id: str = "", features: int | None = None,
                          level: int | None = None, isovalue: float | None = None, fill_holes: bool = False,
                          head: Any = None, tail: Any = None, chain: Any = None, skeleton: dict | None = None,
-                         **export: Any):
-        """The ``SubmitRequest`` of :meth:`pipeline` (for :meth:`submit` with other options)."""
+                         options: Any = None, output_name: str = "", **export: Any):
+        """The ``SubmitRequest`` of :meth:`pipeline` (for :meth:`submit` with other options).
+
+        ``options`` (a :class:`~napari_unwind.pipeline.PipelineOptions`) gives every option at once, instead of
+        ``features``, ``level``, ``isovalue``, ``fill_holes``, ``skeleton`` (a dict of SkeletonOptions fields) and
+        the export keywords (``order``, ``spacing``, ``pad``, ``chunks``, ``allow_folds``).
+        """
         from unwind_services._proto.unwind.v1 import jobs_pb2
 
+        from .pipeline import PipelineOptions, SegmentOptions
+
+        if options is None:
+            options = PipelineOptions(SegmentOptions(features=features, level=level, isovalue=isovalue,
+                                                     fill_holes=bool(fill_holes)))
+            skel, exp = self._skeleton_options(**(skeleton or {})), self._export_options(output_name, **export)
+        elif not isinstance(options, PipelineOptions):
+            raise InvalidInputError(f"options must be PipelineOptions, got {type(options).__name__}")
+        elif skeleton or export or features is not None or level is not None or isovalue is not None or fill_holes:
+            raise InvalidInputError("give either options=PipelineOptions(...) or the options one by one, not both")
+        else:
+            skel, exp = self._skeleton_options(options.skeleton), self._export_options(output_name, options.export)
+        seg = options.segment
         req = jobs_pb2.PipelineRequest(
             volume_id=volume_id, select=_points(select, "select point"), ids=list(ids or ()),
-            segmentation_id=segmentation_id, mask_volume_id=mask_volume_id, features=features or 0,
-            level=level or 0, has_level=level is not None, isovalue=isovalue or 0.0,
-            has_isovalue=isovalue is not None, fill_holes=fill_holes, ends=self._ends(head, tail, chain),
-            skeleton=self._skeleton_options(**(skeleton or {})), export=self._export_options(**export))
+            segmentation_id=segmentation_id, mask_volume_id=mask_volume_id, features=seg.features or 0,
+            level=seg.level or 0, has_level=seg.level is not None, isovalue=seg.isovalue or 0.0,
+            has_isovalue=seg.isovalue is not None, fill_holes=seg.fill_holes, ends=self._ends(head, tail, chain),
+            skeleton=skel, export=exp)
         return jobs_pb2.SubmitRequest(pipeline=req)
 
     def pipeline(self, volume_id: str, *, wait: bool = True, name: str = "", **options: Any):
         """``unwind run`` on the server: segment (or a mask), select, skeleton, straighten (a job).
 
         Its result holds the straight volume (``result.volume_id``), the session (``Client.session(job)``) and
-        figures (length, keyframes, seconds...). Options: see :meth:`pipeline_request`.
+        figures: ``status`` (``ok`` or ``partial``, see :mod:`napari_unwind.pipeline`), ``reason``, length,
+        keyframes, coverage, seconds... Options: see :meth:`pipeline_request`.
         """
         return self.submit(self.pipeline_request(volume_id, **options), wait=wait, name=name)
 

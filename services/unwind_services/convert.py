@@ -10,9 +10,10 @@ import numpy as np
 from napari_unwind.errors import InvalidInputError
 
 from ._proto.unwind.v1 import common_pb2 as pb
-from ._proto.unwind.v1 import segmentation_pb2, skeleton_pb2, volume_pb2
+from ._proto.unwind.v1 import segmentation_pb2, skeleton_pb2, volume_pb2, warp_pb2
 
-__all__ = ["DTYPES", "dtype_of", "dtype_enum", "points", "point_msg", "endpoints", "volume_info", "feature_msg"]
+__all__ = ["DTYPES", "dtype_of", "dtype_enum", "points", "point_msg", "endpoints", "volume_info", "feature_msg",
+           "skeleton_options", "skeleton_options_msg", "export_options", "export_options_msg", "result_figures"]
 
 DTYPES = {
     pb.DTYPE_UINT8: np.dtype("uint8"), pb.DTYPE_INT8: np.dtype("int8"),
@@ -85,3 +86,69 @@ def feature_msg(st: Any) -> segmentation_pb2.Feature:
         id=int(st.id), voxel_count=int(st.voxel_count), bbox_full=[int(b) for b in st.bbox_full],
         value_min=_number(st.value_min), value_max=_number(st.value_max), threshold=_number(st.threshold),
         max_position_full=point_msg(st.max_position_full))
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# the pipeline's options (their defaults live in napari_unwind.pipeline; zero or unset in a message means default)
+# ------------------------------------------------------------------------------------------------------------------
+def skeleton_options(msg: skeleton_pb2.SkeletonOptions):
+    """A :class:`napari_unwind.pipeline.SkeletonOptions` from its message (unset fields: the defaults)."""
+    from napari_unwind.pipeline import SkeletonOptions
+
+    given: dict[str, Any] = {}
+    if msg.no_twist:
+        given["estimate_twist"] = False
+    if msg.levels:
+        given["n_levels"] = int(msg.levels)
+    if msg.has_smoothing_iterations:
+        given["smoothing_iterations"] = int(msg.smoothing_iterations)
+    for name in ("cage_radius", "tolerance", "snap_tolerance"):
+        if getattr(msg, name):
+            given[name] = float(getattr(msg, name))
+    if len(msg.half_extent):
+        given["half_extent"] = tuple(msg.half_extent)
+    if msg.has_cage_margin:
+        given["cage_margin"] = float(msg.cage_margin)
+    return SkeletonOptions(**given)
+
+
+def skeleton_options_msg(opt: Any) -> skeleton_pb2.SkeletonOptions:
+    """The message of a :class:`napari_unwind.pipeline.SkeletonOptions` (every field given)."""
+    return skeleton_pb2.SkeletonOptions(
+        no_twist=not opt.estimate_twist, levels=opt.n_levels, smoothing_iterations=opt.smoothing_iterations,
+        has_smoothing_iterations=True, cage_radius=opt.cage_radius, tolerance=opt.tolerance,
+        snap_tolerance=opt.snap_tolerance, half_extent=list(opt.half_extent or ()), cage_margin=opt.cage_margin,
+        has_cage_margin=True)
+
+
+def export_options(msg: warp_pb2.ExportOptions):
+    """A :class:`napari_unwind.pipeline.ExportOptions` from its message (unset fields: the defaults)."""
+    from napari_unwind.pipeline import ExportOptions
+
+    given: dict[str, Any] = dict(pad=int(msg.pad), allow_folds=bool(msg.allow_folds))
+    if msg.has_order:
+        given["order"] = int(msg.order)
+    if msg.spacing:
+        given["spacing"] = float(msg.spacing)
+    if len(msg.chunks):
+        given["chunks"] = tuple(int(c) for c in msg.chunks)
+    return ExportOptions(**given)
+
+
+def export_options_msg(opt: Any, output_name: str = "") -> warp_pb2.ExportOptions:
+    """The message of a :class:`napari_unwind.pipeline.ExportOptions` (``max_output`` is the server's)."""
+    return warp_pb2.ExportOptions(order=opt.order, has_order=True, spacing=opt.spacing or 0.0, pad=opt.pad,
+                                  chunks=list(opt.chunks or ()), allow_folds=opt.allow_folds,
+                                  output_name=output_name)
+
+
+def result_figures(r: Any) -> dict[str, Any]:
+    """The figures of a :class:`napari_unwind.pipeline.SpecimenResult` for a JobResult: ``status``, ``reason``
+    and the skeleton's figures (absent ones left out)."""
+    from napari_unwind.io._volume import unit_label
+    from napari_unwind.skeleton._foldfree import format_lost
+
+    values = dict(status=r.status, reason=r.reason, length=r.length, unit=r.unit or "", keyframes=r.keyframes,
+                  min_jacobian=r.min_jacobian, max_tilt=r.max_tilt, coverage=r.coverage, folded=r.folded,
+                  lost=format_lost(r.lost, unit_label(r.unit)) if r.lost else "")
+    return {k: v for k, v in values.items() if v is not None}

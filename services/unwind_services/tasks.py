@@ -1,8 +1,9 @@
 """The job kinds: each is a generator that drives core generators, yields their Progress and returns a JobResult.
 
-Thin glue only: protobuf in, core calls, protobuf out. The pipeline job composes the same core calls, with the
-same defaults, as ``unwind run`` (napari_unwind/cli.py: cmd_run), so the local and the remote pipeline write the
-same voxels.
+Thin glue only: protobuf in, core calls, protobuf out. The pipeline and skeleton jobs call
+:mod:`napari_unwind.pipeline` (the same run, options, defaults and fold rule as ``unwind run``), so the local and
+the remote pipeline write the same voxels; their results carry the specimen's ``status`` and ``reason`` in the
+figures.
 """
 
 from __future__ import annotations
@@ -81,36 +82,15 @@ def _figures(**values: Any) -> dict[str, str]:
     return out
 
 
-def _check_folds(deformation: Any, allow: bool) -> None:
-    folds = deformation.folds()
-    if folds and not allow:
-        where = ", ".join(f"s = {a:.4g}..{b:.4g}" for a, b in folds)
-        raise StateError(f"the deformation folds where the cage is larger than the radius of curvature ({where}); "
-                         "edit the session, or pass allow_folds to export anyway")
-
-
-def _skeleton_kwargs(opt: Any) -> dict[str, Any]:
-    """SkeletonOptions -> estimate_deformation keywords, with the defaults of ``unwind skeleton``."""
-    return dict(estimate_twist=not opt.no_twist, n_levels=opt.levels or 100,
-                smoothing_iterations=opt.smoothing_iterations if opt.has_smoothing_iterations else 50,
-                cage_radius=opt.cage_radius or 10.0, tolerance=opt.tolerance or 1.0,
-                snap_tolerance=opt.snap_tolerance or 5.0)
-
-
-def _export_kwargs(opt: Any, out: Path) -> dict[str, Any]:
-    if len(opt.chunks) not in (0, 3):
-        raise InvalidInputError(f"chunks must be 3 sizes (axis0, axis1, axis2), got {list(opt.chunks)}")
-    chunks = tuple(opt.chunks) or None
-    kw = dict(order=opt.order if opt.has_order else 1, spacing=opt.spacing or None, pad=opt.pad, chunks=chunks)
-    if chunks and out.name.lower().endswith(".zarr"):
-        kw["file_chunks"] = chunks  # an OME-Zarr output is chunked as computed
-    return kw
-
-
 def _save_session(ctx: TaskContext, session: Any, name: str) -> tuple[str, str]:
     from napari_unwind.session import save_session
 
     path = save_session(session, ctx.workdir / name, overwrite=False)
+    return _register_session(ctx, path)
+
+
+def _register_session(ctx: TaskContext, path: Path) -> tuple[str, str]:
+    name = Path(path).name
     row = ctx.catalog.store.add_object(ctx.owner, "session", name, ctx.catalog.root.relative(path), {}, ctx.job_id)
     return row.id, Path(path).read_text()
 
@@ -163,8 +143,8 @@ def select(ctx: TaskContext, req: Any) -> TaskGen:
 
 
 def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:
+    from napari_unwind.pipeline import SpecimenResult, skeleton_step
     from napari_unwind.session import Session, SourceInfo
-    from napari_unwind.skeleton import estimate_deformation_iter
 
     mrow, mask = ctx.catalog.volume(ctx.owner, req.mask_volume_id)
     srow, scan = ctx.catalog.volume(ctx.owner, req.volume_id) if req.volume_id else (mrow, mask)
@@ -172,10 +152,10 @@ def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:
         raise InvalidInputError(f"the mask has shape {mask.shape} but the scan has {scan.shape}; the mask must be at "
                                 "the scan's full resolution")
     endpoints = convert.endpoints(req.ends, req.HasField("ends"))
+    options = convert.skeleton_options(req.options)
     t0 = time.perf_counter()
-    result = yield from estimate_deformation_iter(
-        mask.data, endpoints, spacing=scan.spacing, origin=scan.origin, unit=scan.unit,
-        volume=None if scan is mask else scan.data, **_skeleton_kwargs(req.options))
+    result = yield from skeleton_step(mask.data, endpoints, spacing=scan.spacing, origin=scan.origin, unit=scan.unit,
+                                      volume=None if scan is mask else scan.data, options=options)
     dt = time.perf_counter() - t0
     yield Progress("checksum", 0, 1, "describing the source")
     source = SourceInfo.from_path(ctx.catalog.path(srow), volume=scan)
@@ -184,13 +164,13 @@ def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:
                             + ("; suggested endpoints" if result.suggested else ""))
     sid, text = _save_session(ctx, session, "session.unwind.json")
     yield Progress("checksum", 1, 1)
-    d = result.deformation
+    r = SpecimenResult.of(result)
     return pb.JobResult(session_id=sid, session_json=text, warnings=list(result.warnings), figures=_figures(
-        length=float(d.length), keyframes=len(d), seconds=dt, suggested=bool(result.suggested)))
+        **convert.result_figures(r), seconds=dt, suggested=bool(result.suggested)))
 
 
 def straighten(ctx: TaskContext, req: Any) -> TaskGen:
-    from napari_unwind.warp import export_iter
+    from napari_unwind.pipeline import export_step
 
     _, volume = ctx.catalog.volume(ctx.owner, req.volume_id)
     _, session = ctx.catalog.session(ctx.owner, req.session_id)
@@ -198,10 +178,9 @@ def straighten(ctx: TaskContext, req: Any) -> TaskGen:
     if tuple(session.source.shape) != tuple(volume.shape):
         raise InvalidInputError(f"the session was made on a scan of shape {tuple(session.source.shape)} but the "
                                 f"volume has shape {volume.shape}")
-    _check_folds(session.deformation, req.options.allow_folds)
     t0 = time.perf_counter()
-    written = yield from export_iter(volume, session.deformation, out, session=session.to_dict(),
-                                     scheduler=ctx.scheduler, **_export_kwargs(req.options, out))
+    written = yield from export_step(volume, session.deformation, out, options=convert.export_options(req.options),
+                                     session=session, scheduler=ctx.scheduler)
     return pb.JobResult(volume_id=ctx.register(written, out.name),
                         figures=_figures(seconds=time.perf_counter() - t0))
 
@@ -220,18 +199,10 @@ def bend(ctx: TaskContext, req: Any) -> TaskGen:
 
 
 def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
-    """``unwind run`` as a job: segment (or a mask), select, refine, skeleton, session, straighten."""
-    from napari_unwind.segmentation import (
-        default_isovalue,
-        load_features,
-        refine_mask_iter,
-        segment_iter,
-        select,
-        selected_ids,
-    )
-    from napari_unwind.session import Segmentation, Session, SourceInfo
-    from napari_unwind.skeleton import estimate_deformation_iter
-    from napari_unwind.warp import export_iter
+    """``unwind run`` as a job: :func:`napari_unwind.pipeline.run_iter` (segment or a mask, select, refine,
+    skeleton, session, straighten); the figures carry the specimen's status and reason."""
+    from napari_unwind.pipeline import PipelineOptions, SegmentOptions, run_iter
+    from napari_unwind.segmentation import load_features
 
     vrow, volume = ctx.catalog.volume(ctx.owner, req.volume_id)
     out = ctx.output(req.export.output_name, "straight.zarr")
@@ -242,57 +213,37 @@ def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
                                 "segmented first), ids of a segmentation, or a mask volume")
     if req.ids and not req.segmentation_id:
         raise InvalidInputError("feature ids need the segmentation they refer to (segmentation_id)")
-    export_kw = _export_kwargs(req.export, out)
+    options = PipelineOptions(
+        SegmentOptions(features=req.features or None, level=req.level if req.has_level else None,
+                       isovalue=req.isovalue if req.has_isovalue else None, fill_holes=req.fill_holes),
+        convert.skeleton_options(req.skeleton), convert.export_options(req.export))
     endpoints = convert.endpoints(req.ends, req.HasField("ends"))
-    figures: dict[str, Any] = {}
     t_all = time.perf_counter()
-    segmentation = None
+    chosen: dict[str, Any] = {}
     if req.mask_volume_id:
         _, mask_vol = ctx.catalog.volume(ctx.owner, req.mask_volume_id)
-        if tuple(mask_vol.shape) != tuple(volume.shape):
-            raise InvalidInputError(f"the mask has shape {mask_vol.shape} but the scan has {volume.shape}")
-        mask = mask_vol.data
+        chosen["mask"] = mask_vol.data
+    elif req.ids:
+        seg = ctx.catalog.segmentation(ctx.owner, req.segmentation_id)
+        if seg.meta["volume_id"] != vrow.id:
+            raise InvalidInputError(f"segmentation {seg.id} was made on another volume than {vrow.id}")
+        chosen.update(features=load_features(ctx.catalog.root.absolute(seg.meta["features"])), ids=list(req.ids))
     else:
-        if req.ids:
-            seg = ctx.catalog.segmentation(ctx.owner, req.segmentation_id)
-            if seg.meta["volume_id"] != vrow.id:
-                raise InvalidInputError(f"segmentation {seg.id} was made on another volume than {vrow.id}")
-            features = load_features(ctx.catalog.root.absolute(seg.meta["features"]))
-            k = int(seg.meta["k"])
-            ids = selected_ids(features, ids=list(req.ids))
-        else:
-            k = req.features or 5
-            features = yield from segment_iter(volume, features=k, level=req.level if req.has_level else None)
-            ids = selected_ids(features, seeds=seeds)
-        working = select(features, ids=ids, fill_holes=req.fill_holes)
-        iso = req.isovalue if req.has_isovalue else default_isovalue(features, working)
-        mask = yield from refine_mask_iter(volume, working, features=features, isovalue=iso)
-        segmentation = Segmentation(k=k, level=features.level, selected=tuple(ids),
-                                    seeds=tuple(tuple(p) for p in seeds.tolist()), isovalue=iso,
-                                    fill_holes=req.fill_holes)
-        figures.update(ids=list(ids), isovalue=float(iso))
-    t0 = time.perf_counter()
-    result = yield from estimate_deformation_iter(mask, endpoints, spacing=volume.spacing, origin=volume.origin,
-                                                  unit=volume.unit, volume=volume.data,
-                                                  **_skeleton_kwargs(req.skeleton))
-    figures["skeleton_seconds"] = time.perf_counter() - t0
-    d = result.deformation
-    yield Progress("checksum", 0, 1, "describing the source")
-    source = SourceInfo.from_path(ctx.catalog.path(vrow), volume=volume)
-    yield Progress("checksum", 1, 1)
-    session = Session(source=source, deformation=d, segmentation=segmentation, endpoints=result.endpoints,
-                      notes=f"unwind run (server job {ctx.job_id})"
-                            + ("; suggested endpoints" if result.suggested else ""))
+        chosen["seeds"] = seeds
     stem = out.name.split(".")[0] or "straight"
-    sid, text = _save_session(ctx, session, f"{stem}.unwind.json")
-    _check_folds(d, req.export.allow_folds)
-    t1 = time.perf_counter()
-    written = yield from export_iter(volume, d, out, session=session.to_dict(), scheduler=ctx.scheduler, **export_kw)
-    figures.update(export_seconds=time.perf_counter() - t1, seconds=time.perf_counter() - t_all,
-                   length=float(d.length), keyframes=len(d), unit=d.unit or "",
-                   head=list(np.round(result.endpoints.head, 3)), tail=list(np.round(result.endpoints.tail, 3)))
-    return pb.JobResult(volume_id=ctx.register(written, out.name), session_id=sid, session_json=text,
-                        warnings=list(result.warnings), figures=_figures(**figures))
+    session_path = ctx.workdir / f"{stem}.unwind.json"
+    r = yield from run_iter(volume, endpoints=endpoints, options=options, output=out, session_path=session_path,
+                            source=ctx.catalog.path(vrow), notes=f"unwind run (server job {ctx.job_id})",
+                            scheduler=ctx.scheduler, **chosen)
+    sid, text = _register_session(ctx, session_path)
+    figures: dict[str, Any] = convert.result_figures(r)
+    seg_record = r.session.segmentation
+    if seg_record is not None:
+        figures.update(ids=list(seg_record.selected), isovalue=float(seg_record.isovalue))
+    e = r.session.endpoints
+    figures.update(seconds=time.perf_counter() - t_all, head=list(np.round(e.head, 3)), tail=list(np.round(e.tail, 3)))
+    return pb.JobResult(volume_id=ctx.register(r.output, out.name), session_id=sid, session_json=text,
+                        warnings=list(r.warnings), figures=_figures(**figures))
 
 
 _REFS = (("volume_id", "volume"), ("mask_volume_id", "volume"), ("segmentation_id", "segmentation"),
