@@ -45,7 +45,6 @@ __all__ = [
     "MIN_COVERAGE",
     "STATUSES",
     "BatchResult",
-    "Candidate",
     "ExportOptions",
     "FoldVerdict",
     "PipelineOptions",
@@ -418,6 +417,9 @@ class SpecimenResult:
         The skeleton solve's full result.
     warnings : tuple of str
         Warnings of the run, one line each.
+    label : str
+        The candidate's name when it is not its ids alone (``"3.1"``: part 1 of feature 3, split from a touching
+        specimen).
     """
 
     status: str
@@ -437,6 +439,7 @@ class SpecimenResult:
     session: Any = field(default=None, repr=False, compare=False)
     skeleton: Any = field(default=None, repr=False, compare=False)
     warnings: tuple[str, ...] = ()
+    label: str = ""
 
     def __post_init__(self) -> None:
         if self.status not in STATUSES:
@@ -469,14 +472,18 @@ class SpecimenResult:
     @property
     def name(self) -> str:
         """``specimen 3`` (``specimen 3+5`` for several features; ``the specimen`` with a mask)."""
-        return "specimen " + "+".join(map(str, self.ids)) if self.ids else "the specimen"
+        return "specimen " + self._key if self.ids else "the specimen"
+
+    @property
+    def _key(self) -> str:
+        return self.label or "+".join(map(str, self.ids))
 
     def row(self) -> dict[str, Any]:
         """Its row of ``specimens.csv`` (:data:`napari_unwind.batch.CSV_COLUMNS`)."""
         from .io._volume import unit_label
         from .skeleton._foldfree import format_lost
 
-        return dict(specimen="+".join(map(str, self.ids)) if len(self.ids) != 1 else self.ids[0],
+        return dict(specimen=self.ids[0] if len(self.ids) == 1 and not self.label else self._key,
                     status=self.status, voxels=self.voxels, length=self.length, unit=self.unit,
                     keyframes=self.keyframes, min_jacobian=self.min_jacobian, max_tilt=self.max_tilt,
                     coverage=self.coverage, lost=format_lost(self.lost, unit_label(self.unit)) if self.lost else "",
@@ -548,42 +555,17 @@ def exit_status(results: Sequence[SpecimenResult]) -> int:
 # ------------------------------------------------------------------------------------------------------------------
 # candidates: the adapter to the segmentation's definition of a specimen
 # ------------------------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Candidate:
-    """A candidate specimen of a segmentation: its feature ids, ``status`` (``"specimen"`` or ``"rejected"``),
-    the ``reason`` of a rejection and the feature's statistics (or None)."""
+def candidates(features: Any, *, min_elongation: float = 3.0) -> tuple[Any, ...]:
+    """Every candidate specimen of ``features``, specimens and rejected alike, each with its reason: the
+    segmentation's one definition of a specimen (:func:`napari_unwind.segmentation.candidates`; each
+    :class:`~napari_unwind.segmentation.Candidate` has ``ids``, ``status`` ``"specimen"`` or ``"rejected"``,
+    ``reason``, ``stats``, and for a part of touching specimens its own working mask and isovalue).
 
-    ids: tuple[int, ...]
-    status: str
-    reason: str = ""
-    stats: Any = None
-
-
-def candidates(features: Any, *, min_elongation: float = 3.0) -> tuple[Candidate, ...]:
-    """Every feature of ``features`` as a :class:`Candidate`, specimens and rejected alike, with the reason.
-
-    The one place that asks the segmentation what a specimen is
-    (:func:`napari_unwind.segmentation.specimens`).
+    The one place the pipeline asks what a specimen is.
     """
-    from .segmentation import specimens
+    from .segmentation import candidates as _candidates
 
-    found = {st.id for st in specimens(features, min_elongation=min_elongation)}
-    out = []
-    for st in features.stats:
-        if st.id in found:
-            out.append(Candidate((st.id,), "specimen", "", st))
-            continue
-        if st.voxel_count == 0:
-            why = "empty feature"
-        elif st.elongation is None or not math.isfinite(float(st.elongation)):
-            why = "no shape statistics (features saved by an older version: segment again)"
-        elif st.container:
-            why = ("a container: touches a face of the scan" if st.touches_border
-                   else "a container: encloses another feature")
-        else:
-            why = f"not elongated (elongation {float(st.elongation):.2f} < {float(min_elongation):.3g})"
-        out.append(Candidate((st.id,), "rejected", why, st))
-    return tuple(out)
+    return tuple(_candidates(features, min_elongation=min_elongation))
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -620,18 +602,26 @@ def segment_step(volume: Any, options: SegmentOptions = SegmentOptions(), *, fea
     return (yield from segment_iter(volume, features=k, level=options.level, smooth=options.smooth))
 
 
-def select_step(volume: Any, features: Any, *, seeds: Any = None, ids: Any = None,
+def select_step(volume: Any, features: Any, *, seeds: Any = None, ids: Any = None, candidate: Any = None,
                 options: SegmentOptions = SegmentOptions()) -> Generator[Progress, None, Selection]:
-    """Choose features by ``seeds`` (full-resolution voxels) and/or ``ids`` and refine them at full resolution
-    at ``options.isovalue`` or the one default rule (:func:`~napari_unwind.segmentation.default_isovalue`)."""
+    """Choose features by ``seeds`` (full-resolution voxels) and/or ``ids``, or a ``candidate`` of
+    :func:`candidates` (its own working mask), and refine them at full resolution at ``options.isovalue``, the
+    candidate's isovalue, or the one default rule (:func:`~napari_unwind.segmentation.default_isovalue`)."""
     import numpy as np
 
     from .segmentation import default_isovalue, refine_mask_iter, select, selected_ids
     from .session import Segmentation
 
-    chosen = selected_ids(features, seeds=seeds, ids=ids)
-    working = select(features, ids=chosen, fill_holes=options.fill_holes)
-    iso = options.isovalue if options.isovalue is not None else float(default_isovalue(features, working))
+    if candidate is not None:
+        chosen = [int(i) for i in candidate.ids]
+        working = candidate.working_mask(features)
+        own = getattr(candidate, "isovalue", None)
+    else:
+        chosen = selected_ids(features, seeds=seeds, ids=ids)
+        working = select(features, ids=chosen, fill_holes=options.fill_holes)
+        own = None
+    iso = options.isovalue if options.isovalue is not None else (
+        float(own) if own is not None else float(default_isovalue(features, working)))
     mask = yield from refine_mask_iter(volume, working, features=features, isovalue=iso)
     pts = () if seeds is None else tuple(tuple(float(c) for c in p) for p in np.asarray(seeds, float).reshape(-1, 3))
     record = Segmentation(k=features.k, level=features.level, selected=tuple(chosen), seeds=pts, isovalue=iso,
@@ -685,6 +675,7 @@ def run_iter(
     mask: Any = None,
     seeds: Any = None,
     ids: Sequence[int] | None = None,
+    candidate: Any = None,
     features: Any = None,
     endpoints: Any = None,
     options: PipelineOptions = PipelineOptions(),
@@ -707,6 +698,8 @@ def run_iter(
         Points inside the specimen's features, full-resolution voxels (the scan is segmented unless ``features``).
     ids : sequence of int, optional
         Feature ids of ``features``.
+    candidate : Candidate, optional
+        A specimen of :func:`candidates` of ``features`` (its own mask and isovalue).
     features : Features, optional
         A segmentation of ``volume`` to pick from (default: segmented here with ``options.segment``).
     endpoints : Endpoints or (head, tail), optional
@@ -739,9 +732,11 @@ def run_iter(
         raise InvalidInputError(f"options must be PipelineOptions, got {type(options).__name__}")
     has_seeds = seeds is not None and np.asarray(seeds, dtype=float).size > 0
     has_ids = ids is not None and len(ids) > 0
-    if (mask is not None) + (has_seeds or has_ids) != 1:
-        raise InvalidInputError("say which specimen to straighten with exactly one of: a mask, or points inside it "
-                                "and/or feature ids (the scan is segmented first)")
+    if (mask is not None) + (has_seeds or has_ids) + (candidate is not None) != 1:
+        raise InvalidInputError("say which specimen to straighten with exactly one of: a mask, points inside it "
+                                "and/or feature ids (the scan is segmented first), or a candidate")
+    if candidate is not None and features is None:
+        raise InvalidInputError("a candidate needs the features it came from (features=)")
     if session_path is not None and source is None:
         raise InvalidInputError("a session needs its source: the scan's path or a SourceInfo")
     if output is not None:
@@ -763,9 +758,11 @@ def run_iter(
         if features is None:
             features = yield from segment_step(volume, options.segment)
         sel = yield from select_step(volume, features, seeds=seeds if has_seeds else None,
-                                     ids=list(ids) if has_ids else None, options=options.segment)
+                                     ids=list(ids) if has_ids else None, candidate=candidate,
+                                     options=options.segment)
         mask, segmentation, ids_out = sel.mask, sel.segmentation, sel.ids
-        voxels = int(sum(features.stat(i).voxel_count for i in ids_out))
+        voxels = int(candidate.stats.voxel_count) if candidate is not None else int(
+            sum(features.stat(i).voxel_count for i in ids_out))
     result = yield from skeleton_step(mask, endpoints, spacing=volume.spacing, origin=volume.origin,
                                       unit=volume.unit, volume=volume.data, options=options.skeleton)
     d = result.deformation
@@ -881,21 +878,22 @@ def run_all_iter(
     for c in found:
         voxels = None if c.stats is None else int(c.stats.voxel_count)
         if c.status != "specimen":
-            result.specimens.append(SpecimenResult("rejected", c.reason, ids=tuple(c.ids), voxels=voxels))
+            result.specimens.append(SpecimenResult("rejected", c.reason, ids=tuple(c.ids), voxels=voxels,
+                                                   label=getattr(c, "name", "")))
             continue
         i = todo.index(c)
-        name = "-".join(map(str, c.ids))
+        name = getattr(c, "name", None) or "+".join(map(str, c.ids))
         yield Progress("specimens", i, len(todo), f"feature {name}")
         session_path = outdir / f"specimen-{name}.unwind.json"
         try:
-            r = yield from run_iter(volume, features=feats, ids=c.ids, options=picked,
+            r = yield from run_iter(volume, features=feats, candidate=c, options=picked,
                                     output=outdir / f"specimen-{name}.zarr", session_path=session_path,
                                     source=source, overwrite=overwrite,
                                     notes=f"unwind run --all: feature {name} of {feats.k}")
         except Exception as exc:  # noqa: BLE001 - one specimen's failure must not stop the others
-            r = SpecimenResult("failed", _failure_reason(exc), ids=tuple(c.ids), voxels=voxels,
+            r = SpecimenResult("failed", _failure_reason(exc), ids=tuple(c.ids), voxels=voxels, label=name,
                                session_path=session_path if session_path.exists() else None)
-        result.specimens.append(replace(r, voxels=voxels))
+        result.specimens.append(replace(r, voxels=voxels, label=name))
     yield Progress("specimens", len(todo), len(todo))
     result.table = _write_table([r.row() for r in result.specimens], outdir / CSV_NAME)
     result.seconds = time.perf_counter() - t_all
