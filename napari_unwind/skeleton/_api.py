@@ -496,7 +496,7 @@ def estimate_deformation_iter(
     max_triangles: int | None = 3000,
     mesher: dict[str, Any] | None = None,
     tet_mesher: str = "lattice",
-    lattice_nodes: int = 20000,
+    lattice_nodes: int = 8000,
     end_window_factor: float = 2.0,
     fold_free: bool = True,
     cage_margin: float = 0.1,
@@ -749,7 +749,7 @@ def estimate_deformation(
         "uniform"), ``tolerance`` (1 voxel), ``half_extent`` and ``pad`` (physical; default proposed from the
         cross-sections), ``max_side`` (128), ``snap_tolerance`` (5 voxels), ``up`` (world direction for the first
         frame's v without twist estimation), ``origin``, ``unit``, ``tet_mesher`` ("lattice", the default: the
-        deterministic :func:`lattice_tet_mesh` of the working occupancy, about ``lattice_nodes`` (20000) nodes
+        deterministic :func:`lattice_tet_mesh` of the working occupancy, about ``lattice_nodes`` (8000) nodes
         inside the body; "ftetwild": the paper's marching cubes + fTetWild, whose mesh varies from run to run
         even on one thread, so its results are not reproducible), ``max_triangles`` (fTetWild only, 3000: the
         marching-cubes surface is decimated to this many triangles before meshing, None for no decimation),
