@@ -4,7 +4,7 @@ A straight box ``(x, y, s)``, ``s`` the arclength in ``[0, L]``, maps into the b
 
     f(x, y, s) = c(s) + x u(s) + y v(s)
 
-(DESIGN.md section 3, the paper's "Cylindrical Deformation" with its typo corrected).
+(docs/design.md section 3, the paper's "Cylindrical Deformation" with its typo corrected).
 
 - Keyframes ``i = 0..m-1`` hold a position ``e_i``, an orthonormal right-handed frame ``R_i = (u_i, v_i, n_i)``
   (``u x v = n``, ``n`` along the curve), the cage half-extents ``(rx_i, ry_i)`` and the cage's in-plane centre

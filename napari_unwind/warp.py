@@ -5,8 +5,8 @@ isotropic grid of spacing ``ds``: straight voxel ``(k, i, j)`` is ``s = s_lo + k
 ``x = (j - j0) ds`` with ``(i0, j0)`` = :meth:`Deformation.grid_centre` (``((Ny - 1) / 2, (Nx - 1) / 2)`` for
 centred cages; see :meth:`Deformation.output_shape` and :meth:`Deformation.slice_geometry`).
 
-How straightening scales (DESIGN.md section 7)
-----------------------------------------------
+How straightening scales (docs/design.md section 7)
+---------------------------------------------------
 Each output slice is an affine image of the scan: straight voxel ``(k, i, j)`` samples the scan at voxel
 coordinate ``base_k + i dv_k + j du_k``. Nine numbers per slice are the whole map. So, per output chunk:
 
@@ -115,7 +115,7 @@ DEFAULT_TILE = 256
 #: Default limit of an output's size (bytes, uncompressed): 64 GiB. Larger outputs of :func:`straighten`,
 #: :func:`export`, :func:`bend` and :func:`map_labels` are refused before anything proportional to them is
 #: allocated, unless the call passes a larger ``max_output`` (CLI: ``--max-output``) or ``max_output=None`` (no
-#: limit). It is above the largest scans the project targets (DESIGN.md: 45 GB) and a straightened specimen is
+#: limit). It is above the largest scans the project targets (docs/design.md: 45 GB) and a straightened specimen is
 #: usually smaller than its scan, so an output this large is nearly always a wrong spacing, pad or unit
 #: (the demo fish at ``--spacing 0.01`` would be 120 GiB; with ``--pad 100000000``, 86 GiB).
 DEFAULT_MAX_OUTPUT = 64 * 2**30

@@ -6,7 +6,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# Debian packages napari needs to render under Xvfb with Mesa (DESIGN.md section 8).
+# Debian packages napari needs to render under Xvfb with Mesa (docs/design.md section 8).
 pkgs=(xvfb xauth libgl1 libegl1 libgl1-mesa-dri libglx-mesa0 libxkbcommon-x11-0 libxcb-icccm4 libxcb-image0
       libxcb-keysyms1 libxcb-randr0 libxcb-render-util0 libxcb-xinerama0 libxcb-xkb1 libxcb-shape0
       libxcb-xfixes0 libxcb-cursor0 libdbus-1-3 libfontconfig1 libglib2.0-0)

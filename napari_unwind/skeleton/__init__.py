@@ -1,4 +1,4 @@
-"""Skeleton solve: from a mask and two clicks to the keyframes of a deformation (DESIGN.md section 4).
+"""Skeleton solve: from a mask and two clicks to the keyframes of a deformation (docs/design.md section 4).
 
 - :func:`estimate_deformation` / :func:`estimate_deformation_iter`: the paper's pipeline (working mask,
   connectivity by dilation, a deterministic lattice tet mesh cut at the mask's isosurface (or the paper's

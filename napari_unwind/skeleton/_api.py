@@ -1,4 +1,4 @@
-"""From a mask and two clicks to a :class:`~napari_unwind.deformation.Deformation` (DESIGN.md section 4)."""
+"""From a mask and two clicks to a :class:`~napari_unwind.deformation.Deformation` (docs/design.md section 4)."""
 
 from __future__ import annotations
 
@@ -421,7 +421,7 @@ def _part_curve(
 def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx: np.ndarray, eps: float,
                      margin: float) -> tuple[np.ndarray, np.ndarray]:
     """Keyframe frames and cage sides ``(m, 4)``: cages fitted per side to the sections, their margins given up
-    where a bend would fold them, and the keyframes' normals tilted where that is not enough (DESIGN.md section
+    where a bend would fold them, and the keyframes' normals tilted where that is not enough (docs/design.md section
     3, ways 1 and 2; the caller shrinks what still folds, way 3).
 
     The tilt: each keyframe's normal is the dense tangent smoothed over a Gaussian window ``sigma`` (0: no
@@ -714,7 +714,7 @@ def estimate_deformation(
 ) -> Deformation:
     """Estimate the straightening deformation of a specimen from its mask and its two ends.
 
-    The paper's pipeline (DESIGN.md section 4): the mask at a working resolution, connectivity by dilation, a
+    The paper's pipeline (docs/design.md section 4): the mask at a working resolution, connectivity by dilation, a
     marching-cubes surface, an fTetWild tet mesh, the cotangent-Laplacian harmonic function with ``u = 0`` at the
     head and ``u = 1`` at the tail, ``n_levels`` level sets by marching tets with area-weighted centroids,
     smoothing, resampling by arclength, parallel-transport frames and the fewest keyframes (prism subdivision).

@@ -1,4 +1,4 @@
-"""Curve post-processing: smoothing, resampling by arclength, minimal keyframes (DESIGN.md 4, steps 6-9)."""
+"""Curve post-processing: smoothing, resampling by arclength, minimal keyframes (docs/design.md 4, steps 6-9)."""
 
 from __future__ import annotations
 

@@ -1,11 +1,11 @@
-"""Fold-free cages and the figures that say how well a deformation holds its specimen (DESIGN.md section 3).
+"""Fold-free cages and the figures that say how well a deformation holds its specimen (docs/design.md section 3).
 
 The Jacobian of ``f(x, y, s) = c(s) + x u(s) + y v(s)`` is ``det J = n . c' + y w_x - x w_y`` on each keyframe
 segment (``w`` the segment's SLERP rate in the local frame). It is affine in ``(x, y)``, so its minimum over a
 cage ``[x_lo, x_hi] x [y_lo, y_hi]`` is at the corner nearest the centre of curvature, and ``n . c'`` is smallest
 at the segment's ends. :func:`unfold` shrinks, where ``det J`` would fall below ``eps``, only the inner sides of
 the cages at the two keyframes of the segment (the side of the faster rotation first, which gives up the least
-cage) (the third way out of DESIGN.md section 3; the per-side fit of
+cage) (the third way out of docs/design.md section 3; the per-side fit of
 :func:`~napari_unwind.skeleton.fit_cages` is the first). Shrinking a side never lowers the Jacobian of the
 neighbouring segment, so a few sweeps settle.
 

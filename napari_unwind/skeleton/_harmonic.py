@@ -1,6 +1,6 @@
 """The paper's centreline: surface, tet mesh, harmonic function, level-set centroids.
 
-DESIGN.md section 4, steps 3-5: marching cubes on the (box-averaged) mask, an fTetWild tet mesh of that surface,
+docs/design.md section 4, steps 3-5: marching cubes on the (box-averaged) mask, an fTetWild tet mesh of that surface,
 the cotangent Laplacian of the tet mesh (libigl) with Dirichlet values 0 at the head and 1 at the tail, and the
 area-weighted centroids of the isosurfaces of the solution, cut tet by tet ("marching tets", numpy).
 """
