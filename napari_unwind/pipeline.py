@@ -467,7 +467,9 @@ class SpecimenResult:
     @property
     def deformation(self) -> Any:
         """The deformation (None when the skeleton did not run)."""
-        return None if self.session is None else self.session.deformation
+        if self.session is not None:
+            return self.session.deformation
+        return None if self.skeleton is None else self.skeleton.deformation
 
     @property
     def name(self) -> str:
