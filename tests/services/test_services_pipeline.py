@@ -1,8 +1,8 @@
 """The pipeline on a real server: the same voxels as in process, each step against the core, and a batch.
 
 References: the core run in this process (the servicers must add nothing), and the phantom's ground truth.
-The skeleton solve itself is not bit-reproducible run to run (the fTetWild mesher), so bytes are compared for
-every deterministic stage given the same session: segmentation, selection, straight export, bend, map points.
+Every stage is deterministic (the skeleton's tet mesh too), so bytes are compared: segmentation, selection, the
+skeleton's deformation, straight export, bend, map points.
 """
 
 from __future__ import annotations
@@ -109,6 +109,15 @@ def test_each_step_on_the_server_matches_the_core(setup, tmp_path):
         session = Client.session(sk)
         assert _centreline_rms(session.deformation, fish) < 1.0
         d = session.deformation
+        # the skeleton of the same mask and ends in this process: the same deformation, byte for byte
+        from napari_unwind.pipeline import skeleton_step
+        from napari_unwind.progress import run as drive
+        from napari_unwind.session import Endpoints
+
+        local = drive(skeleton_step(mask, Endpoints(head=tuple(fish.head), tail=tuple(fish.tail)),
+                                    spacing=volume.spacing, origin=volume.origin, unit=volume.unit,
+                                    volume=volume.data)).deformation
+        assert json.dumps(local.to_dict(), sort_keys=True) == json.dumps(d.to_dict(), sort_keys=True)
 
         st = c.straighten(vid, sk.result.session_id, output_name="fish1.tif", order=1)
         straight = c.open(st.result.volume_id)
