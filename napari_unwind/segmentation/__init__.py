@@ -13,7 +13,7 @@
    :meth:`JoinTree.to_npz` / :meth:`JoinTree.from_npz` cache a tree.
 """
 
-from ._candidates import Candidate, candidates, specimens
+from ._candidates import Candidate, candidates, specimen_isovalue, specimens
 from ._common import MAX_FEATURES
 from ._features import Features, FeatureStats, simplify
 from ._jointree import JoinTree, join_tree, join_tree_iter, sweep_order
@@ -53,6 +53,7 @@ __all__ = [
     "select",
     "selected_ids",
     "simplify",
+    "specimen_isovalue",
     "specimens",
     "sweep_order",
 ]

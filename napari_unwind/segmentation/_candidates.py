@@ -8,15 +8,16 @@ pipeline's ``run --all`` both read it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from ..errors import InvalidInputError
-from ._features import Features, FeatureStats
+from ._features import Features, FeatureStats, _enclosers
 
-__all__ = ["Candidate", "candidates", "specimens"]
+__all__ = ["Candidate", "candidates", "specimen_isovalue", "specimens"]
 
 SPECIMEN = "specimen"
 REJECTED = "rejected"
@@ -104,28 +105,296 @@ def _count(name: str, value: Any, lo: int) -> int:
     return int(value)
 
 
+# ------------------------------------------------------------------------------------------------------------------
+# geometry helpers (working voxels)
+# ------------------------------------------------------------------------------------------------------------------
+def _box(mask: np.ndarray, pad: int) -> tuple[slice, ...]:
+    """The bounding box of ``mask`` grown by ``pad`` voxels (clipped to the array)."""
+    idx = [np.flatnonzero(mask.any(axis=tuple(b for b in range(3) if b != a))) for a in range(3)]
+    return tuple(slice(max(int(ix[0]) - pad, 0), min(int(ix[-1]) + 1 + pad, n)) for ix, n in zip(idx, mask.shape))
+
+
+def _principal(mask: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre, eigenvalues (descending) and eigenvectors (columns) of a mask's covariance, physical units,
+    the voxel's own extent included (as :attr:`FeatureStats.elongation`)."""
+    pts = np.argwhere(mask) * spacing
+    centre = pts.mean(axis=0)
+    cov = np.cov(pts.T, bias=True).reshape(3, 3) + np.diag(spacing**2 / 12.0)
+    ev, vec = np.linalg.eigh(cov)
+    return centre, ev[::-1], vec[:, ::-1]
+
+
+def _hugs_border(mask: np.ndarray, spacing: np.ndarray) -> float:
+    """The fraction of a mask's length (along its principal axis) over which it lies on a face of the scan."""
+    faces = np.zeros(mask.shape, bool)
+    for a in range(3):
+        idx = [slice(None)] * 3
+        idx[a] = [0, mask.shape[a] - 1]
+        faces[tuple(idx)] = True
+    on = mask & faces
+    if not on.any():
+        return 0.0
+    centre, _, vec = _principal(mask, spacing)
+    t_all = (np.argwhere(mask) * spacing - centre) @ vec[:, 0]
+    t_on = (np.argwhere(on) * spacing - centre) @ vec[:, 0]
+    lo, hi = float(t_all.min()), float(t_all.max())
+    if hi <= lo:
+        return 1.0
+    bins = np.linspace(lo, hi, 33)  # the length in 32 slabs: the share of slabs where it meets the border
+    hit = np.histogram(t_on, bins=bins)[0] > 0
+    have = np.histogram(t_all, bins=bins)[0] > 0
+    return float(hit.sum() / max(have.sum(), 1))
+
+
+def specimen_isovalue(features: Features, ids: Any) -> float:
+    """The isovalue between the medium and a specimen's body, from the values around features ``ids``.
+
+    The values of the features' basins within a few body thicknesses of their labels are histogrammed; the
+    medium is their mode, and the body the median of the voxels clearly above the medium (more than 5 noise
+    sigmas) two voxels in from their surface (clear of its partial volume): soft tissue, as a spine or a bone
+    inside the body is brighter but smaller. The isovalue is halfway between the two (the 50 % boundary of CT).
+    Unlike the features' own thresholds (:attr:`FeatureStats.threshold`, which may sit between flesh and bone when a
+    bright spine holds the maximum), this keeps the whole body above the medium.
+
+    Parameters
+    ----------
+    features : Features
+        A segmentation with its tree (:func:`segment`).
+    ids : int, sequence of int or Candidate
+        The features of one specimen.
+
+    Returns
+    -------
+    float
+        A working-value isovalue; the lowest of the features' thresholds when the histogram has no second mode
+        (or the features were loaded without their tree).
+
+    Raises
+    ------
+    InvalidInputError
+        For something that is not a :class:`Features` or an unknown id.
+    """
+    if not isinstance(features, Features):
+        raise InvalidInputError(f"specimen_isovalue needs Features (from segment), got {type(features)}")
+    if isinstance(ids, Candidate):
+        ids = ids.ids
+    ids = [features._check_id(i) for i in np.atleast_1d(np.asarray(ids, dtype=object)).tolist()]
+    fallback = float(min(features.stat(i).threshold for i in ids))
+    if features.tree is None or features.feature_of_branch is None:
+        return fallback
+    lab = np.isin(features.labels, ids)
+    if not lab.any():
+        return fallback
+    return _isovalue(features, ids, lab, features.feature_of_branch[features.tree.branch], fallback)
+
+
+def _isovalue(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray, fallback: float) -> float:
+    thick = float(ndimage.distance_transform_edt(np.pad(lab[_box(lab, 0)], 1)).max())
+    pad = int(np.ceil(max(4.0, 3.0 * thick)))
+    box = _box(lab, pad)
+    dist = ndimage.distance_transform_edt(~lab[box])
+    near = np.isin(basin_id[box], ids) & (dist <= pad)
+    v = features.tree.values[box][near].astype(np.float64)
+    if v.size < 50:
+        return fallback
+    lo, hi = np.percentile(v, [0.5, 99.5])
+    if hi <= lo:
+        return fallback
+    m0 = _mode(v, lo, hi)  # the medium: the most common value around the specimen
+    low = v[v <= m0]
+    sigma = 1.4826 * float(np.median(m0 - low)) if low.size else 0.0  # its noise, from its lower half
+    # the body: the median of its interior (clearly above the medium, one voxel in from its surface, where the
+    # partial volume of the surface is gone); soft tissue outweighs a spine or a bone inside it
+    vals = features.tree.values[box]
+    above = near & (vals > m0 + max(5.0 * sigma, 0.02 * (hi - m0)))
+    core = vals[above]
+    for depth in (1, 2):  # as deep as leaves a core (the working values are smoothed: their skirt is wide)
+        inner = ndimage.binary_erosion(above, iterations=depth)
+        if np.count_nonzero(inner) < max(20, 0.1 * np.count_nonzero(above)):
+            break
+        core = vals[inner]
+    if core.size < 20:
+        return fallback
+    m1 = float(np.median(core))
+    return float(0.5 * (m0 + m1))
+
+
+def _mode(v: np.ndarray, lo: float, hi: float, bins: int = 64) -> float:
+    """The mode of ``v`` on ``[lo, hi]`` (a histogram lightly smoothed)."""
+    if hi <= lo:
+        return float(lo)
+    hist = ndimage.gaussian_filter1d(np.histogram(v, bins=bins, range=(lo, hi))[0].astype(float), 1.0)
+    return float(lo + (int(np.argmax(hist)) + 0.5) * (hi - lo) / bins)
+
+
+def _split(body: np.ndarray, spacing: np.ndarray, *, saddle: float, min_share: float) -> tuple[np.ndarray, int]:
+    """Touching bodies apart: a watershed of the distance transform seeded by its maxima, regions merged while
+    the saddle between them is shallow (``>= saddle`` x the lower of their two peaks) or one is small (below
+    ``min_share`` of its neighbour). Returns the part labels (0 outside) and their number."""
+    edt = ndimage.distance_transform_edt(np.pad(body, 1), sampling=spacing)[1:-1, 1:-1, 1:-1]
+    from skimage.morphology import h_maxima
+    from skimage.segmentation import watershed
+
+    h = max(float(spacing.min()), 0.2 * float(edt.max()))
+    markers, n = ndimage.label(h_maxima(edt, h) & body, structure=np.ones((3, 3, 3), bool))
+    if n <= 1:
+        return body.astype(np.int32), int(body.any())
+    parts = watershed(-edt, markers, mask=body).astype(np.int32)
+    peak = np.asarray(ndimage.maximum(edt, parts, index=np.arange(n + 1)), dtype=float)
+    size = np.bincount(parts.ravel(), minlength=n + 1).astype(float)
+    pairs: dict[tuple[int, int], list[float]] = {}  # (a, b) -> [highest saddle, contact voxels]
+    for a in range(3):
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[a], hi[a] = slice(None, -1), slice(1, None)
+        p, q = parts[tuple(lo)], parts[tuple(hi)]
+        sel = (p != q) & (p > 0) & (q > 0)
+        if not sel.any():
+            continue
+        s = np.minimum(edt[tuple(lo)][sel], edt[tuple(hi)][sel])
+        for x, y, v in zip(p[sel].tolist(), q[sel].tolist(), s.tolist()):
+            key = (min(x, y), max(x, y))
+            e = pairs.setdefault(key, [0.0, 0.0])
+            e[0] = max(e[0], v)
+            e[1] += 1
+    root = list(range(n + 1))
+
+    def find(x: int) -> int:
+        while root[x] != x:
+            root[x] = root[root[x]]
+            x = root[x]
+        return x
+
+    # shallow saddles first, then small regions into the neighbour they share the most with
+    for (x, y), (sad, _) in sorted(pairs.items(), key=lambda kv: -kv[1][0] / max(min(peak[kv[0][0]], peak[kv[0][1]]),
+                                                                                   1e-12)):
+        rx, ry = find(x), find(y)
+        if rx != ry and sad >= saddle * min(peak[rx], peak[ry]):
+            root[max(rx, ry)] = min(rx, ry)
+            peak[min(rx, ry)] = max(peak[rx], peak[ry])
+            size[min(rx, ry)] = size[rx] + size[ry]
+    changed = True
+    while changed:
+        changed = False
+        contact: dict[tuple[int, int], float] = {}
+        for (x, y), (_, c) in pairs.items():
+            rx, ry = find(x), find(y)
+            if rx != ry:
+                key = (min(rx, ry), max(rx, ry))
+                contact[key] = contact.get(key, 0.0) + c
+        for r in sorted({find(x) for x in range(1, n + 1)}, key=lambda r: size[r]):
+            nbrs = [(c, b if a == r else a) for (a, b), c in contact.items() if r in (a, b)]
+            if not nbrs:
+                continue
+            c, other = max(nbrs)
+            if size[r] < min_share * size[other]:
+                root[r] = other
+                size[other] += size[r]
+                changed = True
+                break
+    lut = np.array([find(x) for x in range(n + 1)])
+    roots = np.unique(lut[1:])
+    relabel = np.zeros(n + 1, dtype=np.int32)
+    relabel[roots] = np.arange(1, len(roots) + 1)
+    return relabel[lut][parts], int(len(roots))
+
+
+def _part_stats(features: Features, template: FeatureStats, mask: np.ndarray, iso: float | None,
+                spacing: np.ndarray) -> FeatureStats:
+    """The figures of a body or a part (its own voxels, box, values, elongation, border)."""
+    box = _box(mask, 0)
+    lo = np.array([b.start for b in box])
+    hi = np.array([b.stop for b in box])
+    scale = np.asarray(features.scale)
+    full = np.asarray(features.full_shape)
+    values = features.tree.values if features.tree is not None else None
+    vals = values[mask] if values is not None else None
+    if vals is not None and vals.size:
+        flat = int(np.argmax(np.where(mask[box], values[box], -np.inf)))
+        mx = tuple(int(v) for v in np.add(np.unravel_index(flat, mask[box].shape), lo))
+    else:
+        mx = template.max_position
+    _, ev, _ = _principal(mask, spacing)
+    return replace(
+        template,
+        voxel_count=int(np.count_nonzero(mask)),
+        bbox=tuple(int(v) for v in (*lo, *hi)),
+        bbox_full=tuple(int(v) for v in (*np.minimum(np.floor(lo * scale), full), *np.minimum(np.ceil(hi * scale),
+                                                                                                full))),
+        value_min=float(vals.min()) if vals is not None and vals.size else template.value_min,
+        value_max=float(vals.max()) if vals is not None and vals.size else template.value_max,
+        threshold=float(iso) if iso is not None else template.threshold,
+        max_position=mx,
+        max_position_full=tuple(int(min(np.floor(c * sc), n - 1)) for c, sc, n in zip(mx, scale, full)),
+        elongation=float(np.sqrt(ev[0] / ev[1])),
+        touches_border=bool(np.any(lo == 0) or np.any(hi == np.asarray(mask.shape))),
+        container=False,
+    )
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# the definition
+# ------------------------------------------------------------------------------------------------------------------
 def candidates(
     features: Features,
     *,
     min_elongation: float = 3.0,
     min_voxels: int = 1,
+    min_size_fraction: float = 0.1,
+    min_length_fraction: float = 0.2,
+    max_border_share: float = 0.5,
+    split_saddle: float = 0.6,
+    body: bool = True,
 ) -> tuple[Candidate, ...]:
-    """Every feature as a candidate specimen, kept or rejected with its reason.
+    """Every feature as a candidate specimen, kept or rejected with its reason: the one definition of a specimen.
+
+    The rules, in order (each rejection's ``reason`` names the rule and its figures):
+
+    1. **Container**: a feature that encloses others (around another feature's maximum it is met on both sides
+       along both axes of a plane: a tube, a dish) -- ``"container: encloses features 2, 3"``.
+    2. **Wall arc**: a feature that lies on a face of the scan over more than ``max_border_share`` of its length
+       (a tube wall that the field of view cuts into arcs runs along the faces it is cut by) -- ``"wall arc cut by
+       the field of view"``. A specimen cut by a face only meets it at its cut end: touching the border is not a
+       container's mark.
+    3. **Body**: each other feature's body is its basin above :func:`specimen_isovalue` (between the medium and
+       the soft body, not the bright spine), connected to its labels. Bodies that meet are one group (a spine and
+       a head bone of one fish, or two touching fish).
+    4. **Split**: a group is split by a watershed of its distance transform seeded by its maxima; regions whose
+       saddle is shallow (``>= split_saddle`` x the lower peak) or that are small (under a fifth of a
+       neighbour) merge back. Each part is a candidate (``part`` 1..``n_parts``), with the features it holds as
+       ``ids`` -- ``"touching specimens: split into 2 at the distance transform's saddle"``.
+    5. **Size and shape** of each part: ``"too small: 40 voxels < 200"`` (under ``min_voxels`` or
+       ``min_size_fraction`` of the largest elongated part), ``"not elongated: 1.6 < 3"``, ``"too short: ..."`` (its
+       length, 4 standard deviations along its principal axis, under ``min_length_fraction`` of the scan's
+       largest side).
 
     Parameters
     ----------
     features : Features
-        A segmentation (:func:`segment`, :meth:`JoinTree.simplify` or :func:`load_features`).
+        A segmentation (:func:`segment`, :meth:`JoinTree.simplify` or :func:`load_features`). Without its tree
+        (loaded from a label file) the bodies are the labels themselves.
     min_elongation : float
-        Smallest principal-axis ratio (:attr:`FeatureStats.elongation`) of a specimen (default 3: a fish is
-        about 6, a tube about 2, a blob of noise about 1-2).
+        Smallest principal-axis ratio of a specimen (default 3: a fish is about 6, a tube about 2, a blob 1-2).
     min_voxels : int
-        Smallest labelled voxel count at working resolution (default 1).
+        Smallest voxel count of a specimen at working resolution (default 1).
+    min_size_fraction : float
+        Smallest voxel count as a fraction of the largest elongated part's (default 0.1: fragments, noise).
+    min_length_fraction : float
+        Smallest length as a fraction of the scan's largest physical side (default 0.2: bone fragments of a
+        chest CT, specks).
+    max_border_share : float
+        Largest share of its length over which a specimen may lie on a face of the scan (default 0.5).
+    split_saddle : float
+        Saddle depth that keeps two distance-transform cores apart (default 0.6; 0 never splits).
+    body : bool
+        Cut each specimen at :func:`specimen_isovalue` (default); False keeps the features' labels.
 
     Returns
     -------
     tuple of Candidate
-        By feature id (importance); a rejected candidate's ``reason`` says why.
+        Specimens and rejected candidates by their first feature id; every feature is in at least one
+        (a split feature in each of its parts). A candidate's :meth:`Candidate.working_mask` is its mask at the
+        working level, :attr:`Candidate.isovalue` the full-resolution isovalue to refine it at.
 
     Raises
     ------
@@ -136,20 +405,169 @@ def candidates(
         raise InvalidInputError(f"candidates needs Features (from segment or load_features), got {type(features)}")
     min_elongation = _number("min_elongation", min_elongation, 1.0)
     min_voxels = _count("min_voxels", min_voxels, 1)
-    out = []
+    min_size_fraction = _number("min_size_fraction", min_size_fraction, 0.0)
+    min_length_fraction = _number("min_length_fraction", min_length_fraction, 0.0)
+    max_border_share = _number("max_border_share", max_border_share, 0.0)
+    split_saddle = _number("split_saddle", split_saddle, 0.0)
+    if min_size_fraction > 1 or min_length_fraction > 1 or max_border_share > 1 or split_saddle > 1:
+        bad = [f"{n} = {v!r}" for n, v in (("min_size_fraction", min_size_fraction), ("min_length_fraction",
+               min_length_fraction), ("max_border_share", max_border_share), ("split_saddle", split_saddle)) if v > 1]
+        raise InvalidInputError(f"fractions must lie in [0, 1], got {', '.join(bad)}")
+    if not isinstance(body, (bool, np.bool_)):
+        raise InvalidInputError(f"body must be True or False, got {body!r}")
+
+    spacing = np.asarray(features.spacing, dtype=float)
+    labels = features.labels
+    stats = {s.id: s for s in features.stats}
+    out: list[Candidate] = []
+
+    # 1-2: containers and wall arcs
+    enclosed: dict[int, list[int]] = {}
+    enc = _enclosers(labels, features.k, [s.max_position for s in features.stats])
+    if enc.any():
+        for g in features.stats:  # which features each container encloses, for the reason
+            for f in np.flatnonzero(_enclosers_of(labels, g)).tolist():
+                enclosed.setdefault(f, []).append(g.id)
+    rest: list[int] = []
     for s in features.stats:
-        if s.voxel_count < min_voxels:
-            reason = f"too small: {s.voxel_count} voxels < {min_voxels}"
-        elif s.container:
-            reason = "container: touches the scan's border or encloses other features"
-        elif s.elongation is None or not np.isfinite(s.elongation):
-            reason = "no elongation in these statistics (saved by an older version): segment again"
-        elif s.elongation < min_elongation:
-            reason = f"not elongated: {s.elongation:.2g} < {min_elongation:g}"
+        if s.voxel_count == 0:
+            out.append(Candidate((s.id,), REJECTED, "empty: no voxel above its threshold", s))
+        elif enc[s.id]:
+            inside = sorted(enclosed.get(s.id, []))
+            what = f"encloses feature{'s' if len(inside) > 1 else ''} {', '.join(map(str, inside))}" if inside \
+                else "encloses other features"
+            out.append(Candidate((s.id,), REJECTED, f"container: {what}", s))
+        elif s.voxel_count < min_voxels:
+            out.append(Candidate((s.id,), REJECTED, f"too small: {s.voxel_count} voxels < {min_voxels}", s))
         else:
-            reason = ""
-        out.append(Candidate(ids=(s.id,), status=REJECTED if reason else SPECIMEN, reason=reason, stats=s))
+            share = _hugs_border(labels == s.id, spacing) if s.touches_border else 0.0
+            if share > max_border_share:
+                out.append(Candidate((s.id,), REJECTED, f"wall arc cut by the field of view: it lies on a face of the "
+                                     f"scan along {100 * share:.0f} % of its length", s))
+            else:
+                rest.append(s.id)
+
+    # 3: bodies
+    use_body = body and features.tree is not None and features.feature_of_branch is not None
+    basin_id = features.feature_of_branch[features.tree.branch] if use_body else None
+    iso_of: dict[int, float | None] = {}
+    union = np.zeros(labels.shape, bool)
+    body_of: dict[int, tuple[tuple[slice, ...], np.ndarray]] = {}
+    for f in rest:
+        lab = labels == f
+        if use_body:
+            iso = _isovalue(features, [f], lab, basin_id, stats[f].threshold)
+            iso_of[f] = iso
+            box = _box(basin_id == f, 0)
+            m = (basin_id[box] == f) & (features.tree.values[box] >= iso)
+            comp, _ = ndimage.label(m)
+            keep = np.unique(comp[lab[box]])
+            m = np.isin(comp, keep[keep > 0])
+            m |= lab[box]
+        else:
+            iso_of[f] = None
+            box = _box(lab, 0)
+            m = lab[box]
+        body_of[f] = (box, m)
+        union[box] |= m
+
+    # 4: groups and parts
+    groups, n_groups = ndimage.label(union)
+    parts_all = np.zeros(labels.shape, np.int32)
+    part_info: list[tuple[int, int, int]] = []  # (part label, group, part index within the group)
+    n_parts_of: dict[int, int] = {}
+    for gi, sl in enumerate(ndimage.find_objects(groups), start=1):
+        if sl is None:
+            continue
+        g = groups[sl] == gi
+        if split_saddle > 0:
+            parts, n = _split(g, spacing, saddle=split_saddle, min_share=0.2)
+        else:
+            parts, n = g.astype(np.int32), 1
+        base = len(part_info)
+        sub = parts_all[sl]
+        sub[parts > 0] = parts[parts > 0] + base
+        n_parts_of[gi] = n
+        part_info.extend((base + p, gi, p) for p in range(1, n + 1))
+    scan_side = float(np.max(np.asarray(labels.shape) * spacing))
+
+    # which features each part holds: its own labels' majority, or a quarter of a feature
+    overlap = np.zeros((len(part_info) + 1, features.k + 1), dtype=np.int64)
+    np.add.at(overlap, (parts_all.ravel(), labels.ravel().astype(np.int64)), 1)
+    members: dict[int, list[int]] = {p: [] for p, _, _ in part_info}
+    placed: set[int] = set()
+    for f in rest:
+        col = overlap[1:, f]
+        if col.sum() == 0:
+            continue
+        best = int(np.argmax(col)) + 1
+        for p in range(1, len(part_info) + 1):
+            if p == best or col[p - 1] >= 0.25 * stats[f].voxel_count:
+                members[p].append(f)
+                placed.add(f)
+    for f in rest:
+        if f not in placed:
+            out.append(Candidate((f,), REJECTED, "no body above the medium's isovalue", stats[f]))
+
+    # 5: size and shape of every part (the size floor is a fraction of the largest elongated part)
+    rows = []
+    for p, gi, idx in part_info:
+        ids = tuple(sorted(members[p]))
+        if not ids:  # a part with no feature's labels in it: a fragment of a body
+            continue
+        mask = parts_all == p
+        box = _box(mask, 0)
+        isos = [iso_of[f] for f in ids if iso_of[f] is not None]
+        iso = float(min(isos)) if isos else None
+        st = _part_stats(features, stats[ids[0]], mask, iso, spacing)
+        _, ev, _ = _principal(mask, spacing)
+        rows.append((p, gi, idx, ids, box, mask[box], iso, st, 4.0 * float(np.sqrt(ev[0]))))
+    largest = max([r[7].voxel_count for r in rows if r[7].elongation >= min_elongation], default=0)
+    size_floor = max(min_voxels, int(np.ceil(min_size_fraction * largest)))
+    for _p, gi, idx, ids, box, crop, iso, st, length in rows:
+        n = n_parts_of[gi]
+        if st.voxel_count < size_floor:
+            why = f"too small: {st.voxel_count} voxels < {size_floor}"
+            if size_floor > min_voxels:
+                why += f" ({100 * min_size_fraction:g} % of the largest elongated candidate, {largest})"
+        elif st.elongation < min_elongation:
+            why = f"not elongated: {st.elongation:.2g} < {min_elongation:g}"
+        elif length < min_length_fraction * scan_side:
+            why = (f"too short: length {length:.3g} < {100 * min_length_fraction:g} % of the scan's largest side "
+                   f"({scan_side:.3g})")
+        else:
+            why = ""
+        if n > 1:
+            note = f"touching specimens: split into {n} at the distance transform's saddle (part {idx})"
+        elif len(ids) > 1:
+            note = f"features {', '.join(map(str, ids))} make one body"
+        else:
+            note = ""
+        reason = f"{why}; {note}" if why and note else (why or note)
+        out.append(Candidate(ids, REJECTED if why else SPECIMEN, reason, st, part=idx if n > 1 else 0, n_parts=n,
+                             isovalue=iso, _box=tuple(int(v) for v in (*[b.start for b in box],
+                                                                        *[b.stop for b in box])),
+                             _crop=np.ascontiguousarray(crop)))
+    out.sort(key=lambda c: (c.ids[0], c.part))
     return tuple(out)
+
+
+def _enclosers_of(labels: np.ndarray, g: FeatureStats) -> np.ndarray:
+    """Which features enclose the maximum of feature ``g`` (the rule of :func:`._features._enclosers`)."""
+    k = int(labels.max())
+    enc = np.zeros(k + 1, dtype=bool)
+    m = g.max_position
+    halves = []
+    for a in range(3):
+        idx = list(m)
+        idx[a] = slice(None)
+        line = labels[tuple(idx)]
+        halves.append((set(np.unique(line[: m[a]]).tolist()), set(np.unique(line[m[a] + 1:]).tolist())))
+    for a in range(3):
+        b, c = [x for x in range(3) if x != a]
+        for f in (halves[b][0] & halves[b][1] & halves[c][0] & halves[c][1]) - {0, g.id}:
+            enc[f] = True
+    return enc
 
 
 def specimens(features: Features, *, min_elongation: float = 3.0, min_voxels: int = 1) -> tuple[FeatureStats, ...]:
