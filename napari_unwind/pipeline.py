@@ -81,10 +81,13 @@ _DEFAULT = "default"  # ExportOptions.max_output: the warp's own DEFAULT_MAX_OUT
 # validators
 # ------------------------------------------------------------------------------------------------------------------
 def _whole(name: str, value: Any, lo: int, hi: int | None = None) -> int:
-    import numpy as np
+    if type(value) is int:  # the defaults: no numpy import (building options must keep the CLI's start quick)
+        whole = True
+    else:
+        import numpy as np
 
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < lo \
-            or (hi is not None and value > hi):
+        whole = isinstance(value, np.integer)
+    if not whole or value < lo or (hi is not None and value > hi):
         rng = f">= {lo}" if hi is None else f"{lo}..{hi}"
         raise InvalidInputError(f"{name} must be a whole number {rng}, got {value!r}")
     return int(value)
