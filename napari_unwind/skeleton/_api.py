@@ -715,9 +715,11 @@ def estimate_deformation(
     """Estimate the straightening deformation of a specimen from its mask and its two ends.
 
     The paper's pipeline (docs/design.md section 4): the mask at a working resolution, connectivity by dilation, a
-    marching-cubes surface, an fTetWild tet mesh, the cotangent-Laplacian harmonic function with ``u = 0`` at the
-    head and ``u = 1`` at the tail, ``n_levels`` level sets by marching tets with area-weighted centroids,
-    smoothing, resampling by arclength, parallel-transport frames and the fewest keyframes (prism subdivision).
+    tet mesh of the body (a deterministic lattice cut at the mask's isosurface, where the paper has fTetWild on a
+    marching-cubes surface; ``tet_mesher="ftetwild"`` for that), the cotangent-Laplacian harmonic function with
+    ``u = 0`` at the head and ``u = 1`` at the tail, ``n_levels`` level sets by marching tets with area-weighted
+    centroids, smoothing, resampling by arclength, parallel-transport frames and the fewest keyframes (prism
+    subdivision).
     Beyond the paper: the twist from the specimen's own cross-sections, suggested endpoints, and the cage and
     end padding from the cross-section extent.
 

@@ -1,8 +1,10 @@
-"""The paper's centreline: surface, tet mesh, harmonic function, level-set centroids.
+"""The paper's centreline: tet mesh, harmonic function, level-set centroids.
 
-docs/design.md section 4, steps 3-5: marching cubes on the (box-averaged) mask, an fTetWild tet mesh of that surface,
-the cotangent Laplacian of the tet mesh (libigl) with Dirichlet values 0 at the head and 1 at the tail, and the
-area-weighted centroids of the isosurfaces of the solution, cut tet by tet ("marching tets", numpy).
+docs/design.md section 4, steps 3-5: a tet mesh of the (box-averaged) mask, the deterministic
+:func:`lattice_tet_mesh` by default (the paper's marching cubes + fTetWild, :func:`surface_mesh` and
+:func:`tet_mesh`, give a different mesh on every run), the cotangent Laplacian of the tet mesh (libigl) with
+Dirichlet values 0 at the head and 1 at the tail, and the area-weighted centroids of the isosurfaces of the
+solution, cut tet by tet ("marching tets", numpy).
 """
 
 from __future__ import annotations
