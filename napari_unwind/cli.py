@@ -511,6 +511,12 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
     else:
         say(f"the session's source is the scan {args.volume}: unwind straighten {args.volume} --session {written} "
             "-o OUTPUT")
+    from .pipeline import EXIT_PARTIAL, judge
+
+    status, reason = judge(result)
+    if status != "ok":  # the session is written, but it does not straighten the specimen to the goals
+        print(f"unwind: {status}: {_one_line(reason)}", file=sys.stderr)
+        return EXIT_PARTIAL
     return 0
 
 

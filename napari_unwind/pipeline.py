@@ -8,12 +8,13 @@ every default once.
 Statuses of a specimen (:class:`SpecimenResult`)
 ------------------------------------------------
 ``ok``
-    Straightened to the goals: at least :data:`MIN_COVERAGE` of the mask inside the cage, no lost interval, no
-    fold over the specimen.
+    Straightened to the goals: at least :data:`MIN_COVERAGE` of the mask inside the cage and no fold over the
+    specimen. The stretches where the rest (under 1 %) is left out, such as the inner wall of a bend tighter
+    than the body is wide, are still listed (``lost``, and a warning from 0.1 % of the mask).
 ``partial``
     Straightened (the output and session are written) but not to the goals: coverage under
-    :data:`MIN_COVERAGE`, a lost interval, or a fold over the specimen exported with ``allow_folds``. Not a
-    success: the command line exits :data:`EXIT_PARTIAL`.
+    :data:`MIN_COVERAGE` (the reason lists the lost stretches), or a fold over the specimen exported with
+    ``allow_folds``. Not a success: the command line exits :data:`EXIT_PARTIAL`.
 ``failed``
     An error stopped it (the reason says which); for a batch the other specimens go on.
 ``rejected``
@@ -364,7 +365,8 @@ def judge(skeleton: Any) -> tuple[str, str]:
     """The status of a straightened specimen from its :class:`~napari_unwind.skeleton.SkeletonResult`:
     ``("ok", "")`` or ``("partial", reason)``.
 
-    ``ok`` needs coverage >= :data:`MIN_COVERAGE`, no lost interval and no fold over the specimen.
+    ``ok`` needs coverage >= :data:`MIN_COVERAGE` and no fold over the specimen; the lost intervals of an ok
+    specimen (together under 1 % of its mask) stay in its figures.
     """
     from .io._volume import unit_label
     from .skeleton._foldfree import format_lost
@@ -372,10 +374,10 @@ def judge(skeleton: Any) -> tuple[str, str]:
     reasons = []
     cov = _num(getattr(skeleton, "coverage", None))
     if cov is not None and cov < MIN_COVERAGE:
-        reasons.append(f"coverage {100 * cov:.1f} % of the mask inside the cage (goal {100 * MIN_COVERAGE:.0f} %)")
-    lost = tuple(getattr(skeleton, "lost", ()) or ())
-    if lost:
-        reasons.append(f"lost: {format_lost(lost, unit_label(skeleton.deformation.unit))}")
+        lost = tuple(getattr(skeleton, "lost", ()) or ())
+        where = f" (lost: {format_lost(lost, unit_label(skeleton.deformation.unit))})" if lost else ""
+        reasons.append(f"coverage {100 * cov:.1f} % of the mask inside the cage (goal {100 * MIN_COVERAGE:.0f} %)"
+                       + where)
     folded = _num(getattr(skeleton, "folded", None))
     if folded and skeleton.deformation.folds():
         reasons.append(f"the deformation folds over {100 * folded:.2g} % of the specimen's mask")

@@ -148,8 +148,10 @@ def test_status_rule():
     assert judge(_skel(coverage=float("nan"))) == ("ok", "")  # not measured: no verdict on it
     status, reason = judge(_skel(coverage=0.985))
     assert status == "partial" and "coverage 98.5 %" in reason
-    status, reason = judge(_skel(lost=((10.0, 20.0, 0.004),)))
-    assert status == "partial" and "lost" in reason and "10" in reason
+    # lost stretches under the coverage goal are figures of an ok specimen (the inner wall of a tight bend)
+    assert judge(_skel(coverage=0.996, lost=((10.0, 20.0, 0.004),))) == ("ok", "")
+    status, reason = judge(_skel(coverage=0.985, lost=((10.0, 20.0, 0.015),)))
+    assert status == "partial" and "coverage 98.5 %" in reason and "lost: s = 10..20" in reason
     status, reason = judge(_skel(folded=0.02, folds=[(1.0, 2.0)]))
     assert status == "partial" and "folds over 2 %" in reason
     assert judge(_skel(folded=0.0, folds=[(1.0, 2.0)])) == ("ok", "")  # only empty cage corners
@@ -181,6 +183,13 @@ def test_run_with_a_fitting_cage_is_ok_and_a_too_small_cage_is_partial(fish, tmp
     assert len(partial) == 1 and "coverage" in partial[0] and "Traceback" not in err, err
     assert (tmp_path / "small.nrrd").exists() and (tmp_path / "small.unwind.json").exists()  # written, not success
     assert "--cage" in run_unwind("run", "--help")[1] and "3 when one is partial" in run_unwind("run", "--help")[1]
+    # unwind skeleton writes the session and says the same, with the same exit status
+    code, out, err = run_unwind("skeleton", mask, "--volume", scan, *ends, "--cage", "1,1", "-o",
+                                tmp_path / "s.unwind.json")
+    assert code == EXIT_PARTIAL and (tmp_path / "s.unwind.json").exists(), err
+    assert sum(line.startswith("unwind: partial: coverage") for line in err.splitlines()) == 1, err
+    code, out, err = run_unwind("skeleton", mask, "--volume", scan, *ends, "-o", tmp_path / "t.unwind.json", "-q")
+    assert code == 0, err
 
 
 def test_run_all_on_a_scan_with_nothing_specimen_like_says_so_and_exits_1(tmp_path):
