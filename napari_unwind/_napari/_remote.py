@@ -210,31 +210,32 @@ def suggest_ends_iter(server: Server, volume_id: str, mask_id: str) -> Generator
     return tuple(head), tuple(tail)
 
 
-def skeleton_iter(server: Server, volume_id: str, mask_id: str, ends: Any) -> Generator[Progress, None, Any]:
-    """The skeleton job on the server; returns (its Session, the stored session's id, the core's warnings)."""
+def skeleton_iter(server: Server, volume_id: str, mask_id: str, ends: Any, *, options: Any = None
+                  ) -> Generator[Progress, None, Any]:
+    """The skeleton job on the server with ``options`` (a :class:`~napari_unwind.pipeline.SkeletonOptions`; None:
+    its defaults); returns (its Session, the stored session's id, the core's warnings)."""
     from ..client import Client
 
     kw: dict[str, Any] = {}
     if ends is not None:
         kw = dict(head=ends.head, tail=ends.tail, chain=ends.chain or None)
     with server.client() as c:
-        job = c.skeleton(mask_id, volume_id=volume_id, wait=False, **kw)
+        job = c.skeleton(mask_id, volume_id=volume_id, wait=False, options=options, **kw)
         done = yield from _follow(c, job)
     return Client.session(done), done.result.session_id, tuple(done.result.warnings)
 
 
-def export_iter(server: Server, volume_id: str, session_id: str, target: Path, *, order: int = 1,
-                spacing: float | None = None, pad: int = 0, overwrite: bool = False
-                ) -> Generator[Progress, None, Path]:
-    """Straighten on the server (a job), then download the result to ``target`` (atomically); returns ``target``."""
+def export_iter(server: Server, volume_id: str, session_id: str, target: Path, *, options: Any = None,
+                overwrite: bool = False) -> Generator[Progress, None, Path]:
+    """Straighten on the server (a job) with ``options`` (a :class:`~napari_unwind.pipeline.ExportOptions`; None:
+    its defaults), then download the result to ``target`` (atomically); returns ``target``."""
     from ..io._atomic import check_writable
     from ..io._formats import output_format
 
     output_format(target)
     check_writable(target, overwrite=overwrite)
     with server.client() as c:
-        job = c.straighten(volume_id, session_id, wait=False, output_name=target.name, order=order,
-                           spacing=spacing, pad=pad)
+        job = c.straighten(volume_id, session_id, wait=False, output_name=target.name, options=options)
         done = yield from _follow(c, job)
         yield Progress("download", 0, 1, str(target))
         c.download(done.result.volume_id, target, overwrite=overwrite)

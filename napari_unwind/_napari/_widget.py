@@ -21,18 +21,24 @@ Ends
     drag them in select mode, place more in add mode. Two points are head and tail; more are read in order as a
     chain (start and end of each part, head to tail) for a specimen in pieces.
 Skeleton
-    :func:`napari_unwind.skeleton.estimate_deformation_iter` in a worker with progress and Cancel; the result's
-    report and warnings are shown, and the deformation goes to the editing model.
+    The pipeline's :func:`napari_unwind.pipeline.skeleton_step` (options: ``self.options.skeleton``, a
+    :class:`~napari_unwind.pipeline.PipelineOptions`) in a child process with progress and Cancel; the status line
+    shows its status by :func:`napari_unwind.pipeline.judge` (``ok``, or ``partial`` with the reason, e.g. coverage
+    under 0.99), the report its figures and warnings, and the deformation goes to the editing model.
 Refine
     The cross-section editor (:class:`napari_unwind._napari._refine.RefinePanel`) on the same model.
 Export
-    Format, spacing, order, padding and path; :func:`napari_unwind.warp.export_iter` in a worker with progress and
-    Cancel; the result opens as a layer. Saving is explicit; an existing file is replaced only after confirmation.
+    Format, spacing, order, padding, "allow folds" and path (the fields start at the pipeline's
+    :class:`~napari_unwind.pipeline.ExportOptions` defaults); :func:`napari_unwind.pipeline.export_step` in a worker
+    with progress and Cancel: the one fold rule (a fold over the specimen is refused with the command line's
+    message unless "allow folds" is ticked), then the writer; the result opens as a layer. Saving is explicit; an
+    existing file is replaced only after confirmation.
 Session
     Save and load (:mod:`napari_unwind.session`) at any step.
 
-The dock only calls the core and the :class:`~napari_unwind.editing.EditModel`; every long job runs in a
-``thread_worker`` (:mod:`._workers`), so the UI never waits on one.
+The dock's steps call the one pipeline (:mod:`napari_unwind.pipeline`, through the Qt-free :mod:`._steps`) with
+its option objects (no default is restated here), the core and the :class:`~napari_unwind.editing.EditModel`;
+every long job runs in a ``thread_worker`` (:mod:`._workers`), so the UI never waits on one.
 """
 
 from __future__ import annotations
@@ -48,6 +54,7 @@ import numpy as np
 from qtpy.QtCore import Qt
 from qtpy.QtWidgets import (
     QAbstractItemView,
+    QCheckBox,
     QComboBox,
     QDoubleSpinBox,
     QFileDialog,
@@ -71,6 +78,7 @@ from ..editing import EditModel
 from ..errors import InvalidInputError, UnwindError
 from ..io import Volume, open_volume
 from ..io._volume import normalise_unit, unit_label
+from ..pipeline import ExportOptions, PipelineOptions
 from ..progress import Progress
 from . import _docks
 from ._workers import Job, JobCancelled, prewarm, start_job, start_process_job
@@ -86,9 +94,16 @@ DOCK_SHORTCUTS = (
     ("drag a point", "Ends: move a head/tail (points layer in select mode)"),
     ("click (add mode)", "Ends: place another end (more than two: a chain, start and end of each part)"),
 )
-#: The skeleton solve, run in a child process by name (the UI process need not import the mesher).
-_SKELETON = "napari_unwind.skeleton:estimate_deformation_iter"
+#: The skeleton step (the pipeline's skeleton_step, judged), run in a child process by name (the UI process need not
+#: import the mesher; the spare child imports the pipeline and the solver while idle).
+_SKELETON = "napari_unwind._napari._steps:skeleton"
 _TABLE_COLUMNS = ("id", "voxels", "elongation", "persistence", "threshold", "border", "container")
+
+
+def _status_line(specimen: Any, where: str = "") -> str:
+    """The skeleton's status for the dock: ``skeleton: ok`` or ``skeleton: partial: <the pipeline's reason>``."""
+    head = f"skeleton{where}: {specimen.status}"
+    return f"{head}: {specimen.reason}" if specimen.reason else head
 
 
 def volume_from_layer(layer: Any) -> Volume:
@@ -167,6 +182,11 @@ class UnwindWidget(QWidget):
         self.selected: list[int] = []
         self.seeds: dict[int, tuple[float, float, float]] = {}  # feature id -> the full-resolution voxel clicked
         self.result: Any = None  # SkeletonResult
+        self.specimen: Any = None  # the pipeline's SpecimenResult of the last skeleton (status ok / partial, reason)
+        #: The pipeline's options (napari_unwind.pipeline: every default once); the export page's fields and the
+        #: "allow folds" box override its export part when an export starts.
+        self.options = PipelineOptions()
+        self._skeleton_deformation: Any = None  # the model's deformation as the skeleton left it (unedited)
         self.exported: Path | None = None
         self.job: Job | None = None
         self._source_info: Any = None  # SourceInfo of the scan (its checksum is computed once)
@@ -315,11 +335,12 @@ class UnwindWidget(QWidget):
         row = QHBoxLayout()
         row.addWidget(QLabel("features"))
         self.count_slider = QSlider(Qt.Orientation.Horizontal)
-        self.count_slider.setRange(1, 5)
-        self.count_slider.setValue(5)
+        k = self.options.segment.k
+        self.count_slider.setRange(1, k)
+        self.count_slider.setValue(k)
         self.count_slider.setEnabled(False)
         self.count_slider.valueChanged.connect(self.set_feature_count)
-        self.count_label = QLabel("5")
+        self.count_label = QLabel(str(k))
         row.addWidget(self.count_slider, 1)
         row.addWidget(self.count_label)
         lay.addLayout(row)
@@ -403,6 +424,12 @@ class UnwindWidget(QWidget):
         self.pad_box.setRange(0, 100000)
         self.pad_box.setToolTip("Extra slices at each end beyond the deformation's own padding")
         form.addRow("padding (slices)", self.pad_box)
+        self.allow_folds_box = QCheckBox("allow folds")
+        self.allow_folds_box.setToolTip("Export even where the deformation folds over the specimen (as unwind "
+                                        "--allow-folds); a fold over empty cage corners only is exported anyway, "
+                                        "with a warning")
+        form.addRow("", self.allow_folds_box)
+        self._show_export_options(self.options.export)
         row = QHBoxLayout()
         self.path_edit = QLineEdit()
         self.path_edit.setPlaceholderText("straight.ome.zarr")
@@ -660,14 +687,16 @@ class UnwindWidget(QWidget):
         if self.volume is None:
             self._fail(InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)"))
             return None
-        volume = self.volume
+        volume, seg = self.volume, self.options.segment
+        level = seg.level if level is None else level
         if self.server is not None:
             return self._remote_segment(level)
 
         def make() -> Generator[Progress, None, Any]:
+            # the pipeline's segment_step is this tree simplified once; the dock keeps the tree for its slider
             from ..segmentation import join_tree_iter
 
-            return join_tree_iter(volume, level=level)
+            return join_tree_iter(volume, level=level, smooth=seg.smooth)
 
         return self._start(make, "building the join tree", self._tree_ready, (self.segment_cancel,))
 
@@ -867,12 +896,14 @@ class UnwindWidget(QWidget):
         self.select_features(ids, seeds={i: s for i, s in self.seeds.items() if i in ids})
 
     def mask(self) -> Any:
-        """The selected features at full resolution (lazy dask bool array)."""
-        from ..segmentation import refine_mask, select
+        """The selected features at full resolution (lazy dask bool array): the pipeline's select_step with the
+        dock's segmentation options (nothing is computed here)."""
+        from ..pipeline import select_step
+        from ..progress import run
 
         self._check_selection()
-        working = select(self.features, ids=self.selected)
-        return refine_mask(self.volume, working, features=self.features)
+        return run(select_step(self.volume, self.features, ids=list(self.selected),
+                               options=self.options.segment)).mask
 
     # ==============================================================================================================
     # ends
@@ -968,10 +999,11 @@ class UnwindWidget(QWidget):
         return self._start(None, "computing the skeleton", self._skeleton_ready, (self.skeleton_cancel,),
                            process=(_SKELETON, (mask, ends),
                                     dict(spacing=volume.spacing, origin=volume.origin, unit=volume.unit,
-                                         volume=volume.data)))
+                                         volume=volume.data, options=self.options.skeleton)))
 
-    def _skeleton_ready(self, result: Any) -> None:
-        self.result = result
+    def _skeleton_ready(self, specimen: Any) -> None:
+        self.specimen = specimen
+        self.result = result = specimen.skeleton
         d = result.deformation
         lines = [f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes"
                  + (" (suggested ends)" if result.suggested else ""), result.report()]
@@ -980,11 +1012,13 @@ class UnwindWidget(QWidget):
             lines.append("FOLDS at s = " + ", ".join(f"{a:.4g}..{b:.4g}" for a, b in folds)
                          + f" ({100 * result.folded:.2g} % of the mask): edit the keyframes there (Refine)")
         lines += [f"warning: {w}" for w in result.warnings]
+        lines.insert(0, _status_line(specimen))
         self.skeleton_report.setPlainText("\n".join(lines))
         if result.endpoints is not None and self._ends_layer is None:
             self._show_session_ends(result.endpoints)
         self.model.set_deformation(d)
-        self._say("skeleton done" + (" with warnings (see Skeleton)" if result.warnings or folds else ""))
+        self._skeleton_deformation = self.model.deformation
+        self._say(_status_line(specimen) + (" (warnings: see Skeleton)" if result.warnings or folds else ""))
 
     def _show_session_ends(self, ends: Any) -> None:
         if ends.chain:
@@ -1031,6 +1065,27 @@ class UnwindWidget(QWidget):
                                       QMessageBox.StandardButton.No)
         return answer == QMessageBox.StandardButton.Yes
 
+    def _show_export_options(self, options: ExportOptions) -> None:
+        """Set the export page's fields to ``options`` (the pipeline's defaults when the dock starts)."""
+        self.spacing_box.setValue(options.spacing or 0.0)
+        self.order_combo.setCurrentIndex(max(0, self.order_combo.findData(options.order)))
+        self.pad_box.setValue(int(options.pad))
+        self.allow_folds_box.setChecked(bool(options.allow_folds))
+
+    def export_options(self) -> ExportOptions:
+        """The pipeline's export options with the export page's fields (spacing, order, padding, allow folds)."""
+        return replace(self.options.export, spacing=self.spacing_box.value() or None,
+                       order=int(self.order_combo.currentData()), pad=int(self.pad_box.value()),
+                       allow_folds=self.allow_folds_box.isChecked())
+
+    def _folded(self) -> float | None:
+        """The fraction of the specimen's mask in the folds of the model's deformation: the skeleton's figure
+        while the deformation is as the skeleton left it, else None (unknown: the fold rule then refuses any
+        fold unless folds are allowed, as ``unwind straighten`` does)."""
+        if self.specimen is None or self.model.deformation is not self._skeleton_deformation:
+            return None
+        return self.specimen.folded
+
     def export(self, path: str | os.PathLike) -> Job | None:
         """Straighten the scan with the model's deformation and write ``path`` (worker, progress, Cancel); the
         written file opens as a layer."""
@@ -1057,26 +1112,29 @@ class UnwindWidget(QWidget):
                 return None
             overwrite = True
         volume, d = self.volume, self.model.deformation
-        spacing = self.spacing_box.value() or None
-        order = int(self.order_combo.currentData())
-        pad = int(self.pad_box.value())
-        session = self._session_dict()
+        try:
+            options = self.export_options()
+        except UnwindError as exc:
+            self._fail(exc)
+            return None
+        folded = self._folded()
         if self.server is not None:
-            return self._remote_export(target, order=order, spacing=spacing, pad=pad, overwrite=overwrite)
+            return self._remote_export(target, options=options, folded=folded, overwrite=overwrite)
+        session = self._session_or_none()
 
         def make() -> Generator[Progress, None, Any]:
-            from ..warp import export_iter
+            from ._steps import export  # the pipeline's export_step: the one fold rule, then the writer
 
-            return export_iter(volume, d, target, order=order, spacing=spacing, pad=pad, overwrite=overwrite,
-                               session=session)
+            return export(volume, d, target, options=options, folded=folded, session=session, overwrite=overwrite)
 
-        def done(written: Any) -> None:
+        def done(value: Any) -> None:
             from ._layers import image_layer
 
+            written, warned = value
             self.exported = Path(written)
             self._add_layer(image_layer(open_volume(written), name=f"straight {self.exported.name}"))
-            self.export_info.setText(f"written: {self.exported}")
-            self._say(f"exported to {self.exported}")
+            self.export_info.setText("\n".join([f"written: {self.exported}"] + [f"warning: {w}" for w in warned]))
+            self._say(f"exported to {self.exported}" + (f" (warning: {warned[0]})" if warned else ""))
 
         return self._start(make, "exporting", done, (self.export_cancel,))
 
@@ -1171,12 +1229,12 @@ class UnwindWidget(QWidget):
     def _remote_skeleton(self, ends: Any) -> Job | None:
         from ._remote import skeleton_iter
 
-        server = self.server
+        server, options = self.server, self.options.skeleton
         key, mask = self._remote_mask()
 
         def then(volume_id: str) -> Generator[Progress, None, Any]:
             mid = yield from mask(volume_id)
-            session, session_id, warnings = yield from skeleton_iter(server, volume_id, mid, ends)
+            session, session_id, warnings = yield from skeleton_iter(server, volume_id, mid, ends, options=options)
             return session, session_id, warnings, mid
 
         def done(value: Any) -> None:
@@ -1194,12 +1252,15 @@ class UnwindWidget(QWidget):
             if session.endpoints is not None and self._ends_layer is None:
                 self._show_session_ends(session.endpoints)
             self.model.set_deformation(d)
+            self.specimen = None  # the server sends no coverage: the status is not known here
+            self._skeleton_deformation = self.model.deformation
             self._remote["session"] = (session_id, self.model.deformation)  # an edit makes another object
             self._say("skeleton done (server)" + (" with warnings (see Skeleton)" if warnings or folds else ""))
 
         return self._start(self._with_scan_uploaded(then), "computing the skeleton", done, (self.skeleton_cancel,))
 
-    def _remote_export(self, target: Path, **options: Any) -> Job | None:
+    def _remote_export(self, target: Path, *, options: ExportOptions, folded: float | None,
+                       overwrite: bool) -> Job | None:
         from ._remote import export_iter
 
         server = self.server
@@ -1210,8 +1271,14 @@ class UnwindWidget(QWidget):
             return None
         session_id = known[0]
 
+        d = self.model.deformation
+
         def then(volume_id: str) -> Generator[Progress, None, Any]:
-            return (yield from export_iter(server, volume_id, session_id, target, **options))
+            from ._steps import check_folds
+
+            check_folds(d, folded=folded, options=options)  # the one fold rule, before any upload or job
+            return (yield from export_iter(server, volume_id, session_id, target, options=options,
+                                           overwrite=overwrite))
 
         def done(written: Any) -> None:
             from ._layers import image_layer
@@ -1226,11 +1293,12 @@ class UnwindWidget(QWidget):
     # ==============================================================================================================
     # session
     # ==============================================================================================================
-    def _session_dict(self) -> dict | None:
+    def _session_or_none(self) -> Any:
+        """The session written into an export (None: the scan's checksum is not known yet, or no selection)."""
         if self._source_info is None:
             return None
         try:
-            return self._session(self._source_info).to_dict()
+            return self._session(self._source_info)
         except UnwindError:
             return None
 
