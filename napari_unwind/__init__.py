@@ -8,11 +8,15 @@ from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 from .errors import InvalidInputError, OutputError, UnknownFormatError, UnwindError
-from .io import Volume, import_volume, open_volume, write_volume
 from .progress import Progress
 
-# Imported on first use, so that `import napari_unwind` (and the CLI's start) stays quick: numba is heavy.
+# Imported on first use, so that `import napari_unwind` (and the CLI's start: `unwind --version`, `unwind info`)
+# stays quick: numpy, dask, scipy and numba are heavy. tests/test_startup.py checks it.
 _LAZY = {
+    "Volume": "io",
+    "import_volume": "io",
+    "open_volume": "io",
+    "write_volume": "io",
     "Deformation": "deformation",
     "Keyframe": "deformation",
     "Session": "session",

@@ -65,8 +65,10 @@ def describe(volume: Any, path: Path | None = None) -> str:
     ]
     if path is not None:
         lines.append(f"on disk:   {human_bytes(disk_usage(path))}")
-    lines.append(f"levels:    {len(volume.levels)}")
-    for i, (lvl, sp) in enumerate(zip(volume.levels, volume.level_spacings, strict=True)):
-        chunks = "x".join(str(c[0]) for c in lvl.chunks)
-        lines.append(f"  {i}: {fmt_triple(lvl.shape):<22} spacing {fmt_triple(sp):<16} chunks {chunks}")
+    # from the header (Volume.level_shapes, level_chunks): the voxels' dask arrays are not built for a report
+    shapes, level_chunks = volume.level_shapes, volume.level_chunks
+    lines.append(f"levels:    {len(shapes)}")
+    for i, (shape, lvl_chunks, sp) in enumerate(zip(shapes, level_chunks, volume.level_spacings, strict=True)):
+        chunks = "x".join(str(c[0]) for c in lvl_chunks)
+        lines.append(f"  {i}: {fmt_triple(shape):<22} spacing {fmt_triple(sp):<16} chunks {chunks}")
     return "\n".join(lines)

@@ -59,10 +59,11 @@ def finite_number(name: str, value: object) -> float:
     """
     import math
 
-    import numpy as np
+    if type(value) not in (int, float):  # plain numbers (the options' defaults) need no numpy: the CLI starts quick
+        import numpy as np
 
-    if isinstance(value, (bool, np.bool_)) or not np.isscalar(value):
-        raise InvalidInputError(f"{name} must be a number, got {value!r}")
+        if isinstance(value, (bool, np.bool_)) or not np.isscalar(value):
+            raise InvalidInputError(f"{name} must be a number, got {value!r}")
     try:
         v = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):

@@ -9,7 +9,6 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-import dask.array as da
 import numpy as np
 
 from ..errors import InvalidInputError, OutputError
@@ -111,6 +110,8 @@ def as_volume(data: Any, *, spacing: Any = None, unit: str | None = None, origin
         if origin is not None:
             changes["origin"] = origin
         return data.with_data(data.data, **changes) if changes else data
+    import dask.array as da  # here, not at the top: opening a scan and reading its header need no dask
+
     if not isinstance(data, da.Array):
         arr = data if hasattr(data, "shape") and hasattr(data, "dtype") else np.asarray(data)
         data = da.from_array(arr, chunks=_default_chunks(arr.shape, np.dtype(arr.dtype)))
@@ -155,6 +156,8 @@ def _checked(volume: Volume, nan_value: float | None) -> Volume:
             fill = None
         if fill is None or not np.isfinite(fill):
             raise InvalidInputError(f"nan_value must be a finite number that {volume.dtype} holds, got {nan_value!r}")
+        import dask.array as da
+
         data = da.where(da.isfinite(volume.data), volume.data, fill)
     else:
         data = volume.data.map_blocks(_reject_nonfinite, dtype=volume.dtype)
@@ -309,6 +312,8 @@ def import_slabs_iter(
     or blocks of another plane shape or dtype, are an :class:`InvalidInputError`, and nothing is left behind.
     Yields progress, returns ``dst``.
     """
+    import dask.array as da
+
     from .ome_zarr import _normalise_chunks
 
     dtype = np.dtype(dtype)

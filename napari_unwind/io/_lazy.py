@@ -5,14 +5,15 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import dask.array as da
 import numpy as np
-from dask.base import tokenize
 
 from ..errors import InvalidInputError
-from ._volume import Volume
+from ._volume import LazyArray, Volume
+
+if TYPE_CHECKING:
+    import dask.array as da
 
 __all__ = ["SLAB_BYTES", "RawFileArray", "iter_slabs", "read_ahead", "slab_depth", "write_slab_depth"]
 
@@ -73,13 +74,25 @@ class RawFileArray:
 
     def to_dask(self, *, depth: int | None = None, name: str = "raw") -> da.Array:
         """A dask array over this file with one chunk per slab of ``depth`` planes along axis 0."""
+        return self.to_lazy(depth=depth, name=name).build()
+
+    def to_lazy(self, *, depth: int | None = None, name: str = "raw") -> LazyArray:
+        """:meth:`to_dask` as a :class:`LazyArray`: the file's identity is taken now, dask imported when built."""
         if depth is None:
             depth = slab_depth(self.shape[1:], self.dtype)
         stat = os.stat(self.path)
-        token = tokenize(self.path, stat.st_mtime_ns, stat.st_size, self.offset, self.stored_dtype.str, self.shape)
         chunks = (min(int(depth), self.shape[0]),) + self.shape[1:]
-        return da.from_array(self, chunks=chunks, name=f"{name}-{token}", asarray=False, fancy=False,
-                             meta=np.empty((0,) * self.ndim, dtype=self.dtype))
+
+        def build() -> da.Array:
+            import dask.array as da
+            from dask.base import tokenize
+
+            token = tokenize(self.path, stat.st_mtime_ns, stat.st_size, self.offset, self.stored_dtype.str,
+                             self.shape)
+            return da.from_array(self, chunks=chunks, name=f"{name}-{token}", asarray=False, fancy=False,
+                                 meta=np.empty((0,) * self.ndim, dtype=self.dtype))
+
+        return LazyArray(build, self.shape, self.dtype, chunks)
 
     def __repr__(self) -> str:
         return f"RawFileArray({self.path!r}, dtype={self.stored_dtype.str}, shape={self.shape}, offset={self.offset})"

@@ -2,15 +2,20 @@
 
 from __future__ import annotations
 
+import sys
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import dask.array as da
 import numpy as np
 
 from ..errors import InvalidInputError
 
-__all__ = ["Volume", "SUPPORTED_DTYPES", "check_spacing", "normalise_unit"]
+if TYPE_CHECKING:
+    import dask.array as da
+
+__all__ = ["Volume", "LazyArray", "SUPPORTED_DTYPES", "check_spacing", "normalise_unit"]
 
 #: Voxel types the pipeline accepts: 8- and 16-bit integers (signed or not) and floats.
 SUPPORTED_DTYPES = tuple(
@@ -64,6 +69,77 @@ def check_spacing(spacing: Any, ndim: int = 3) -> tuple[float, ...]:
     return values
 
 
+def _is_dask(value: Any) -> bool:
+    """``isinstance(value, dask.array.Array)`` without importing dask: no dask array exists before dask is imported."""
+    da = sys.modules.get("dask.array")
+    return da is not None and isinstance(value, da.Array)
+
+
+def _regular_chunks(shape: tuple[int, ...], chunks: tuple[int, ...]) -> tuple[tuple[int, ...], ...]:
+    """Dask's normalised chunks of a regular chunk shape (the last block of an axis takes what is left)."""
+    out = []
+    for n, c in zip(shape, chunks, strict=True):
+        c = max(1, min(int(c), n)) if n else 0
+        out.append((c,) * (n // c) + ((n % c,) if n % c else ()) if c else (0,))
+    return tuple(out)
+
+
+class LazyArray:
+    """What a reader knows from a file's header (shape, dtype, regular chunk shape) and how to build the dask array.
+
+    A :class:`Volume` given one (as ``data`` or among ``levels``) builds its dask arrays, importing dask, only when
+    ``data`` or ``levels`` is first used, so that ``unwind info`` reads the header alone. ``build`` must return an
+    array of exactly this shape, dtype and chunks.
+    """
+
+    __slots__ = ("shape", "dtype", "chunks", "_build")
+
+    def __init__(self, build: Callable[[], da.Array], shape: tuple[int, ...], dtype: Any, chunks: tuple[int, ...]):
+        self.shape = tuple(int(n) for n in shape)
+        self.dtype = np.dtype(dtype)
+        self.chunks = _regular_chunks(self.shape, chunks)
+        self._build = build
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def build(self) -> da.Array:
+        return self._build()
+
+    def __repr__(self) -> str:
+        return f"LazyArray(shape={self.shape}, dtype={self.dtype}, chunks={self.chunks})"
+
+
+_BUILD_LOCK = threading.RLock()
+
+
+class _Voxels:
+    """``Volume.data`` and ``Volume.levels``: stored as given, :class:`LazyArray` s built on first read."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, obj: Any, owner: type | None = None) -> Any:
+        if obj is None:
+            return self
+        state = obj.__dict__
+        if isinstance(state["data"], LazyArray) or any(isinstance(lvl, LazyArray) for lvl in state["levels"]):
+            with _BUILD_LOCK:
+                _build_voxels(state)
+        return state[self.name]
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        obj.__dict__[self.name] = value
+
+
+def _build_voxels(state: dict[str, Any]) -> None:
+    data, levels = state["data"], state["levels"]
+    built = {id(a): a.build() for a in (data, *levels) if isinstance(a, LazyArray)}
+    state["levels"] = tuple(built.get(id(lvl), lvl) for lvl in levels)  # levels[0] stays ``data`` itself
+    state["data"] = built.get(id(data), data)
+
+
 @dataclass(frozen=True)
 class Volume:
     """A scan: a lazy 3D array in array index order (axis0, axis1, axis2) with its geometry.
@@ -106,8 +182,10 @@ class Volume:
     metadata: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        data = self.data
-        if not isinstance(data, da.Array):
+        data = self.__dict__["data"]
+        if not isinstance(data, LazyArray) and not _is_dask(data):
+            import dask.array as da
+
             data = da.asarray(np.asarray(data))
             object.__setattr__(self, "data", data)
         if data.ndim != 3:
@@ -123,27 +201,42 @@ class Volume:
         object.__setattr__(self, "spacing", check_spacing(self.spacing))
         object.__setattr__(self, "origin", tuple(float(o) for o in np.broadcast_to(self.origin, (3,))))
         object.__setattr__(self, "unit", normalise_unit(self.unit))
-        if not self.levels:
+        if not self.__dict__["levels"]:
             object.__setattr__(self, "levels", (data,))
             object.__setattr__(self, "level_spacings", (self.spacing,))
             object.__setattr__(self, "level_origins", (self.origin,))
-        elif len(self.level_spacings) != len(self.levels):
+        elif len(self.level_spacings) != len(self.__dict__["levels"]):
             raise InvalidInputError("a Volume needs one spacing per pyramid level")
         if not self.level_origins:
-            object.__setattr__(self, "level_origins", (self.origin,) * len(self.levels))
-        elif len(self.level_origins) != len(self.levels):
+            object.__setattr__(self, "level_origins", (self.origin,) * len(self.__dict__["levels"]))
+        elif len(self.level_origins) != len(self.__dict__["levels"]):
             raise InvalidInputError("a Volume needs one origin per pyramid level")
         object.__setattr__(self, "level_origins",
                            tuple(tuple(float(o) for o in np.broadcast_to(lo, (3,))) for lo in self.level_origins))
 
     # -- conveniences -------------------------------------------------------------------------------------------
+    # read from the header where a reader left a LazyArray: neither builds the dask arrays
     @property
     def shape(self) -> tuple[int, int, int]:
-        return tuple(int(n) for n in self.data.shape)  # type: ignore[return-value]
+        return tuple(int(n) for n in self.__dict__["data"].shape)  # type: ignore[return-value]
 
     @property
     def dtype(self) -> np.dtype:
-        return np.dtype(self.data.dtype)
+        return np.dtype(self.__dict__["data"].dtype)
+
+    @property
+    def level_shapes(self) -> tuple[tuple[int, ...], ...]:
+        """The shape of each pyramid level, finest first."""
+        return tuple(tuple(int(n) for n in lvl.shape) for lvl in self.__dict__["levels"])
+
+    @property
+    def level_chunks(self) -> tuple[tuple[tuple[int, ...], ...], ...]:
+        """The (dask) chunks of each pyramid level, finest first."""
+        return tuple(tuple(tuple(c) for c in lvl.chunks) for lvl in self.__dict__["levels"])
+
+    def __getstate__(self) -> dict[str, Any]:
+        _ = self.data  # LazyArray builders need not pickle: send the dask arrays
+        return dict(self.__dict__)
 
     @property
     def nbytes(self) -> int:
@@ -156,10 +249,11 @@ class Volume:
 
     def level_for(self, max_side: int = 256) -> int:
         """Index of the finest pyramid level whose every side is ``<= max_side`` (the coarsest if none is)."""
-        for i, lvl in enumerate(self.levels):
-            if max(lvl.shape) <= max_side:
+        shapes = self.level_shapes
+        for i, shape in enumerate(shapes):
+            if max(shape) <= max_side:
                 return i
-        return len(self.levels) - 1
+        return len(shapes) - 1
 
     def level(self, index: int) -> Volume:
         """Pyramid level ``index`` as a single-level Volume with that level's own spacing and origin."""
@@ -189,5 +283,12 @@ class Volume:
     def __repr__(self) -> str:
         return (
             f"Volume(shape={self.shape}, dtype={self.dtype}, spacing={self.spacing}, unit={self.unit!r}, "
-            f"levels={len(self.levels)}, format={self.format!r}, source={self.source!r})"
+            f"levels={len(self.level_shapes)}, format={self.format!r}, source={self.source!r})"
         )
+
+
+# after @dataclass, which would take them for the fields' defaults
+Volume.data = _Voxels()  # type: ignore[assignment,misc]
+Volume.data.__set_name__(Volume, "data")
+Volume.levels = _Voxels()  # type: ignore[assignment,misc]
+Volume.levels.__set_name__(Volume, "levels")

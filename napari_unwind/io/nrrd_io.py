@@ -35,18 +35,19 @@ import warnings
 import zlib
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import dask.array as da
 import nrrd
 import numpy as np
-from dask.base import tokenize
 
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import final_name, remove_path, temp_path
 from ._lazy import RawFileArray, iter_slabs, write_slab_depth
-from ._volume import UNIT_ABBREVIATIONS, Volume, normalise_unit
+from ._volume import UNIT_ABBREVIATIONS, LazyArray, Volume, normalise_unit
+
+if TYPE_CHECKING:
+    import dask.array as da
 
 __all__ = ["read_nrrd", "write_nrrd", "ENCODINGS"]
 
@@ -368,15 +369,25 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
                 array = array.astype(native)
             lazy = False
 
-    if chunks is None:
+    default_chunks = chunks is None
+    if default_chunks:
         chunks = (_slab_depth(out_shape, native.itemsize),) + out_shape[1:]
-    if lazy:
-        st = os.stat(source)
-        name = "nrrd-" + tokenize(str(source), st.st_mtime_ns, st.st_size, offset, str(file_dtype), out_shape)
-        data = da.from_array(array, chunks=chunks, name=name, meta=np.empty((0, 0, 0), dtype=native),
-                             asarray=False)
-    else:
-        data = da.from_array(array, chunks=chunks)
+    st = os.stat(source) if lazy else None
+
+    def build() -> da.Array:
+        import dask.array as da
+
+        if lazy:
+            from dask.base import tokenize
+
+            name = "nrrd-" + tokenize(str(source), st.st_mtime_ns, st.st_size, offset, str(file_dtype), out_shape)
+            return da.from_array(array, chunks=chunks, name=name, meta=np.empty((0, 0, 0), dtype=native),
+                                 asarray=False)
+        return da.from_array(array, chunks=chunks)
+
+    # the default chunks are regular: the dask array is built on first use (unwind info reads the header alone);
+    # chunks given by the caller are checked by dask now
+    data: Any = LazyArray(build, out_shape, native, chunks) if default_chunks else build()
 
     metadata = {
         "header": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in header.items()},

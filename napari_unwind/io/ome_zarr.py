@@ -35,19 +35,20 @@ import sys
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import dask.array as da
 import numpy as np
 import zarr
-from dask.base import tokenize
 from numcodecs import Blosc
 from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec
 
 from ..errors import InvalidInputError, UnknownFormatError
 from ..progress import Progress
 from ._atomic import final_name
-from ._volume import Volume
+from ._volume import LazyArray, Volume
+
+if TYPE_CHECKING:
+    import dask.array as da
 
 __all__ = ["read_ome_zarr", "write_ome_zarr", "pyramid_shapes", "DEFAULT_CHUNKS", "DEFAULT_MAX_SIDE"]
 
@@ -305,17 +306,28 @@ class _ZarrChunks:
                 raise self._missing(coords)
 
 
-def _lazy(array: zarr.Array, store: Path, *, complete: bool) -> da.Array:
-    """A dask array over ``array`` (one dask chunk per zarr chunk) whose reads name broken chunk files."""
+def _lazy(array: zarr.Array, store: Path, *, complete: bool, index: tuple = ()) -> LazyArray:
+    """A dask array over ``array`` (one dask chunk per zarr chunk) whose reads name broken chunk files, indexed by
+    ``index`` (slices, or 0 for a non-spatial axis of length 1); built, importing dask, on first use."""
     wrapped = _ZarrChunks(array, str(store), complete=complete)
     try:
         meta_file = os.path.join(wrapped.store, str(array.path), "zarr.json")
         stamp = os.stat(meta_file if os.path.exists(meta_file) else wrapped.store).st_mtime_ns
     except OSError:
         stamp = 0
-    name = "zarr-" + tokenize(wrapped.store, str(array.path), stamp, complete)
-    return da.from_array(wrapped, chunks=array.chunks, name=name, asarray=False, fancy=False,
-                         meta=np.empty((0,) * wrapped.ndim, dtype=wrapped.dtype))
+    keep = [ax for ax in range(array.ndim) if not index or isinstance(index[ax], slice)]
+
+    def build() -> da.Array:
+        import dask.array as da
+        from dask.base import tokenize
+
+        name = "zarr-" + tokenize(wrapped.store, str(array.path), stamp, complete)
+        d = da.from_array(wrapped, chunks=array.chunks, name=name, asarray=False, fancy=False,
+                          meta=np.empty((0,) * wrapped.ndim, dtype=wrapped.dtype))
+        return d[index] if index else d
+
+    return LazyArray(build, tuple(array.shape[ax] for ax in keep), wrapped.dtype,
+                     tuple(array.chunks[ax] for ax in keep))
 
 
 def read_ome_zarr(path: Path, *, level: int | None = None) -> Volume:
@@ -387,7 +399,6 @@ def _read_multiscales(path: Path, node: Any, ms: dict, version: str, level: int 
             raise InvalidInputError(f"{path}/{ds['path']} is not an array")
         if arr.ndim != len(axes):
             raise InvalidInputError(f"{path}/{ds['path']} has {arr.ndim} dimensions but {len(axes)} axes")
-        d = _lazy(arr, path, complete=complete)
         # drop non-spatial axes of length 1 (t, c); refuse real channels or time points
         index = []
         for ax in range(arr.ndim):
@@ -400,7 +411,7 @@ def _read_multiscales(path: Path, node: Any, ms: dict, version: str, level: int 
                     f"{path} has a non-spatial axis {axis_names[ax]!r} of length {arr.shape[ax]}; "
                     "export one channel/time point as its own 3D image first"
                 )
-        d = d[tuple(index)]
+        d = _lazy(arr, path, complete=complete, index=tuple(index))
         # physical = (index * scale + translation) of the dataset, then the multiscale's own transformations
         scale, offset = _affine(ds.get("coordinateTransformations", []), len(axes), f"{path}/{ds['path']}")
         g_scale, g_offset = _affine(global_transforms, len(axes), str(path))

@@ -257,7 +257,7 @@ def read_raw(path: Path, *, chunk_planes: int | None = None) -> Volume:
         )
     if chunk_planes is not None and int(chunk_planes) < 1:
         raise InvalidInputError(f"chunk_planes must be >= 1, got {chunk_planes}")
-    data = RawFileArray(raw, dtype, shape).to_dask(depth=chunk_planes)
+    data = RawFileArray(raw, dtype, shape).to_lazy(depth=chunk_planes)  # dask built on first use
     return Volume(data, spacing=header["spacing"], unit=header["unit"], origin=header["origin"],
                   source=str(path), format="raw",
                   metadata={"header": str(dat), "raw": str(raw), "byteorder": "big" if dtype.byteorder == ">"

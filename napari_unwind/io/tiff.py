@@ -36,19 +36,20 @@ import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import dask.array as da
 import numpy as np
 import tifffile
-from dask.base import tokenize
 
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import final_name
 from ._formats import numbered_siblings, reader_for
 from ._lazy import RawFileArray, slab_depth
-from ._volume import Volume, normalise_unit
+from ._volume import LazyArray, Volume, normalise_unit
+
+if TYPE_CHECKING:
+    import dask.array as da
 
 __all__ = ["BIGTIFF_THRESHOLD", "IMAGEJ_DTYPES", "read_tiff", "tiff_geometry", "write_tiff"]
 
@@ -430,7 +431,7 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
         out_dtype = {np.dtype(bool): np.dtype("uint8"), np.dtype("float16"): np.dtype("float32")}.get(dtype, dtype)
         if offset is not None and out_dtype == dtype and not s.pages[0].is_tiled:
             arr = RawFileArray(path, dtype.newbyteorder(tif.byteorder), (n, ny, nx), int(offset))
-            data = arr.to_dask(depth=chunks[0], name="tiff")
+            data = arr.to_lazy(depth=chunks[0], name="tiff")  # dask built on first use
             meta["memmap"] = True
         else:
             pages = list(s.pages)
@@ -438,9 +439,17 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
                         and int(np.prod(pages[0].shape)) == ny * nx)
             index = [p.index for p in pages] if per_page else None
             planes_arr = _TiffPlanes(str(path), series, index, (n, ny, nx), out_dtype)
-            token = tokenize(str(path), stat.st_mtime_ns, stat.st_size, series)
-            data = da.from_array(planes_arr, chunks=chunks if per_page else (n, ny, nx), name=f"tiff-{token}",
-                                 asarray=False, fancy=False, meta=np.empty((0, 0, 0), dtype=out_dtype))
+            plane_chunks = chunks if per_page else (n, ny, nx)
+
+            def build(planes_arr: Any = planes_arr, plane_chunks: tuple = plane_chunks) -> da.Array:
+                import dask.array as da
+                from dask.base import tokenize
+
+                token = tokenize(str(path), stat.st_mtime_ns, stat.st_size, series)
+                return da.from_array(planes_arr, chunks=plane_chunks, name=f"tiff-{token}", asarray=False,
+                                     fancy=False, meta=np.empty((0, 0, 0), dtype=out_dtype))
+
+            data = LazyArray(build, (n, ny, nx), out_dtype, plane_chunks)  # dask built on first use
             meta["memmap"] = False
     return Volume(data, spacing=geometry["spacing"], unit=geometry["unit"], origin=geometry["origin"],
                   source=str(path), format="tiff", metadata=meta)
