@@ -50,7 +50,7 @@ from ._cliargs import (  # noqa: F401 (parse_size and the checks are part of thi
 from ._report import describe, disk_usage, human_bytes
 from ._report import fmt_triple as _fmt_triple
 from ._report import run_with_bar as _run_with_bar
-from .errors import UnwindError
+from .errors import UnwindError, source_date_epoch
 
 __all__ = ["main", "build_parser", "parse_size"]
 
@@ -946,6 +946,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
+            source_date_epoch()  # before any import reads it (numpy's f2py fails on a bad one with a traceback)
             status = func(args)
         sys.stdout.flush()  # a closed pipe shows here, not at exit
         return status

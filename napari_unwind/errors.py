@@ -71,3 +71,21 @@ def finite_number(name: str, value: object) -> float:
     if not math.isfinite(v):
         raise InvalidInputError(f"{name} must be a finite number, got {value!r}")
     return v
+
+
+def source_date_epoch() -> int | None:
+    """``SOURCE_DATE_EPOCH`` (whole seconds since 1970, UTC; the reproducible-builds convention) when set, else
+    None; a value that is not such a number raises :class:`InvalidInputError` with the value."""
+    import os
+
+    text = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if not text:
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value < 253402300800:  # before the year 10000
+        raise InvalidInputError(f"SOURCE_DATE_EPOCH must be whole seconds since 1970 (UTC), got {text!r}; unset it "
+                                "or give e.g. SOURCE_DATE_EPOCH=1700000000")
+    return value

@@ -83,7 +83,7 @@ import numpy as np
 
 from .deformation import SCHEMA as DEFORMATION_SCHEMA
 from .deformation import Deformation
-from .errors import InvalidInputError, OutputError, UnwindError
+from .errors import InvalidInputError, OutputError, UnwindError, source_date_epoch
 from .io import Volume, detect_format, open_volume
 from .io._atomic import TMP_MARK, atomic_output
 from .io._volume import SUPPORTED_DTYPES, normalise_unit
@@ -373,7 +373,11 @@ def _string(value: Any, where: str, *, optional: bool = False) -> str | None:
 
 
 def _utcnow() -> str:
-    return _format_time(datetime.now(UTC))
+    """Now, or the time of ``SOURCE_DATE_EPOCH`` when that is set (:func:`~napari_unwind.errors.source_date_epoch`),
+    so that two runs of the same job give byte-identical sessions and straightened volumes (whose metadata embeds
+    the session)."""
+    epoch = source_date_epoch()
+    return _format_time(datetime.now(UTC) if epoch is None else datetime.fromtimestamp(epoch, UTC))
 
 
 def _format_time(t: datetime) -> str:
