@@ -40,6 +40,7 @@ def dumps(d):
 def test_dock_skeleton_is_the_pipelines_byte_for_byte(make_napari_viewer, qtbot, fish, scan_path):
     viewer = make_napari_viewer()
     w = UnwindWidget(viewer)
+    viewer.window.add_dock_widget(w, name="Unwind")  # as test_workflow: the dock in the viewer's window
     assert w.options == pipeline.PipelineOptions()  # the dock restates no default
     wait(qtbot, w, w.open_scan(scan_path))
     wait(qtbot, w, w.segment())
