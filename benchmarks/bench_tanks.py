@@ -1,0 +1,82 @@
+"""Zero clicks on hard tanks, end to end (issue 18, item 4): ``unwind run SCAN --all`` (``pipeline.run_all_iter``)
+on tanks of ``datasets.hard_tank_phantom(seed)`` (3-12 fish, a wall cut into arcs, touching fish, fish cut by a
+face), and for each fish of the ground truth whether a specimen straightened to the goals (status ``ok``)
+follows it.
+
+    .venv/bin/python -m benchmarks.bench_tanks 200 201 ... 211
+
+A straightened specimen is matched to the fish whose true label holds most of 50 points along its centreline
+(the session's deformation); a fish is straightened when such a specimen is ``ok``. Prints one line per tank and
+the totals.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+
+def fish_of(deformation: dict, labels: np.ndarray) -> tuple[int, float]:
+    """The true fish label most of the specimen's centreline lies in, and that share."""
+    from napari_unwind.deformation import Deformation
+
+    d = Deformation.from_dict(deformation)
+    c, _ = d.sample(np.linspace(0, d.length, 50))
+    vox = np.round((c - np.asarray(d.origin)) / np.asarray(d.spacing)).astype(int)
+    lab = labels[tuple(np.clip(vox, 0, np.array(labels.shape) - 1).T)]
+    vals, cnt = np.unique(lab[lab > 0], return_counts=True)
+    return (int(vals[np.argmax(cnt)]), float(cnt.max() / len(lab))) if len(vals) else (0, 0.0)
+
+
+def one(seed: int) -> dict:
+    from napari_unwind.datasets import hard_tank_phantom
+    from napari_unwind.io import write_volume
+    from napari_unwind.pipeline import run_all_iter
+    from napari_unwind.progress import run
+
+    tank = hard_tank_phantom(seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        scan = write_volume(tank.volume, Path(tmp) / "tank.nrrd", spacing=tank.spacing, unit=tank.unit)
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            run(run_all_iter(scan, Path(tmp) / "out"))
+        seconds = time.perf_counter() - t0
+        rows = list(csv.DictReader(open(Path(tmp) / "out" / "specimens.csv", encoding="utf-8")))
+        straightened: dict[int, list[str]] = {}
+        for r in rows:
+            if r["session"]:
+                deformation = json.loads((Path(tmp) / "out" / r["session"]).read_text())["deformation"]
+                fish, _ = fish_of(deformation, tank.labels)
+                straightened.setdefault(fish, []).append(r["status"])
+    ok = [f for f in range(1, tank.n_fish + 1) if "ok" in straightened.get(f, [])]
+    return dict(seed=seed, tank=tank, ok=ok, statuses=[r["status"] for r in rows], seconds=seconds,
+                missed=[f for f in range(1, tank.n_fish + 1) if f not in ok], by_fish=straightened)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("seeds", nargs="+", type=int)
+    args = ap.parse_args()
+    total = found = 0
+    for seed in args.seeds:
+        r = one(seed)
+        t = r["tank"]
+        counts = {s: r["statuses"].count(s) for s in ("ok", "partial", "failed", "rejected")}
+        print(f"seed {seed}: {t.n_fish} fish (touching {list(t.touching)}, cut by a face {len(t.cut_fish)}, wall cut "
+              f"{t.wall_cut}): {len(r['ok'])}/{t.n_fish} straightened ok; rows {counts}; {r['seconds']:.0f} s"
+              + (f"; missed fish {r['missed']} ({[r['by_fish'].get(f) for f in r['missed']]})" if r["missed"] else ""))
+        total += t.n_fish
+        found += len(r["ok"])
+    print(f"\n{found}/{total} fish straightened ok over {len(args.seeds)} tanks")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,24 @@
+"""Zero clicks on hard tanks, end to end (issue 18, item 4): ``pipeline.run_all_iter`` straightens every fish of a
+tank with touching fish, fish cut by a face of the scan and a wall the field of view cuts into arcs, each to the
+goals (status ``ok``), and nothing else. Reference: the phantom's true fish labels.
+
+Two tanks from the seeded family here (about 40 s); ``benchmarks/bench_tanks.py`` runs more (RESULTS.md).
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks.bench_tanks import one
+
+
+@pytest.mark.parametrize("seed", [202, 204])  # touching pairs (1-5, 4-5; 4-8), wall arcs, every fish cut by a face
+def test_run_all_straightens_every_fish_of_a_hard_tank(seed):
+    r = one(seed)
+    t = r["tank"]
+    assert t.touching and (t.wall_cut or t.cut_fish)  # the hard cases are in
+    assert r["missed"] == [], r
+    # one specimen per fish: no fish straightened twice, and no straightened specimen that follows no fish
+    assert all(len(v) == 1 for f, v in r["by_fish"].items() if f > 0), r["by_fish"]
+    assert 0 not in r["by_fish"], r["by_fish"]
+    assert r["statuses"].count("ok") == t.n_fish and r["statuses"].count("partial") == 0
