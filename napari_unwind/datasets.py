@@ -71,7 +71,9 @@ from .errors import InvalidInputError, finite_number
 from .io._volume import Volume, check_spacing
 
 __all__ = [
+    "AIR_HU",
     "BACKGROUND",
+    "BodyScan",
     "CURVES",
     "FIN",
     "FLESH",
@@ -81,8 +83,11 @@ __all__ = [
     "SPINE",
     "TUBE",
     "UNIT",
+    "WATER_LIFT",
     "Phantom",
     "Tank",
+    "air_tank_phantom",
+    "body_phantom",
     "cylinder_phantom",
     "fish_phantom",
     "hard_fish_phantom",
@@ -1907,3 +1912,236 @@ def hard_tank_phantom(
                     spacing=tuple(float(v) for v in tank.spacing), unit=tank.unit,
                     touching=_touching_pairs(labels, int(n_fish)), wall_cut=wall_cut, cut_fish=cut, seed=seed)
 
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# embedded bones and tanks in air: a body CT (no specimen) and its opposite (fish in a tube, air around it)
+# ------------------------------------------------------------------------------------------------------------------
+#: Hounsfield-like values of :func:`body_phantom`.
+AIR_HU, LUNG_HU, FAT_HU, TISSUE_HU, DISC_HU, CANCELLOUS_HU, CORTEX_HU = -1000, -850, -100, 40, 80, 350, 800
+
+
+@dataclass(frozen=True, eq=False)
+class BodyScan:
+    """An axial body CT: a soft-tissue body in air, cut by the first and last planes along axis0, with curved ribs
+    and a vertebral column inside (and lungs, drawn). Its ground truth has no specimen: every bone is part of the
+    body.
+
+    Attributes
+    ----------
+    volume : ndarray of int16, shape (N0, N1, N2)
+        Hounsfield-like values (air -1000, lung -850, fat -100, tissue 40, bone 350-800).
+    body : ndarray of bool
+        The body (skin inwards).
+    bones : ndarray of int32
+        0 elsewhere, ``1..n_ribs`` the ribs, ``n_ribs + 1`` the vertebral column.
+    n_ribs : int
+    lungs : bool
+        The body holds two lungs (air-like, beside the ribs).
+    spacing : tuple of 3 float
+    unit : str
+    seed : int
+    """
+
+    volume: np.ndarray
+    body: np.ndarray
+    bones: np.ndarray
+    n_ribs: int
+    lungs: bool
+    spacing: tuple[float, float, float]
+    unit: str
+    seed: int
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(int(n) for n in self.volume.shape)  # type: ignore[return-value]
+
+    def __repr__(self) -> str:
+        return f"BodyScan(seed={self.seed}, shape={self.shape}, n_ribs={self.n_ribs}, lungs={self.lungs})"
+
+
+def body_phantom(seed: int, *, lungs: bool | None = None, noise: float = 15.0) -> BodyScan:
+    """A chest-like axial CT drawn from ``seed``: an elliptic soft-tissue body (a fat layer under the skin) in air,
+    cut by the first and last planes along axis0, with 3-5 levels of rib pairs (curved arcs just inside the body,
+    sloping along axis0) and a vertebral column (vertebral bodies, discs, arches and spinous processes) along
+    axis0, cut by the same planes. Spacing 1.5 mm.
+
+    Parameters
+    ----------
+    seed : int
+        Seed of every draw.
+    lungs : bool, optional
+        Two lungs inside the ribs (default: drawn, 1 in 2).
+    noise : float
+        Standard deviation of the added (slightly smoothed) noise, HU.
+
+    Returns
+    -------
+    BodyScan
+        The scan and its ground truth (no specimen; the bones' labels).
+
+    Raises
+    ------
+    InvalidInputError
+        For a bad seed or noise.
+    """
+    seed = _seed(seed)
+    if seed is None:
+        raise InvalidInputError("body_phantom needs an integer seed, got None")
+    noise = _positive("noise", noise, allow_zero=True)
+    rng = np.random.default_rng([seed, 28])
+    n0, n1, n2 = int(rng.integers(80, 105)), int(rng.integers(100, 120)), int(rng.integers(130, 156))
+    lungs = bool(rng.random() < 0.5) if lungs is None else bool(lungs)
+    c1, c2 = n1 / 2.0 + rng.uniform(-2, 2), n2 / 2.0 + rng.uniform(-2, 2)
+    a1, a2 = rng.uniform(0.36, 0.42) * n1, rng.uniform(0.40, 0.45) * n2  # AP (axis1) and LR (axis2) half axes
+    fat = rng.uniform(2.0, 4.0)
+    z = np.arange(n0, dtype=np.float32)[:, None, None]
+    y = (np.arange(n1, dtype=np.float32) - c1)[None, :, None]
+    x = (np.arange(n2, dtype=np.float32) - c2)[None, None, :]
+    wob = 1.0 + 0.04 * np.sin(2 * np.pi * z / n0 + rng.uniform(0, 2 * np.pi))  # the body's girth along axis0
+    sd_body = _ellipse_sd(y, x, a1 * wob, a2 * wob)
+    vol = AIR_HU + (FAT_HU - AIR_HU) * _soft(sd_body, 1.0) + (TISSUE_HU - FAT_HU) * _soft(sd_body + fat, 1.5)
+    body = np.broadcast_to(sd_body <= 0, (n0, n1, n2)).copy()
+    inset = fat + rng.uniform(4.0, 6.0)  # the ribs' centrelines, from the skin
+    if lungs:
+        for side in (-1, 1):
+            sd_l = _ellipse_sd(y - (-0.1 * a1), x - side * 0.45 * a2, 0.62 * a1 * wob, (0.45 * a2 - inset - 4) * wob)
+            vol = vol + (LUNG_HU - TISSUE_HU) * _soft(sd_l, 1.5)
+    # the vertebral column: posterior (towards larger axis1), along axis0
+    tip = a1 - fat - rng.uniform(5.0, 8.0)  # the spinous processes' tips (axis1, from the centre)
+    canal_r, arch = rng.uniform(3.5, 4.5), rng.uniform(2.0, 3.0)
+    canal_c = tip - rng.uniform(7.0, 9.0) - arch - canal_r
+    rv = rng.uniform(8.0, 11.0)
+    body_c = canal_c - canal_r - arch - rv
+    height, disc = rng.uniform(13.0, 16.0), rng.uniform(3.0, 4.0)
+    phase = (z + rng.uniform(0, height + disc)) % (height + disc)
+    in_vert = phase < height  # a vertebra's rows along axis0 (else a disc)
+    rho_b = np.hypot(y - body_c, x)
+    rho_c = np.hypot(y - canal_c, x)
+    sd_vb = rho_b - rv
+    sd_arch = np.maximum(canal_r - rho_c, rho_c - canal_r - arch)
+    sd_arch = np.maximum(sd_arch, -(y - (canal_c - canal_r)))  # the arch behind the canal's front
+    sd_proc = np.maximum(np.abs(x) - 1.8, np.maximum(canal_c + canal_r - y, y - tip))
+    sd_post = np.minimum(sd_arch, sd_proc)
+    column = np.zeros((n0, n1, n2), np.float32)
+    column += np.where(in_vert, CANCELLOUS_HU - TISSUE_HU + (CORTEX_HU - CANCELLOUS_HU) * _soft(-(sd_vb + 1.5), 1.0),
+                       DISC_HU - TISSUE_HU) * _soft(sd_vb, 1.0)
+    column += np.where(in_vert, CORTEX_HU - TISSUE_HU, 0.0) * _soft(sd_post, 1.0) * (1 - _soft(sd_vb, 1.0))
+    vol = vol + column
+    bones = np.zeros((n0, n1, n2), np.int32)
+    # ribs: arcs on the ellipse inset from the skin, from beside the column to the front, sloping along axis0
+    pitch = rng.uniform(17.0, 22.0)
+    levels = np.arange(rng.uniform(4.0, 10.0), n0 - 8.0, pitch)
+    pts, ids, radii = [], [], {}
+    n_ribs = 0
+    for zk in levels:
+        for side in (-1, 1):
+            n_ribs += 1
+            th0, th1 = rng.uniform(0.30, 0.40), rng.uniform(2.0, 2.5)  # 0: posterior (+axis1)
+            th = np.linspace(th0, th1, 400)
+            drop = rng.uniform(6.0, 14.0)
+            pz = zk + drop * (th - th0) / (th1 - th0)
+            py = c1 + (a1 - inset) * np.cos(th)
+            px = c2 + side * (a2 - inset) * np.sin(th)
+            pts.append(np.stack([pz, py, px], axis=1))
+            ids.append(np.full(th.size, n_ribs))
+            radii[n_ribs] = rng.uniform(2.2, 3.0)
+    seeds = np.zeros((n0, n1, n2), np.int32)
+    p = np.concatenate(pts)
+    q = np.round(p).astype(int)
+    ok = np.all((q >= 0) & (q < np.array([n0, n1, n2])), axis=1)
+    seeds[tuple(q[ok].T)] = np.concatenate(ids)[ok]
+    dist, ind = ndimage.distance_transform_edt(seeds == 0, return_indices=True)
+    rib_id = seeds[tuple(ind)]
+    r_of = np.zeros(n_ribs + 1, np.float32)
+    r_of[1:] = [radii[i] for i in range(1, n_ribs + 1)]
+    sd_rib = dist - r_of[rib_id]
+    occ = _soft(sd_rib, 1.0)
+    vol = vol + occ * (CANCELLOUS_HU - TISSUE_HU + (CORTEX_HU - CANCELLOUS_HU) * _soft(-(sd_rib + 1.0), 1.0))
+    bones[occ >= 0.5] = rib_id[occ >= 0.5]
+    col = (_soft(np.where(in_vert, np.minimum(sd_vb, sd_post), np.inf), 1.0) >= 0.5) | (in_vert & (sd_vb <= 0))
+    bones[col & (bones == 0)] = n_ribs + 1
+    if noise > 0:
+        g = np.random.default_rng([seed, 28, 1]).standard_normal(vol.shape, dtype=np.float32)
+        g = ndimage.gaussian_filter(g, sigma=0.7, output=np.float32)
+        vol = vol + g * np.float32(noise / max(float(g.std()), 1e-12))
+    volume = np.clip(np.round(vol), -1024, 3071).astype(np.int16)
+    return BodyScan(volume=volume, body=body, bones=bones, n_ribs=n_ribs, lungs=lungs, spacing=(1.5, 1.5, 1.5),
+                    unit="millimeter", seed=seed)
+
+
+#: How much brighter than the air around the tube its water is in :func:`air_tank_phantom`.
+WATER_LIFT = 1000
+
+
+def air_tank_phantom(seed: int, *, n_fish: int | None = None, face_cut: bool | None = None) -> HardTank:
+    """The opposite of :func:`body_phantom`: fish in water inside a dense tube, in air, scanned through a field of
+    view that every side face of the scan cuts through the tube (its wall or its water; the corners show air
+    beyond the wall), and the first and last planes along axis0 through its water.
+
+    The tank is :func:`tank_phantom` (fish apart, a dense noisy wall 5 voxels thick) with the inside of the tube
+    lifted by :data:`WATER_LIFT` above the air around it: air 100, water 1100, flesh 2000, spine 3500, wall about
+    4000. The water is far above the scan's background, as a body's tissue is; only the container around it
+    tells the two apart.
+
+    Parameters
+    ----------
+    seed : int
+        Seed of every draw.
+    n_fish : int, optional
+        1..8 (default: drawn in 3..8).
+    face_cut : bool, optional
+        The upper face along axis0 also cuts the fish (default: drawn, 1 in 2).
+
+    Returns
+    -------
+    HardTank
+        The scan and its ground truth (``wall_cut`` True; ``touching`` empty).
+
+    Raises
+    ------
+    InvalidInputError
+        For a bad option.
+    """
+    seed = _seed(seed)
+    if seed is None:
+        raise InvalidInputError("air_tank_phantom needs an integer seed, got None")
+    rng = np.random.default_rng([seed, 28, 2])
+    if n_fish is None:
+        n_fish = int(rng.integers(3, 9))
+    if isinstance(n_fish, (bool, np.bool_)) or not isinstance(n_fish, (int, np.integer)) or not 1 <= n_fish <= 8:
+        raise InvalidInputError(f"n_fish must be an integer in 1..8, got {n_fish!r}")
+    face_cut = bool(rng.random() < 0.5) if face_cut is None else bool(face_cut)
+    tank = tank_phantom(n_fish=int(n_fish), seed=seed, length=110.0, body_radius=6.0, gap=float(rng.uniform(2, 3)),
+                        wall_value=3000.0, wall_thickness=5.0, wall_noise=600.0, max_tries=40)
+    c1, c2 = tank.tube_center
+    r_in, r_out = tank.tube_radii
+    jj, kk = np.mgrid[: tank.shape[1], : tank.shape[2]]
+    rho = np.hypot(jj - c1, kk - c2)
+    lift = (WATER_LIFT * _soft(rho - r_out, 1.0)).astype(np.float32)
+    volume = np.clip(tank.volume.astype(np.float32) + lift[None], 0, np.iinfo(np.uint16).max)
+    wall = np.broadcast_to(((rho >= r_in) & (rho <= r_out))[None], tank.shape)
+    labels = tank.labels
+    h = float(rng.uniform(r_in + 2.0, r_out - 1.0))  # every side face cuts the tube; air shows in the corners
+    lo, hi = [0, 0, 0], list(tank.shape)
+    for a, c in ((1, c1), (2, c2)):
+        lo[a] = max(int(np.floor(c - h)), 0)
+        hi[a] = min(int(np.ceil(c + h)) + 1, tank.shape[a])
+    if face_cut:
+        ext = [np.flatnonzero((labels == i + 1).any(axis=(1, 2))) for i in range(int(n_fish))]
+        f = int(rng.integers(int(n_fish)))
+        a, b = int(ext[f][0]), int(ext[f][-1])
+        hi[0] = b + 1 - int(round(rng.uniform(0.1, 0.3) * (b - a + 1)))
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    labels = np.ascontiguousarray(labels[box])
+    volume = np.ascontiguousarray(np.round(volume[box]).astype(np.uint16))
+    wall = np.ascontiguousarray(wall[box])
+    spine = (labels > 0) & (volume >= WATER_LIFT + (FLESH + SPINE) / 2.0)
+    faces = np.zeros(labels.shape, bool)
+    faces[[0, -1]] = True
+    faces[:, [0, -1]] = True
+    faces[:, :, [0, -1]] = True
+    cut = tuple(int(i) for i in np.unique(labels[faces]) if i > 0)
+    return HardTank(volume=volume, labels=labels, spine=spine, wall=wall, n_fish=int(n_fish),
+                    spacing=tuple(float(v) for v in tank.spacing), unit=tank.unit, touching=(), wall_cut=True,
+                    cut_fish=cut, seed=seed)
