@@ -189,6 +189,13 @@ def specimen_isovalue(features: Features, ids: Any) -> float:
 
 
 def _isovalue(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray, fallback: float) -> float:
+    levels = _levels(features, ids, lab, basin_id)
+    return fallback if levels is None else float(0.5 * (levels[0] + levels[1]))
+
+
+def _levels(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray) -> tuple[float, float] | None:
+    """The medium around features ``ids`` and their body's level (see :func:`specimen_isovalue`); None when the
+    histogram has no second mode."""
     thick = float(ndimage.distance_transform_edt(np.pad(lab[_box(lab, 0)], 1)).max())
     pad = int(np.ceil(max(4.0, 3.0 * thick)))
     box = _box(lab, pad)
@@ -196,13 +203,17 @@ def _isovalue(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.
     near = np.isin(basin_id[box], ids) & (dist <= pad)
     v = features.tree.values[box][near].astype(np.float64)
     if v.size < 50:
-        return fallback
+        return None
     lo, hi = np.percentile(v, [0.5, 99.5])
     if hi <= lo:
-        return fallback
+        return None
     m0 = _mode(v, lo, hi)  # the medium: the most common value around the specimen
-    low = v[v <= m0]
-    sigma = 1.4826 * float(np.median(m0 - low)) if low.size else 0.0  # its noise, from its lower half
+    # its noise, from its lower half down to the valley below its peak (a darker class around it, air or lungs
+    # next to a bone near the skin, is another peak, not the medium's noise), and no wider than its peak's half
+    # width at half maximum (the smoothed partial volume between air and tissue is a long plateau, not noise)
+    low = v[(v <= m0) & (v >= _valley_below(v, lo, hi, m0))]
+    sigma = 1.4826 * float(np.median(m0 - low)) if low.size else 0.0
+    sigma = min(sigma, _peak_sigma(v, lo, hi))
     # the body: the median of its interior (clearly above the medium, one voxel in from its surface, where the
     # partial volume of the surface is gone); soft tissue outweighs a spine or a bone inside it
     vals = features.tree.values[box]
@@ -214,9 +225,92 @@ def _isovalue(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.
             break
         core = vals[inner]
     if core.size < 20:
-        return fallback
-    m1 = float(np.median(core))
-    return float(0.5 * (m0 + m1))
+        return None
+    return float(m0), float(np.median(core))
+
+
+#: Depth (working voxels) of the surface layer of a medium's region that :func:`_embedding` reads.
+_SHELL_DEPTH = 3
+#: Largest bright share of that layer of a larger body (a container's liquid: its wall, most of the layer).
+_MAX_SHELL_SHARE = 0.25
+
+
+def _embedding(features: Features, lab: np.ndarray, m0: float, m1: float) -> tuple[float, float, float, int] | None:
+    """Is the medium around a candidate the tissue of a larger body?
+
+    A specimen in a tank lies in a liquid that is either the scan's background itself or, when air is darker
+    still, a region bounded by a bright container (its wall). Bones and vessels of a CT lie in soft tissue that is
+    far above the scan's background (air, lungs) and bounded by it: skin and lung surfaces, no bright shell. So:
+    the background is the mode of the scan's values darker than the medium by more than the candidate's own
+    half-contrast (``m0 - (m1 - m0) / 2``; at least 1 % of the scan, else the medium is the background); the
+    medium's region is the connected region above halfway between background and medium that holds the
+    candidate (pockets of noise filled); its surface layer (:data:`_SHELL_DEPTH` voxels, away from the scan's
+    faces, which only cut it) is read for values at least as bright as the candidate's own body (a container's
+    wall: glass, a dense tube; a body's skin and lung surfaces are soft tissue, darker than the bone inside).
+
+    Returns
+    -------
+    (background, bright share, level, most common other feature in the region) or None
+        None when the scan has no background darker than the medium, or the region's surface lies on the scan's
+        faces only (it cannot be told from a liquid).
+    """
+    vals = features.tree.values
+    contrast = m1 - m0
+    if contrast <= 0:
+        return None
+    dark = vals[vals < m0 - 0.5 * contrast]
+    if dark.size < 0.01 * vals.size:
+        return None
+    lo, hi = np.percentile(dark, [0.5, 99.5])
+    bg = _mode(dark, float(lo), float(hi))
+    level = 0.5 * (bg + m0)
+    comp, _ = ndimage.label(vals >= level)
+    own = np.unique(comp[lab])
+    region = np.isin(comp, own[own > 0])
+    pockets, _ = ndimage.label(~region)
+    size = np.bincount(pockets.ravel())
+    small = size < max(64, 1e-3 * np.count_nonzero(region))
+    small[0] = False
+    region |= small[pockets]
+    layer = region & ~ndimage.binary_erosion(region, iterations=_SHELL_DEPTH, border_value=1)
+    d = _SHELL_DEPTH
+    layer[:d], layer[-d:], layer[:, :d], layer[:, -d:], layer[:, :, :d], layer[:, :, -d:] = (False,) * 6
+    n = np.count_nonzero(layer)
+    if n < 100:
+        return None
+    share = float(np.count_nonzero(vals[layer] >= m1) / n)
+    counts = np.bincount(features.labels[region & ~lab].ravel(), minlength=features.k + 1)
+    counts[0] = 0
+    return float(bg), share, float(level), int(np.argmax(counts))
+
+
+def _peak_sigma(v: np.ndarray, lo: float, hi: float, bins: int = 64) -> float:
+    """The standard deviation a Gaussian peak at the mode of ``v`` would have, from the half width at half maximum
+    of its lower side (in the histogram :func:`_mode` reads; the binning only widens it)."""
+    if hi <= lo:
+        return float("inf")
+    hist = ndimage.gaussian_filter1d(np.histogram(v, bins=bins, range=(lo, hi))[0].astype(float), 1.0)
+    j0 = int(np.argmax(hist))
+    half = 0.5 * hist[j0]
+    j = j0
+    while j > 0 and hist[j - 1] > half:
+        j -= 1
+    if j == 0:
+        return float("inf")
+    frac = (hist[j] - half) / max(hist[j] - hist[j - 1], 1e-12)  # where it crosses half, between bins j-1 and j
+    return float((frac + j0 - j) * (hi - lo) / bins / np.sqrt(2.0 * np.log(2.0)))
+
+
+def _valley_below(v: np.ndarray, lo: float, hi: float, m0: float, bins: int = 64) -> float:
+    """The lowest point of ``v``'s histogram (as :func:`_mode` smooths it) going down from ``m0``: the first local
+    minimum below the mode's peak, or ``lo`` when the histogram falls all the way."""
+    if hi <= lo:
+        return float(lo)
+    hist = ndimage.gaussian_filter1d(np.histogram(v, bins=bins, range=(lo, hi))[0].astype(float), 1.0)
+    j = min(int((m0 - lo) / (hi - lo) * bins), bins - 1)
+    while j > 0 and hist[j - 1] <= hist[j]:
+        j -= 1
+    return float(lo + j * (hi - lo) / bins)
 
 
 def _mode(v: np.ndarray, lo: float, hi: float, bins: int = 64) -> float:
@@ -345,6 +439,7 @@ def candidates(
     max_border_share: float = 0.5,
     split_saddle: float = 0.6,
     body: bool = True,
+    embedded: bool = True,
 ) -> tuple[Candidate, ...]:
     """Every feature as a candidate specimen, kept or rejected with its reason: the one definition of a specimen.
 
@@ -367,6 +462,14 @@ def candidates(
        ``min_size_fraction`` of the largest elongated part), ``"not elongated: 1.6 < 3"``, ``"too short: ..."`` (its
        length, 4 standard deviations along its principal axis, under ``min_length_fraction`` of the scan's
        largest side).
+    6. **Embedded** (a part that passed 1-5): ``"part of a larger body: embedded in feature 1's tissue; ..."``
+       when its medium (the most common value around it, as :func:`specimen_isovalue` measures) is itself the
+       tissue of a larger body: the scan holds a background darker than that medium by more than the candidate's
+       own half-contrast (air, lungs), and the connected region above halfway between the two that holds the
+       candidate is bounded by that background, not by a bright container (under a quarter of its surface layer,
+       three voxels deep and away from the scan's faces, is as bright as the candidate's body). A rib or a
+       vertebra in a CT lies in soft tissue bounded by skin and lungs; a fish lies in a liquid that is either the
+       scan's background or held by a tube's wall.
 
     Parameters
     ----------
@@ -388,6 +491,8 @@ def candidates(
         Saddle depth that keeps two distance-transform cores apart (default 0.6; 0 never splits).
     body : bool
         Cut each specimen at :func:`specimen_isovalue` (default); False keeps the features' labels.
+    embedded : bool
+        Apply rule 6 (default; needs the features' tree and ``body``): reject candidates embedded in a larger body.
 
     Returns
     -------
@@ -415,6 +520,8 @@ def candidates(
         raise InvalidInputError(f"fractions must lie in [0, 1], got {', '.join(bad)}")
     if not isinstance(body, (bool, np.bool_)):
         raise InvalidInputError(f"body must be True or False, got {body!r}")
+    if not isinstance(embedded, (bool, np.bool_)):
+        raise InvalidInputError(f"embedded must be True or False, got {embedded!r}")
 
     spacing = np.asarray(features.spacing, dtype=float)
     labels = features.labels
@@ -451,12 +558,15 @@ def candidates(
     use_body = body and features.tree is not None and features.feature_of_branch is not None
     basin_id = features.feature_of_branch[features.tree.branch] if use_body else None
     iso_of: dict[int, float | None] = {}
+    levels_of: dict[int, tuple[float, float] | None] = {}
     union = np.zeros(labels.shape, bool)
     body_of: dict[int, tuple[tuple[slice, ...], np.ndarray]] = {}
     for f in rest:
         lab = labels == f
         if use_body:
-            iso = _isovalue(features, [f], lab, basin_id, stats[f].threshold)
+            lv = _levels(features, [f], lab, basin_id)
+            levels_of[f] = lv
+            iso = stats[f].threshold if lv is None else float(0.5 * (lv[0] + lv[1]))
             iso_of[f] = iso
             box = _box(basin_id == f, 0)
             m = (basin_id[box] == f) & (features.tree.values[box] >= iso)
@@ -523,6 +633,7 @@ def candidates(
         _, ev, _ = _principal(mask, spacing)
         rows.append((p, gi, idx, ids, box, mask[box], iso, st, 4.0 * float(np.sqrt(ev[0]))))
     largest = max([r[7].voxel_count for r in rows if r[7].elongation >= min_elongation], default=0)
+    out_names = {i: "+".join(map(str, r[3])) for r in rows for i in r[3]}  # a feature's body, for the reason
     size_floor = max(min_voxels, int(np.ceil(min_size_fraction * largest)))
     for _p, gi, idx, ids, box, crop, iso, st, length in rows:
         n = n_parts_of[gi]
@@ -535,6 +646,8 @@ def candidates(
         elif length < min_length_fraction * scan_side:
             why = (f"too short: length {length:.3g} < {100 * min_length_fraction:g} % of the scan's largest side "
                    f"({scan_side:.3g})")
+        elif embedded and use_body:
+            why = _embedded_reason(features, ids, box, crop, iso_of, levels_of, out_names)
         else:
             why = ""
         if n > 1:
@@ -550,6 +663,30 @@ def candidates(
                              _crop=np.ascontiguousarray(crop)))
     out.sort(key=lambda c: (c.ids[0], c.part))
     return tuple(out)
+
+
+def _embedded_reason(features: Features, ids: tuple[int, ...], box: tuple[slice, ...], crop: np.ndarray,
+                     iso_of: dict[int, float | None], levels_of: dict[int, tuple[float, float] | None],
+                     names: dict[int, str]) -> str:
+    """Rule 6's reason for a candidate embedded in a larger body ("" when it is not, or it cannot be told)."""
+    isos = [(iso_of[f], f) for f in ids if iso_of[f] is not None and levels_of.get(f) is not None]
+    if not isos:
+        return ""
+    m0, m1 = levels_of[min(isos)[1]]
+    lab = np.zeros(features.shape, bool)
+    lab[box] = crop
+    found = _embedding(features, lab, m0, m1)
+    if found is None:
+        return ""
+    bg, share, _level, host = found
+    if share > _MAX_SHELL_SHARE:
+        return ""
+    where = f"feature {host}'s tissue" if host else "a larger body's tissue"
+    if host and names.get(host, str(host)) != str(host):
+        where += f" (candidate {names[host]})"
+    return (f"part of a larger body: embedded in {where}; its medium ({m0:.4g}) lies far above the scan's "
+            f"background ({bg:.4g}) and is bounded by it, not by a container ({100 * share:.0f} % of its surface "
+            f"layer is as bright as this candidate's body)")
 
 
 def _enclosers_of(labels: np.ndarray, g: FeatureStats) -> np.ndarray:
