@@ -22,53 +22,14 @@ Output folder
 
 from __future__ import annotations
 
-import csv
-import io
 import os
 from collections.abc import Generator
-from pathlib import Path
 from typing import Any
 
-from .errors import OutputError
-from .pipeline import BatchResult
+from .pipeline import CSV_COLUMNS, CSV_NAME, BatchResult
 from .progress import Progress
 
 __all__ = ["BatchResult", "CSV_NAME", "CSV_COLUMNS", "straighten_all_iter", "straighten_all"]
-
-CSV_NAME = "specimens.csv"
-CSV_COLUMNS = ("specimen", "status", "voxels", "length", "unit", "keyframes", "min_jacobian", "max_tilt",
-               "coverage", "lost", "output", "session", "reason")
-
-
-def _check_outdir(outdir: Path, overwrite: bool) -> None:
-    if outdir.exists() and not outdir.is_dir():
-        raise OutputError(f"the output folder {outdir} is a file; give a folder for --all (it is created)")
-    if outdir.is_dir() and not overwrite:
-        taken = sorted(p.name for p in outdir.iterdir() if p.name == CSV_NAME or p.name.startswith("specimen-"))
-        if taken:
-            raise OutputError(f"{outdir} already holds results of a batch ({', '.join(taken[:3])}"
-                              f"{', ...' if len(taken) > 3 else ''}); choose another folder or pass --overwrite")
-    if not outdir.is_dir():
-        parent = outdir.absolute().parent
-        if not parent.is_dir():
-            raise OutputError(f"cannot create the output folder {outdir}: {parent} does not exist")
-        if not os.access(parent, os.W_OK):
-            raise OutputError(f"cannot create the output folder {outdir}: {parent} is not writable")
-
-
-def _write_table(rows: list[dict[str, Any]], path: Path) -> Path:
-    from .io._atomic import atomic_output
-
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
-    w.writeheader()
-    for r in rows:
-        w.writerow({k: ("" if r.get(k) is None else (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k]))
-                    for k in CSV_COLUMNS})
-    with atomic_output(path, overwrite=True) as tmp:
-        Path(tmp).write_text(buf.getvalue(), encoding="utf-8")
-    return path
-
 
 def straighten_all_iter(
     scan: str | os.PathLike,

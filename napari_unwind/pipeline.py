@@ -486,7 +486,7 @@ class SpecimenResult:
         return self.label or "+".join(map(str, self.ids))
 
     def row(self) -> dict[str, Any]:
-        """Its row of ``specimens.csv`` (:data:`napari_unwind.batch.CSV_COLUMNS`)."""
+        """Its row of ``specimens.csv`` (:data:`CSV_COLUMNS`)."""
         from .io._volume import unit_label
         from .skeleton._foldfree import format_lost
 
@@ -819,6 +819,47 @@ def run(volume: Any, *, progress: Any = None, **kwargs: Any) -> SpecimenResult:
 # ------------------------------------------------------------------------------------------------------------------
 # every specimen of a scan
 # ------------------------------------------------------------------------------------------------------------------
+#: The summary table of a batch (:func:`run_all_iter`) and its columns.
+CSV_NAME = "specimens.csv"
+CSV_COLUMNS = ("specimen", "status", "voxels", "length", "unit", "keyframes", "min_jacobian", "max_tilt",
+               "coverage", "lost", "output", "session", "reason")
+
+
+def _check_outdir(outdir: Path, overwrite: bool) -> None:
+    from .errors import OutputError
+
+    if outdir.exists() and not outdir.is_dir():
+        raise OutputError(f"the output folder {outdir} is a file; give a folder for --all (it is created)")
+    if outdir.is_dir() and not overwrite:
+        taken = sorted(p.name for p in outdir.iterdir() if p.name == CSV_NAME or p.name.startswith("specimen-"))
+        if taken:
+            raise OutputError(f"{outdir} already holds results of a batch ({', '.join(taken[:3])}"
+                              f"{', ...' if len(taken) > 3 else ''}); choose another folder or pass --overwrite")
+    if not outdir.is_dir():
+        parent = outdir.absolute().parent
+        if not parent.is_dir():
+            raise OutputError(f"cannot create the output folder {outdir}: {parent} does not exist")
+        if not os.access(parent, os.W_OK):
+            raise OutputError(f"cannot create the output folder {outdir}: {parent} is not writable")
+
+
+def _write_table(rows: list[dict[str, Any]], path: Path) -> Path:
+    import csv
+    import io
+
+    from .io._atomic import atomic_output
+
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: ("" if r.get(k) is None else (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k]))
+                    for k in CSV_COLUMNS})
+    with atomic_output(path, overwrite=True) as tmp:
+        Path(tmp).write_text(buf.getvalue(), encoding="utf-8")
+    return path
+
+
 def _failure_reason(exc: BaseException) -> str:
     msg = " ".join(str(exc).split()) or type(exc).__name__
     return msg if type(exc).__module__.startswith("napari_unwind") else f"{type(exc).__name__}: {msg}"
@@ -859,7 +900,6 @@ def run_all_iter(
     UnwindError
         When the scan cannot be read or segmented, or ``outdir`` cannot be used.
     """
-    from .batch import CSV_NAME, _check_outdir, _write_table
     from .io import open_volume
     from .segmentation import join_tree_iter
     from .segmentation._common import MAX_FEATURES
