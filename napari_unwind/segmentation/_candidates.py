@@ -146,33 +146,47 @@ def _hugs_border(mask: np.ndarray, spacing: np.ndarray) -> float:
     return float(hit.sum() / max(have.sum(), 1))
 
 
-def specimen_isovalue(features: Features, ids: Any) -> float:
-    """The isovalue between the medium and a specimen's body, from the values around features ``ids``.
+#: Most voxels :func:`specimen_isovalue` reads from the scan (the box around the features, strided to fit).
+SCAN_BUDGET = 1 << 22
 
-    The values of the features' basins within a few body thicknesses of their labels are histogrammed; the
-    medium is their mode, and the body the median of the voxels clearly above the medium (more than 5 noise
-    sigmas) two voxels in from their surface (clear of its partial volume): soft tissue, as a spine or a bone
-    inside the body is brighter but smaller. The isovalue is halfway between the two (the 50 % boundary of CT).
-    Unlike the features' own thresholds (:attr:`FeatureStats.threshold`, which may sit between flesh and bone when a
-    bright spine holds the maximum), this keeps the whole body above the medium.
+
+def specimen_isovalue(features: Features, ids: Any, *, volume: Any = None) -> float:
+    """The isovalue between the medium and a specimen's body: halfway between their levels around features ``ids``.
+
+    The values within a few body thicknesses of the features' labels are histogrammed; the medium is their mode,
+    and the body the median of the voxels clearly above the medium (more than 5 noise sigmas, in a component that
+    holds the features' labels) two voxels in from their surface (clear of its partial volume): soft tissue, as a
+    spine or a bone inside the body is brighter but smaller. The isovalue is halfway between the two (the 50 %
+    boundary of CT). Unlike the features' own thresholds (:attr:`FeatureStats.threshold`, which may sit between
+    flesh and bone when a bright spine holds the maximum), this keeps the whole body above the medium.
+
+    With ``volume`` (the scan the features were computed on) the levels are read from the scan itself at full
+    resolution, inside the box of the features' labels grown by three body thicknesses (strided when it holds
+    more than :data:`SCAN_BUDGET` voxels), the region being the voxels of no other feature: the working level's
+    smoothing and downsampling, which darken a thin body's interior (a fish two working voxels wide has no
+    voxel at its flesh level there), do not bias it, and the features' tree is not needed (features loaded from
+    a label file give the same value). Without ``volume`` the smoothed working values of the features' basins
+    are read (needs the tree).
 
     Parameters
     ----------
     features : Features
-        A segmentation with its tree (:func:`segment`).
+        A segmentation (:func:`segment`, or :func:`load_features` with ``volume``).
     ids : int, sequence of int or Candidate
         The features of one specimen.
+    volume : Volume or array_like, optional
+        The full-resolution scan (shape ``features.full_shape``).
 
     Returns
     -------
     float
-        A working-value isovalue; the lowest of the features' thresholds when the histogram has no second mode
-        (or the features were loaded without their tree).
+        An isovalue; the lowest of the features' thresholds when the values show no body above the medium (or,
+        without ``volume``, the features were loaded without their tree).
 
     Raises
     ------
     InvalidInputError
-        For something that is not a :class:`Features` or an unknown id.
+        For something that is not a :class:`Features`, an unknown id or a scan of another shape.
     """
     if not isinstance(features, Features):
         raise InvalidInputError(f"specimen_isovalue needs Features (from segment), got {type(features)}")
@@ -180,12 +194,72 @@ def specimen_isovalue(features: Features, ids: Any) -> float:
         ids = ids.ids
     ids = [features._check_id(i) for i in np.atleast_1d(np.asarray(ids, dtype=object)).tolist()]
     fallback = float(min(features.stat(i).threshold for i in ids))
-    if features.tree is None or features.feature_of_branch is None:
-        return fallback
     lab = np.isin(features.labels, ids)
     if not lab.any():
         return fallback
+    if volume is not None:
+        levels = _scan_levels(features, ids, lab, volume)
+        return fallback if levels is None else float(0.5 * (levels[0] + levels[1]))
+    if features.tree is None or features.feature_of_branch is None:
+        return fallback
     return _isovalue(features, ids, lab, features.feature_of_branch[features.tree.branch], fallback)
+
+
+def _scan_levels(features: Features, ids: list[int], lab: np.ndarray, volume: Any,
+                 budget: int = SCAN_BUDGET) -> tuple[float, float] | None:
+    """:func:`_levels` read from the full-resolution scan (see :func:`specimen_isovalue`)."""
+    from ..io._volume import Volume
+
+    data = volume.data if isinstance(volume, Volume) else volume  # numpy, dask or zarr
+    if not hasattr(data, "shape"):
+        data = np.asarray(data)
+    shape = tuple(int(n) for n in getattr(data, "shape", ()))
+    if shape != tuple(int(n) for n in features.full_shape):
+        raise InvalidInputError(f"the scan has shape {shape}, but these features were computed on a volume of shape "
+                                f"{tuple(features.full_shape)}")
+    thick = float(ndimage.distance_transform_edt(np.pad(lab[_box(lab, 0)], 1)).max())
+    pad = int(np.ceil(max(4.0, 3.0 * thick)))  # working voxels
+    box = _box(lab, pad)
+    scale = np.asarray(features.scale, dtype=float)
+    lo = [int(np.floor(b.start * s)) for b, s in zip(box, scale)]
+    hi = [min(int(np.ceil(b.stop * s)), n) for b, s, n in zip(box, scale, shape)]
+    step = 1
+    while np.prod([-(-(h - lo_) // step) for lo_, h in zip(lo, hi)]) > budget:
+        step += 1
+    sl = tuple(slice(a, b, step) for a, b in zip(lo, hi))
+    raw = data[sl]
+    vals = np.asarray(raw.compute() if hasattr(raw, "compute") else raw, dtype=np.float64)
+    # the working masks on the sampled grid (nearest working voxel, as refine_mask upsamples)
+    idx = np.ix_(*[np.minimum(np.floor((np.arange(a, b, step) + 0.5) / s).astype(np.int64), n - 1)
+                   for a, b, s, n in zip(lo, hi, scale, features.shape)])
+    own = lab[idx]
+    wdist = ndimage.distance_transform_edt(~lab[box])
+    wnear = (wdist <= pad) & np.isin(features.labels[box], [0, *ids])
+    origin = [b.start for b in box]
+    near = wnear[np.ix_(*[i.ravel() - o for i, o in zip(idx, origin)])]
+    v = vals[near]
+    if v.size < 50:
+        return None
+    lo_v, hi_v = np.percentile(v, [0.5, 99.5])
+    if hi_v <= lo_v:
+        return None
+    m0 = _mode(v, lo_v, hi_v)
+    low = v[(v <= m0) & (v >= _valley_below(v, lo_v, hi_v, m0))]
+    sigma = 1.4826 * float(np.median(m0 - low)) if low.size else 0.0
+    sigma = min(sigma, _peak_sigma(v, lo_v, hi_v))
+    above = near & (vals > m0 + max(5.0 * sigma, 0.02 * (hi_v - m0)))
+    comp, _ = ndimage.label(above)
+    keep = np.unique(comp[own & above])
+    above = np.isin(comp, keep[keep > 0])
+    core = vals[above]
+    for depth in (1, 2):  # as deep as leaves a core: clear of the surface's partial volume
+        inner = ndimage.binary_erosion(above, iterations=depth)
+        if np.count_nonzero(inner) < max(20, 0.1 * np.count_nonzero(above)):
+            break
+        core = vals[inner]
+    if core.size < 20:
+        return None
+    return float(m0), float(np.median(core))
 
 
 def _isovalue(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray, fallback: float) -> float:

@@ -209,7 +209,7 @@ def _refine(
     if isovalue is None:
         if features is None:
             raise InvalidInputError("give isovalue= or the features= the mask came from (for their thresholds)")
-        isovalue = default_isovalue(features, mask)
+        isovalue = default_isovalue(features, mask, volume=volume)
     allowed = ndimage.binary_dilation(mask, structure=np.ones((3, 3, 3), bool))
     if features is not None:
         allowed &= mask | (features.labels == 0)
@@ -220,9 +220,15 @@ def _refine(
     return data.map_blocks(_refine_block, allowed=allowed, scale=scale, iso=iso, dtype=bool), isovalue
 
 
-def default_isovalue(features: Features, mask: Any) -> float:
-    """The full-resolution threshold a working-resolution ``mask`` is refined at by default: the smallest
-    threshold of the features it covers (with ``fill_holes`` that includes a feature enclosed by the selection).
+def default_isovalue(features: Features, mask: Any, *, volume: Any = None) -> float:
+    """The full-resolution threshold a working-resolution ``mask`` is refined at by default: the
+    :func:`~napari_unwind.segmentation.specimen_isovalue` of the features it covers (with ``fill_holes`` that
+    includes a feature enclosed by the selection), halfway between the medium around them and their body.
+
+    With ``volume`` (the scan; :func:`refine_mask` passes its own) the two levels are read from the scan at full
+    resolution, so the working level does not bias them and features loaded from a label file (no tree) give
+    the same value as the segmentation itself. Where the values show no body above the medium, the smallest
+    threshold of the covered features (the features' own cut).
 
     One rule for the dock, ``unwind select``, ``unwind run`` and the server's jobs.
 
@@ -232,7 +238,11 @@ def default_isovalue(features: Features, mask: Any) -> float:
         The segmentation the mask came from.
     mask : ndarray of bool, shape ``features.shape``
         The selection at working resolution (:func:`select`).
+    volume : Volume or array_like, optional
+        The full-resolution scan the features were computed on.
     """
+    from ._candidates import specimen_isovalue
+
     mask = np.asarray(mask, dtype=bool)
     if mask.shape != features.labels.shape:
         raise InvalidInputError(f"the mask has shape {mask.shape} but the features {features.labels.shape}; select "
@@ -241,7 +251,7 @@ def default_isovalue(features: Features, mask: Any) -> float:
     covered = covered[covered > 0]
     if covered.size == 0:
         raise InvalidInputError("the mask covers no feature; give isovalue=")
-    return float(min(features.stats[int(i) - 1].threshold for i in covered))
+    return float(specimen_isovalue(features, [int(i) for i in covered], volume=volume))
 
 
 def refine_mask(
@@ -269,7 +279,8 @@ def refine_mask(
         The segmentation the mask came from: gives the level, the default isovalue and keeps the dilation out
         of unselected features.
     isovalue : float, optional
-        Full-resolution threshold. Default: the smallest threshold of the features the mask covers.
+        Full-resolution threshold. Default: :func:`default_isovalue` of the features the mask covers, read
+        from ``volume``.
     level : int, optional
         Without ``features``: the pyramid level of ``mask`` (default: the level whose shape matches), which gives
         the scale to full resolution. With ``features`` their own scale is used, so ``volume`` may be the
