@@ -119,7 +119,7 @@ class SegmentOptions:
         Gaussian sigma in working voxels (0: none).
     isovalue : float or None
         Full-resolution threshold of the mask. None: the one rule,
-        :func:`napari_unwind.segmentation.default_isovalue` (the lowest threshold of the features the mask covers).
+        :func:`napari_unwind.segmentation.default_isovalue` (the covered features' specimen_isovalue, from the scan).
     fill_holes : bool
         Fill cavities of the mask.
     min_elongation : float
@@ -628,7 +628,7 @@ def select_step(volume: Any, features: Any, *, seeds: Any = None, ids: Any = Non
         working = select(features, ids=chosen, fill_holes=options.fill_holes)
         own = None
     iso = options.isovalue if options.isovalue is not None else (
-        float(own) if own is not None else float(default_isovalue(features, working)))
+        float(own) if own is not None else float(default_isovalue(features, working, volume=volume)))
     mask = yield from refine_mask_iter(volume, working, features=features, isovalue=iso)
     pts = () if seeds is None else tuple(tuple(float(c) for c in p) for p in np.asarray(seeds, float).reshape(-1, 3))
     record = Segmentation(k=features.k, level=features.level, selected=tuple(chosen), seeds=pts, isovalue=iso,
