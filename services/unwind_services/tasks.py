@@ -136,7 +136,7 @@ def select(ctx: TaskContext, req: Any) -> TaskGen:
     features = load_features(path)
     ids = selected_ids(features, seeds=seeds if len(seeds) else None, ids=list(req.ids) or None)
     working = select(features, ids=ids, fill_holes=req.fill_holes)
-    iso = req.isovalue if req.has_isovalue else default_isovalue(features, working)  # the rule of every face
+    iso = req.isovalue if req.has_isovalue else default_isovalue(features, working, volume=volume)  # every face
     written = yield from refine_mask_iter(volume, working, features=features, isovalue=iso, output=out)
     return pb.JobResult(volume_id=ctx.register(written, out.name),
                         figures=_figures(ids=ids, features=k, isovalue=float(iso)))
