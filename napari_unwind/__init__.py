@@ -3,10 +3,9 @@
 The numerical core (this package, minus ``_qt``) imports no Qt, napari or gRPC.
 """
 
-from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
-from typing import Any
 
+from ._lazyattr import lazy_attributes
 from .errors import InvalidInputError, OutputError, UnknownFormatError, UnwindError
 from .progress import Progress
 
@@ -33,12 +32,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        value = getattr(import_module(f".{_LAZY[name]}", __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY, globals())
 
 try:
     __version__ = version("napari-unwind")

@@ -4,8 +4,7 @@ The names are imported on first use, so that ``import napari_unwind.io`` stays q
 library): opening a scan imports only its reader, and the voxels' dask array is built when first used.
 """
 
-from importlib import import_module
-from typing import Any
+from .._lazyattr import lazy_attributes
 
 _LAZY = {
     "as_volume": "_api",
@@ -20,17 +19,7 @@ _LAZY = {
     "Volume": "_volume",
 }
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        value = getattr(import_module(f".{_LAZY[name]}", __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *_LAZY})
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY, globals())
 
 
 __all__ = [
