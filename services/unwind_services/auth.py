@@ -5,7 +5,8 @@ Format (``#`` starts a comment)::
     alice sha256:9f86d08...   expires=2027-01-31T00:00:00Z
     bob   sha256:60303ae...
 
-:func:`add_token` creates a random token, appends its hash for a user and returns the token (shown once).
+:func:`add_token` creates a random token (:func:`new_token`), appends its hash for a user and returns the token
+(shown once).
 The file is read again when it changes, so tokens are added and revoked without a restart.
 """
 
@@ -16,6 +17,7 @@ import hmac
 import os
 import re
 import secrets
+import string
 import threading
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -24,11 +26,26 @@ from napari_unwind.errors import InvalidInputError
 
 from .errors import AuthError
 
-__all__ = ["TokenAuth", "add_token", "hash_token", "check_user", "LOCAL_USER"]
+__all__ = ["TokenAuth", "add_token", "new_token", "hash_token", "check_user", "LOCAL_USER"]
 
 #: The user of every call when the server runs without a tokens file (loopback only).
 LOCAL_USER = "local"
 _USER_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+#: The first character of a new token: a letter or digit, so that no token looks like an option (``-x``) to
+#: argparse or to a shell command (``unwind jobs list --token -rluO...`` was "expected one argument").
+_FIRST = string.ascii_letters + string.digits
+
+
+def new_token() -> str:
+    """A new random token: a letter or digit, then ``secrets.token_urlsafe(32)`` (A-Z a-z 0-9 - _).
+
+    44 characters, about 262 bits of randomness (the 256 of the 32 bytes plus the first character's). Earlier
+    tokens were ``token_urlsafe(32)`` alone, one in 64 starting with "-"; the tokens file holds only hashes, so
+    those keep working (pass them as ``--token=VALUE`` or ``--token-file``).
+    """
+    return secrets.choice(_FIRST) + secrets.token_urlsafe(32)
 
 
 def hash_token(token: str) -> str:
@@ -103,7 +120,8 @@ class TokenAuth:
             return LOCAL_USER
         if not authorization:
             raise AuthError("this server needs a token: pass it as 'authorization: Bearer <token>' "
-                            "(Client(token=...), or --token / UNWIND_TOKEN on the command line)")
+                            "(Client(token=...); on the command line --token=TOKEN, --token-file PATH, "
+                            "$UNWIND_TOKEN or $UNWIND_TOKEN_FILE)")
         scheme, _, token = authorization.partition(" ")
         if scheme.lower() != "bearer" or not token.strip():
             raise AuthError("the authorization metadata must be 'Bearer <token>'")
@@ -127,7 +145,7 @@ def add_token(path: str | os.PathLike, user: str, *, days: float | None = None) 
     """Create a token for ``user``, append its hash to the tokens file (created with mode 0600) and return it."""
     check_user(user)
     path = Path(path)
-    token = secrets.token_urlsafe(32)
+    token = new_token()
     line = f"{user} {hash_token(token)}"
     if days is not None:
         if not (days > 0):
