@@ -28,8 +28,29 @@ def _add_client_options(p: argparse.ArgumentParser, server_required: bool = Fals
     _add_token_options(p)
 
 
+class _TokenFileAction(argparse.Action):
+    """``--token-file PATH``: reads the token (one line) into ``token``; a bad file is a one-line argparse error."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        from ._tokenfile import read_token_file
+
+        try:
+            token = read_token_file(values)
+        except InvalidInputError as exc:
+            raise argparse.ArgumentError(self, str(exc)) from None
+        setattr(namespace, self.dest, values)
+        namespace.token = token
+
+
 def _add_token_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--token", default=None, help="your token (default $UNWIND_TOKEN)")
+    who = p.add_mutually_exclusive_group()
+    who.add_argument("--token", default=None, metavar="TOKEN",
+                     help="your token (default $UNWIND_TOKEN); --token=TOKEN takes any token, one that starts with "
+                          "'-' too")
+    who.add_argument("--token-file", default=None, metavar="PATH", action=_TokenFileAction,
+                     help="a file holding your token alone on one line (default $UNWIND_TOKEN_FILE); keeps the "
+                          "token out of the shell's history and the process list")
     p.add_argument("--tls", action="store_true", help="connect with TLS (system root certificates)")
     p.add_argument("--tls-ca", default=None, metavar="PEM", help="connect with TLS, trusting this CA certificate")
     p.add_argument("--timeout", type=float, default=60.0, help="deadline of each call, seconds (default 60)")

@@ -17,6 +17,43 @@ from typing import Any
 
 from .errors import UnwindError
 
+#: The options whose value may begin with "-" (tokens an older server issued do, one in 64): the parser of
+#: ``unwind`` (napari_unwind.cli._Parser) reads ``--token VALUE`` as ``--token=VALUE`` (see :func:`join_dash_values`).
+DASH_VALUE_OPTIONS = ("--token",)
+
+
+def join_dash_values(args: list[str], options: set[str]) -> list[str]:
+    """``args`` with ``--token VALUE`` joined into ``--token=VALUE`` (argparse reads a VALUE that starts with "-"
+    as an option: "expected one argument"). VALUE stays apart when it is one of ``options`` (``--token --server``:
+    the token was forgotten, and argparse says so); nothing after ``--`` is touched."""
+    out: list[str] = []
+    i = 0
+    while i < len(args):
+        a = args[i]
+        if a == "--":
+            out.extend(args[i:])
+            break
+        if a in DASH_VALUE_OPTIONS and i + 1 < len(args):
+            value = args[i + 1]
+            if value != "--" and value not in options and value.split("=", 1)[0] not in options:
+                out.append(f"{a}={value}")
+                i += 2
+                continue
+        out.append(a)
+        i += 1
+    return out
+
+
+def option_strings(parser: argparse.ArgumentParser) -> set[str]:
+    """Every option string of ``parser`` and of its subcommands' parsers, at any depth."""
+    found: set[str] = set()
+    for action in parser._actions:
+        found.update(action.option_strings)
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in set(action.choices.values()):
+                found |= option_strings(sub)
+    return found
+
 
 def _number(text: str, what: str = "a number") -> float:
     try:

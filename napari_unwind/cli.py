@@ -45,6 +45,8 @@ from ._cliargs import (  # noqa: F401 (parse_size and the checks are part of thi
     _spacing3,
     _triple,
     _whole,
+    join_dash_values,
+    option_strings,
     parse_size,
 )
 from ._report import describe, disk_usage, human_bytes
@@ -720,6 +722,12 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(1, f"unwind: error: {' '.join(message.split())}; see {self.prog} --help\n")
+
+    def parse_known_args(self, args: Sequence[str] | None = None,  # type: ignore[override]
+                         namespace: argparse.Namespace | None = None) -> tuple[argparse.Namespace, list[str]]:
+        """As argparse's, with ``--token VALUE`` read as ``--token=VALUE``: a token may begin with "-"."""
+        args = sys.argv[1:] if args is None else list(args)
+        return super().parse_known_args(join_dash_values(args, option_strings(self)), namespace)
 
 
 def build_parser() -> argparse.ArgumentParser:

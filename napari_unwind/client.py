@@ -151,7 +151,8 @@ class Client:
     address : str
         ``host:port`` (default ``127.0.0.1:50051``).
     token : str, optional
-        The bearer token the server's administrator gave you (default: ``$UNWIND_TOKEN``).
+        The bearer token the server's administrator gave you (default: ``$UNWIND_TOKEN``, else the one in the
+        file ``$UNWIND_TOKEN_FILE`` names; see :func:`napari_unwind._tokenfile.read_token_file`).
     tls : bool or path-like
         Use TLS: True with the system's root certificates, or the path of a CA certificate (PEM).
     timeout : float
@@ -179,7 +180,12 @@ class Client:
 
         self.address = address
         self.timeout, self.retry_seconds, self.progress = float(timeout), float(retry_seconds), bool(progress)
-        token = token if token is not None else os.environ.get("UNWIND_TOKEN") or None
+        if token is None:
+            token = os.environ.get("UNWIND_TOKEN") or None
+        if token is None and os.environ.get("UNWIND_TOKEN_FILE"):
+            from ._tokenfile import read_token_file
+
+            token = read_token_file(os.environ["UNWIND_TOKEN_FILE"])
         self._metadata = (("authorization", f"Bearer {token}"),) if token else ()
         options = [("grpc.max_receive_message_length", max_message_bytes),
                    ("grpc.max_send_message_length", max_message_bytes)]
