@@ -4,9 +4,10 @@ of 30 random ones through the public API with the true ends.
 The fast tests check the family's own ground truth with independent computations: every preimage of sampled
 voxels found by brute force along the stored centreline and frames, the body's Jacobian by finite differences of
 ``straight_to_bent``, radii of curvature and gaps from the stored arrays. The slow test draws 30 phantoms from a
-fixed seed (10 of each kind), runs ``estimate_deformation`` with the true ends and ``straighten``, and asserts the
-issue's goals on each: no folds; coverage >= 0.99; centreline RMS <= 1 voxel; length error <= 2 %; residual twist
-<= 10 degrees; straightened-mask Dice >= 0.9. :func:`measure` is shared with benchmarks/bench_hard_phantoms.py.
+fixed seed (10 of each kind), runs ``estimate_deformation`` with the true ends and ``straighten``, and asserts on
+each the issue's goals that its kind meets (:data:`HELD_BY_KIND`): no folds, centreline RMS <= 1 voxel and length
+error <= 2 % on all; coverage >= 0.99 and straightened-mask Dice >= 0.9 on s-bends and coils; residual twist <= 10
+degrees on coils. The goals not met yet are figures in benchmarks/RESULTS.md, not expected failures. :func:`measure` is shared with benchmarks/bench_hard_phantoms.py.
 """
 
 from __future__ import annotations
@@ -40,8 +41,16 @@ GOALS = (
     ("twist_max_deg", "<=", 10.0),
     ("dice", ">=", 0.9),
 )
-#: The goals every phantom meets today (the others are reported as expected failures, see the slow test).
+#: The goals every phantom meets today.
 HELD = ("folds", "rms_vox", "length_err_pct")
+#: The goals each kind meets on every one of its phantoms (the slow test asserts these). Open, as figures in
+#: benchmarks/RESULTS.md: coverage >= 0.99, Dice >= 0.9 and twist <= 10 degrees on tight helices (7 of 10 miss
+#: coverage, 0.94-0.989), and the twist on s-bends (one of 10 at 10.3 degrees).
+HELD_BY_KIND = {
+    "coil": tuple(g for g, _, _ in GOALS),
+    "s-bend": ("folds", "coverage", "rms_vox", "length_err_pct", "dice"),
+    "helix": HELD,
+}
 #: The 30 phantoms of the slow test: kinds in turn, seeds from 1000.
 CASES = [(ds.HARD_KINDS[i % 3], 1000 + i) for i in range(30)]
 
@@ -336,11 +345,8 @@ def test_hard_phantom_is_straightened_to_the_goals(kind, seed):
     fig = measure(ph, fold_free=True if supports_fold_free() else None)
     failed = failed_goals(fig)
     shown = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in fig.items())
-    # What the construction guarantees today, on every phantom: no fold, the curve and its length.
-    held = [f for f in failed if f.split()[0] in HELD]
+    # The goals each kind meets on all its phantoms are asserted (HELD_BY_KIND); the ones it does not meet yet are
+    # not in the suite (no expected failures): their distribution is in benchmarks/RESULTS.md
+    # (bench_hard_phantoms) and the issue notes.
+    held = [f for f in failed if f.split()[0] in HELD_BY_KIND[kind]]
     assert not held, f"{ph.name} {ph.spacing}: missed {'; '.join(held)} | {shown}"
-    # The rest of issue 10's goals are not met on every phantom yet (coverage on tight helices, where the frames
-    # tilt; the residual twist on some coils): such a case is reported as an expected failure with its figures,
-    # and the distribution is in benchmarks/RESULTS.md. A case that meets them all passes.
-    if failed:
-        pytest.xfail(f"issue 10 goal not met yet: {ph.name} {ph.spacing}: missed {'; '.join(failed)} | {shown}")
