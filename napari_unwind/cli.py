@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from ._cliargs import (  # noqa: F401 (parse_size and the checks are part of this module's interface)
+    DASH_VALUE_OPTIONS,
     _address,
     _arg_point,
     _check_io,
@@ -727,7 +728,9 @@ class _Parser(argparse.ArgumentParser):
                          namespace: argparse.Namespace | None = None) -> tuple[argparse.Namespace, list[str]]:
         """As argparse's, with ``--token VALUE`` read as ``--token=VALUE``: a token may begin with "-"."""
         args = sys.argv[1:] if args is None else list(args)
-        return super().parse_known_args(join_dash_values(args, option_strings(self)), namespace)
+        if any(a in DASH_VALUE_OPTIONS for a in args):
+            args = join_dash_values(args, option_strings(self))
+        return super().parse_known_args(args, namespace)
 
 
 def build_parser() -> argparse.ArgumentParser:
