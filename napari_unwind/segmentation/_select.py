@@ -221,9 +221,9 @@ def _refine(
 
 
 def default_isovalue(features: Features, mask: Any, *, volume: Any = None) -> float:
-    """The full-resolution threshold a working-resolution ``mask`` is refined at by default: the
+    """The full-resolution threshold a working-resolution ``mask`` is refined at by default: the lowest
     :func:`~napari_unwind.segmentation.specimen_isovalue` of the features it covers (with ``fill_holes`` that
-    includes a feature enclosed by the selection), halfway between the medium around them and their body.
+    includes a feature enclosed by the selection), each halfway between the medium around it and its body.
 
     With ``volume`` (the scan; :func:`refine_mask` passes its own) the two levels are read from the scan at full
     resolution, so the working level does not bias them and features loaded from a label file (no tree) give
@@ -251,7 +251,9 @@ def default_isovalue(features: Features, mask: Any, *, volume: Any = None) -> fl
     covered = covered[covered > 0]
     if covered.size == 0:
         raise InvalidInputError("the mask covers no feature; give isovalue=")
-    return float(specimen_isovalue(features, [int(i) for i in covered], volume=volume))
+    # the lowest of the features' own, as candidates() cuts a body of several features: a dimmer feature the
+    # selection encloses (fill_holes) stays in
+    return float(min(specimen_isovalue(features, [int(i)], volume=volume) for i in covered))
 
 
 def refine_mask(
