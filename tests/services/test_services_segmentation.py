@@ -100,7 +100,13 @@ def test_select_takes_the_features_it_names_and_cuts_where_refine_mask_cuts(setu
         job = c.select(seg, ids=[shell], fill_holes=True, features=2)
         mask = c.open(job.result.volume_id).data.compute().astype(bool)
         np.testing.assert_array_equal(mask, expected)
-        assert float(job.result.figures["isovalue"]) == pytest.approx(f2.stat(ball).threshold, rel=1e-5)
+        # the one rule, from the phantom's values: the enclosed ball (400 in a medium of 100) is the dimmer body,
+        # cut at its contrast midpoint (within 10 % of its contrast), so the mask keeps it
+        iso = float(job.result.figures["isovalue"])
+        assert abs(iso - 250.0) <= 0.1 * 300.0, iso
+        z, y, x = np.mgrid[:40, :40, :40] - 19.5
+        inner = np.sqrt(z**2 + y**2 + x**2) < 5
+        assert mask[inner].mean() >= 0.99
         with pytest.raises(RemoteError) as info:
             c.select(seg, ids=[1], features=7)  # never simplified to 7
         assert info.value.code == "FAILED_PRECONDITION" and "Simplify with features=7" in str(info.value)
