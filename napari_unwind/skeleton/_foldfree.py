@@ -148,7 +148,7 @@ def coverage(d: Deformation, points: np.ndarray, *, weights: np.ndarray | None =
         from scipy.spatial import cKDTree
 
         _, nearest = cKDTree(c).query(pts[lost])
-        s_lost = s_dense[nearest]
+        s_lost = np.clip(s_dense[nearest], lo, hi)  # s_dense runs past hi: keep those voxels in the last bin
         edges = np.arange(lo, hi + step, step)
         hist, _ = np.histogram(s_lost, bins=edges, weights=w[lost])
         i = 0
