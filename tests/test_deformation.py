@@ -343,3 +343,34 @@ def test_offsets_survive_edits_and_serialisation_and_schema_1_reads_as_zero_offs
         Deformation.from_dict(bad)
     with pytest.raises(InvalidInputError, match="x_lo < x_hi"):
         d.set_cage(0, (1.0, -1.0, 0.0, 1.0))
+
+
+def test_an_off_centre_cage_keeps_its_x_sides_through_the_output_grid():
+    """An asymmetric cage x in [-2, 6], y in [-1, 3] on a straight rod along axis0, u = axis1, v = axis2: every
+    figure below is derived by hand, and the straightened scan is checked voxel by voxel against the scan's own
+    coordinates (no forward map). Swapping the x sides anywhere (Keyframe.offset or bounds, set_cage, the grid's
+    centre column) moves the straight image's columns by 4 (issue 19)."""
+    from napari_unwind.warp import straighten
+
+    u, v, n = [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]  # u x v = n
+    frames = np.array([[u, v, n]] * 2)
+    d = Deformation.from_keyframes([[5.0, 20.0, 20.0], [25.0, 20.0, 20.0]], frames, 1.0, spacing=(1.0, 1.0, 1.0))
+    d = d.set_cage(None, (-2.0, 6.0, -1.0, 3.0))
+    for k in d.keyframes:
+        assert k.bounds == (-2.0, 6.0, -1.0, 3.0)
+        assert k.half_extent == (4.0, 2.0) and k.offset == (2.0, 1.0)
+    np.testing.assert_array_equal(d.bounds, [[-2.0, 6.0, -1.0, 3.0]] * 2)
+    assert d.extent == (-2.0, 6.0, -1.0, 3.0)
+    # rows: y from -1 to 3 (5), columns: x from -2 to 6 (9); the curve (x = y = 0) at row 1, column 2
+    assert d.output_shape(1.0) == (21, 5, 9)
+    assert d.grid_centre(1.0) == (1, 2)
+    # the cage's x_lo side lies 2 voxels to the -axis1 side of the curve, x_hi 6 to the +axis1 side
+    np.testing.assert_allclose(d.forward(np.array([[-2.0, 0.0, 3.0], [6.0, 3.0, 3.0]])),
+                               [[8.0, 18.0, 20.0], [8.0, 26.0, 23.0]])
+    g = np.indices((30, 40, 40), dtype=float)
+    scan = (1000 * g[0] + 30 * g[1] + g[2]).astype(np.float32)  # linear: trilinear sampling is exact
+    out = np.asarray(straighten(scan, d, spacing=1.0, order=1).data)
+    k, i, j = np.indices(out.shape)
+    # straight voxel (k, i, j) is x = j - 2, y = i - 1 at axis0 = 5 + k: scan (5 + k, 20 + x, 20 + y)
+    want = 1000 * (5 + k) + 30 * (20 + j - 2) + (20 + i - 1)
+    np.testing.assert_allclose(out, want, rtol=0, atol=1e-2)
