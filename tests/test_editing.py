@@ -273,3 +273,34 @@ def test_cross_section_errors():
         cross_section(np.zeros((4, 4)), d, 1.0)
     with pytest.raises(InvalidInputError, match="range"):
         cross_section(np.zeros((4, 4, 4)), d, d.length + 10)
+
+
+def test_undo_of_a_move_reselects_the_keyframe_at_its_old_place():
+    """Moving a keyframe sideways changes the chord lengths, so its s changes; undo must come back to the s before
+    the edit (the keyframe's old knot, recorded here before the edit), with the keyframe still selected, and redo
+    to the moved one's (issue 19: undo restored the s after the edit, and the selection was lost)."""
+    t = np.linspace(0, np.pi / 2, 5)
+    pos = np.stack([30 * np.sin(t), 30 * (1 - np.cos(t)), np.zeros_like(t)], axis=1)
+    n = np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], axis=1)
+    u = np.tile([0.0, 0.0, 1.0], (5, 1))
+    d = Deformation.from_keyframes(pos, np.stack([u, np.cross(n, u), n], axis=1), 4.0)
+    model = EditModel(d)
+    model.select_keyframe(2)
+    s_before = float(d.knots[2])
+    assert model.s == s_before and model.keyframe == 2
+    seen = []
+    model.position_changed.connect(lambda s, k: seen.append((s, k)))
+    # 5 along v = (0, 0, 1) x n: the chords to keyframes 1 and 3 lengthen (hand: the old chord is
+    # 2 * 30 sin(pi / 16); the new one is sqrt(c^2 + 25) > c)
+    model.move(0.0, 5.0)
+    s_after = model.s
+    chord = 2 * 30 * np.sin(np.pi / 16)
+    assert s_after == pytest.approx(s_before - chord + np.hypot(chord, 5.0), rel=0.05)
+    assert model.keyframe == 2
+    seen.clear()
+    assert model.undo()
+    assert model.deformation is d
+    assert model.s == s_before and model.keyframe == 2
+    assert seen == [(s_before, 2)]
+    assert model.redo()
+    assert model.s == s_after and model.keyframe == 2
