@@ -291,3 +291,22 @@ def test_remove_path_outlasts_a_writer_that_finishes_its_chunk(tmp_path):
     remove_path(folder, settle=5.0)
     t.join()
     assert not folder.exists()
+
+
+def test_a_new_output_inside_an_input_folder_through_a_symlink_is_refused(tmp_path):
+    """The output does not exist yet, so only resolving the link shows that it lies inside the input (issue 19:
+    the symlink tests used outputs that existed, which ``samefile`` catches without resolving)."""
+    from napari_unwind.io._atomic import check_not_input
+
+    data = tmp_path / "data" / "scan.zarr"
+    data.mkdir(parents=True)
+    (tmp_path / "alias").symlink_to(tmp_path / "data", target_is_directory=True)
+    new = tmp_path / "alias" / "scan.zarr" / "straight.tif"
+    assert not new.exists() and os.path.realpath(new.parent) == str(data)  # the filesystem's own answer
+    with pytest.raises(OutputError, match=r"lies inside the input .*scan\.zarr"):
+        check_not_input([new], [data])
+    # and the other way: the input named through the link, the output by its real path
+    with pytest.raises(OutputError, match=r"lies inside the input .*alias.*scan\.zarr"):
+        check_not_input([data / "new.tif"], [tmp_path / "alias" / "scan.zarr"])
+    # a sibling of the input through the same link is fine
+    check_not_input([tmp_path / "alias" / "other.tif"], [data])
