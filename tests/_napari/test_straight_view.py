@@ -360,3 +360,79 @@ def test_focus_uploads_a_finer_level_crop_around_the_specimen(make_napari_viewer
     img = shot(viewer)
     other = reference_render(viewer, sv, ref)
     assert img.max() > 40 and np.abs(img - other).mean() < 1.0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the frame table along s, on sharp edges (issue 19, item 3)
+# ----------------------------------------------------------------------------------------------------------------
+RING_EVERY = 5
+
+
+def ringed_scan():
+    """A straight rod along axis0 (axis1 = axis2 = 20): a sharp-edged body of radius 6 (grey 0.3) and, in every
+    RING_EVERY-th axis0 plane from 10 to 50, a bright annulus (3 <= radius <= 5, grey 1) one voxel thick along the
+    rod; zero outside. Returns the scan and the axis0 planes of the rings."""
+    g = np.indices((60, 40, 40), dtype=float)
+    rho = np.hypot(g[1] - 20, g[2] - 20)
+    vol = np.where(rho <= 6, 0.3, 0.0)
+    planes = np.arange(10, 51, RING_EVERY)
+    ring = np.isin(g[0], planes) & (rho >= 3) & (rho <= 5)
+    vol[ring] = 1.0
+    return vol.astype(np.float32), planes
+
+
+@pytest.mark.parametrize("frames", ["uniform", "texture"])
+def test_rings_one_slice_thick_land_on_the_cpu_rows(make_napari_viewer, frames, tmp_path):
+    """A half-slice error in the frame table along s moves every ring by half a slice (3 px at ZOOM 6): the smooth
+    scan of the tests above hides it under their tolerances, a one-voxel ring does not. Default window size."""
+    from napari_unwind._napari._straight_view import StraightView
+
+    vol, planes = ringed_scan()
+    n = np.array([1.0, 0.0, 0.0])
+    u, v = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])  # u x v = n: columns run along axis1
+    d = Deformation.from_keyframes([[4.0, 20.0, 20.0], [56.0, 20.0, 20.0]], np.array([[u, v, n]] * 2), (8.0, 8.0),
+                                   spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0))
+    viewer = make_napari_viewer(show=True)  # napari's default window size
+    viewer.dims.ndisplay = 3
+    sv = StraightView(viewer, vol, frames=frames)
+    sv.update(d)
+    assert sv.available, sv.reason
+    sv.layer.contrast_limits = (0, 1)
+    ref = cpu(vol, d)
+    look(viewer, ref.shape)
+    img = shot(viewer)
+    from imageio.v3 import imwrite
+
+    imwrite(tmp_path / f"rings_{frames}.png", img.astype(np.uint8))
+
+    # hand-derived: straight slice k is the axis0 plane 4 + k (the curve starts at axis0 = 4, no padding, ds = 1)
+    assert d.s_range == (0.0, 52.0) and ref.shape == (53, 17, 17)
+    rows = planes - 4
+    cpu_mip = ref.max(axis=2)  # looking down v (axis2): rows s, columns x (axis1)
+    ring_rows = np.flatnonzero((cpu_mip[:, 8 - 4:8 + 5] >= 0.99).all(axis=1))
+    np.testing.assert_array_equal(ring_rows, rows)  # the CPU reference itself puts each ring on its plane
+
+    # 1. the GL render read at the voxel centres: each ring's row is bright, its neighbours are the body's grey
+    got = numpy_mip_at_voxels(img, ref.shape)
+    ring_cols = slice(8 - 4, 8 + 5)  # |x| <= 4: the annulus crosses every ray there
+    bright = got[rows][:, ring_cols]
+    beside = np.concatenate([got[rows - 1][:, ring_cols], got[rows + 1][:, ring_cols]])
+    # tolerance: 8-bit readback, and the pixel centre within half a pixel (1/12 slice) of the voxel centre: the ring
+    # (a one-slice ramp in the scan's linear texture) loses at most 1/12 of its contrast 0.7 there, 0.06
+    assert bright.min() >= 1.0 - 0.7 / 12 - 0.02, bright.min()
+    assert beside.max() <= 0.3 + 0.7 / 12 + 0.02, beside.max()
+
+    # 2. each ring's centre along s, at pixel resolution: the brightness above the body's grey weighted over the
+    # pixel rows within a slice of the ring (the scan's linear texture makes it a triangle centred on the plane)
+    h = img.shape[0]
+    cols = np.floor(img.shape[1] / 2 + (np.arange(ring_cols.start, ring_cols.stop) - 8) * ZOOM).astype(int)
+    profile = img[:, cols, 0].mean(axis=1) / 255.0 - 0.3
+    px_of = (h / 2 + (np.arange(ref.shape[0]) - (ref.shape[0] - 1) / 2) * ZOOM)  # the pixel edge at a voxel centre
+    centres = []
+    for r in rows:
+        lo, hi = int(np.floor(px_of[r] - ZOOM)), int(np.ceil(px_of[r] + ZOOM))
+        w = np.clip(profile[lo:hi], 0, None)
+        centres.append(((np.arange(lo, hi) + 0.5) * w).sum() / w.sum())
+    centres = (np.array(centres) - h / 2) / ZOOM + (ref.shape[0] - 1) / 2
+    # tolerance: the pixel grid's half pixel (1/12 slice) and the 8-bit steps; a half-slice error is 0.5
+    np.testing.assert_allclose(centres, rows, atol=0.15)
