@@ -329,7 +329,8 @@ def test_a_fold_over_no_specimen_voxel_is_a_warning_and_one_over_the_specimen_is
 
 def test_run_with_fill_holes_refines_at_the_lowest_threshold_the_mask_covers(tmp_path):
     """One isovalue rule everywhere (dock, unwind select, the server's jobs, unwind run): a closed shell selected
-    with --fill-holes covers the dimmer rod inside it, so the mask is cut at the rod's threshold, not the shell's."""
+    with --fill-holes covers the dimmer rod inside it, so the mask is cut at the rod's contrast midpoint (the lowest
+    of the covered features' specimen isovalues), not the shell's."""
     from scipy import ndimage
 
     from napari_unwind.segmentation import segment
@@ -354,4 +355,6 @@ def test_run_with_fill_holes_refines_at_the_lowest_threshold_the_mask_covers(tmp
     thresholds = {int(i): features.stat(int(i)).threshold for i in covered if i > 0}
     assert len(thresholds) == 2 and min(thresholds.values()) < thresholds[int(shell)]  # the rod is covered, dimmer
     assert seg.selected == (int(shell),) and seg.fill_holes
-    assert seg.isovalue == pytest.approx(min(thresholds.values()))
+    # the phantom's values: the rod (400) in the medium (100) is the dimmer body; its midpoint within 10 % of the
+    # contrast, so the rod is in the mask
+    assert abs(seg.isovalue - 250.0) <= 0.1 * 300.0, seg.isovalue
