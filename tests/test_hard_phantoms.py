@@ -7,7 +7,8 @@ voxels found by brute force along the stored centreline and frames, the body's J
 fixed seed (10 of each kind), runs ``estimate_deformation`` with the true ends and ``straighten``, and asserts on
 each the issue's goals that its kind meets (:data:`HELD_BY_KIND`): no folds, centreline RMS <= 1 voxel and length
 error <= 2 % on all; coverage >= 0.99 and straightened-mask Dice >= 0.9 on s-bends and coils; residual twist <= 10
-degrees on coils. The goals not met yet are figures in benchmarks/RESULTS.md, not expected failures. :func:`measure` is shared with benchmarks/bench_hard_phantoms.py.
+degrees on coils. The goals not met yet are figures in benchmarks/RESULTS.md, not expected failures.
+:func:`measure` is shared with benchmarks/bench_hard_phantoms.py.
 """
 
 from __future__ import annotations
