@@ -797,7 +797,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--full-resolution", metavar="INPUT", default=None,
                    help="refine the mask at full resolution on this scan, chunk by chunk")
     p.add_argument("--isovalue", type=_finite, default=None,
-                   help="full-resolution threshold (default: the lowest threshold of the features the mask covers)")
+                   help="full-resolution threshold (default: halfway between the medium and the body of the "
+                   "features the mask covers, read from the scan)")
     p.add_argument("--fill-holes", action="store_true", help="fill cavities of the mask")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
@@ -835,8 +836,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--level", type=_whole(0), default=None,
                    help="pyramid level to segment (default: every side <= 256)")
     p.add_argument("--isovalue", type=_finite, default=None,
-                   help="full-resolution threshold of the mask (default: the lowest threshold of the features it "
-                   "covers, an enclosed one too with --fill-holes)")
+                   help="full-resolution threshold of the mask (default: halfway between the medium and the body of "
+                   "the features it covers, read from the scan; the dimmest of them, an enclosed one too with "
+                   "--fill-holes)")
     p.add_argument("--fill-holes", action="store_true", help="fill cavities of the mask")
     p.add_argument("--session", default=None,
                    help="the session file to write (default: OUTPUT's name + .unwind.json beside OUTPUT)")

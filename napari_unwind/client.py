@@ -542,8 +542,9 @@ class Client:
         """The chosen features refined to a full-resolution mask (a job; ``result.volume_id`` is the mask).
 
         ``features``: the number of features the ids and seeds refer to (one :meth:`simplify` made; default: the
-        segmentation's current one). Without ``isovalue`` the mask is cut at the lowest threshold of the features
-        it covers, as :func:`napari_unwind.segmentation.refine_mask` does on this computer.
+        segmentation's current one). Without ``isovalue`` the mask is cut at
+        :func:`napari_unwind.segmentation.default_isovalue` of the features it covers, read from the scan, as
+        :func:`napari_unwind.segmentation.refine_mask` does on this computer.
         """
         from unwind_services._proto.unwind.v1 import jobs_pb2, segmentation_pb2
 
