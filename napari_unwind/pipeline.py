@@ -612,8 +612,9 @@ def segment_step(volume: Any, options: SegmentOptions = SegmentOptions(), *, fea
 def select_step(volume: Any, features: Any, *, seeds: Any = None, ids: Any = None, candidate: Any = None,
                 options: SegmentOptions = SegmentOptions()) -> Generator[Progress, None, Selection]:
     """Choose features by ``seeds`` (full-resolution voxels) and/or ``ids``, or a ``candidate`` of
-    :func:`candidates` (its own working mask), and refine them at full resolution at ``options.isovalue``, the
-    candidate's isovalue, or the one default rule (:func:`~napari_unwind.segmentation.default_isovalue`)."""
+    :func:`candidates` (its own working mask), and refine them at full resolution at ``options.isovalue`` or the
+    one default rule, for clicks and candidates alike (:func:`~napari_unwind.segmentation.default_isovalue` with
+    the scan: the contrast between the specimen and the medium, read at full resolution)."""
     import numpy as np
 
     from .segmentation import default_isovalue, refine_mask_iter, select, selected_ids
@@ -622,13 +623,11 @@ def select_step(volume: Any, features: Any, *, seeds: Any = None, ids: Any = Non
     if candidate is not None:
         chosen = [int(i) for i in candidate.ids]
         working = candidate.working_mask(features)
-        own = getattr(candidate, "isovalue", None)
     else:
         chosen = selected_ids(features, seeds=seeds, ids=ids)
         working = select(features, ids=chosen, fill_holes=options.fill_holes)
-        own = None
-    iso = options.isovalue if options.isovalue is not None else (
-        float(own) if own is not None else float(default_isovalue(features, working, volume=volume)))
+    iso = options.isovalue if options.isovalue is not None else float(
+        default_isovalue(features, working, volume=volume))
     mask = yield from refine_mask_iter(volume, working, features=features, isovalue=iso)
     pts = () if seeds is None else tuple(tuple(float(c) for c in p) for p in np.asarray(seeds, float).reshape(-1, 3))
     record = Segmentation(k=features.k, level=features.level, selected=tuple(chosen), seeds=pts, isovalue=iso,
