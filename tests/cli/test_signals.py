@@ -20,8 +20,10 @@ def demo(tmp_path_factory):
 
 
 def _start_export(demo, out):
+    # spacing 0.1: about 2 s of writing (0.2 gave 1.2 s, and under load one signal arrived after the rename, so
+    # the process had already ended with 0)
     return subprocess.Popen([str(UNWIND), "straighten", str(demo.tank), "--session", str(demo.session), "-o",
-                             str(out), "--spacing", "0.2", "--no-verify", "-q"],
+                             str(out), "--spacing", "0.1", "--no-verify", "-q"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
