@@ -19,12 +19,17 @@ def demo(tmp_path_factory):
     return demo_outputs(tmp_path_factory)
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_export(demo, out):
-    # spacing 0.1: about 2 s of writing (0.2 gave 1.2 s, and under load one signal arrived after the rename, so
-    # the process had already ended with 0)
+    # SIGINT back to its default in the child: a suite started as a background job of a non-interactive shell
+    # inherits SIGINT ignored (POSIX), and an unwind started from it rightly ignores Ctrl-C too (it then ended
+    # with 0 here, in a fresh clone's run started with `&`)
     return subprocess.Popen([str(UNWIND), "straighten", str(demo.tank), "--session", str(demo.session), "-o",
-                             str(out), "--spacing", "0.1", "--no-verify", "-q"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             str(out), "--spacing", "0.2", "--no-verify", "-q"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
 
 
 def _signal_when_writing(procs, folders, signals, timeout=120):
