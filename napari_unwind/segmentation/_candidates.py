@@ -237,29 +237,7 @@ def _scan_levels(features: Features, ids: list[int], lab: np.ndarray, volume: An
     wnear = (wdist <= pad) & np.isin(features.labels[box], [0, *ids])
     origin = [b.start for b in box]
     near = wnear[np.ix_(*[i.ravel() - o for i, o in zip(idx, origin)])]
-    v = vals[near]
-    if v.size < 50:
-        return None
-    lo_v, hi_v = np.percentile(v, [0.5, 99.5])
-    if hi_v <= lo_v:
-        return None
-    m0 = _mode(v, lo_v, hi_v)
-    low = v[(v <= m0) & (v >= _valley_below(v, lo_v, hi_v, m0))]
-    sigma = 1.4826 * float(np.median(m0 - low)) if low.size else 0.0
-    sigma = min(sigma, _peak_sigma(v, lo_v, hi_v))
-    above = near & (vals > m0 + max(5.0 * sigma, 0.02 * (hi_v - m0)))
-    comp, _ = ndimage.label(above)
-    keep = np.unique(comp[own & above])
-    above = np.isin(comp, keep[keep > 0])
-    core = vals[above]
-    for depth in (1, 2):  # as deep as leaves a core: clear of the surface's partial volume
-        inner = ndimage.binary_erosion(above, iterations=depth)
-        if np.count_nonzero(inner) < max(20, 0.1 * np.count_nonzero(above)):
-            break
-        core = vals[inner]
-    if core.size < 20:
-        return None
-    return float(m0), float(np.median(core))
+    return _medium_and_body(vals, near, own=own)
 
 
 def _isovalue(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray, fallback: float) -> float:
@@ -275,7 +253,14 @@ def _levels(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.nd
     box = _box(lab, pad)
     dist = ndimage.distance_transform_edt(~lab[box])
     near = np.isin(basin_id[box], ids) & (dist <= pad)
-    v = features.tree.values[box][near].astype(np.float64)
+    return _medium_and_body(features.tree.values[box], near)
+
+
+def _medium_and_body(vals: np.ndarray, near: np.ndarray, *, own: np.ndarray | None = None
+                     ) -> tuple[float, float] | None:
+    """The medium's and the body's levels from the values ``vals`` around a specimen (``near``: where to look;
+    ``own``: its labels, whose components alone count as its body); None when the values show no body."""
+    v = vals[near].astype(np.float64)
     if v.size < 50:
         return None
     lo, hi = np.percentile(v, [0.5, 99.5])
@@ -288,12 +273,15 @@ def _levels(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.nd
     low = v[(v <= m0) & (v >= _valley_below(v, lo, hi, m0))]
     sigma = 1.4826 * float(np.median(m0 - low)) if low.size else 0.0
     sigma = min(sigma, _peak_sigma(v, lo, hi))
-    # the body: the median of its interior (clearly above the medium, one voxel in from its surface, where the
-    # partial volume of the surface is gone); soft tissue outweighs a spine or a bone inside it
-    vals = features.tree.values[box]
+    # the body: the median of its interior (clearly above the medium, up to two voxels in from its surface, where
+    # the partial volume of the surface is gone); soft tissue outweighs a spine or a bone inside it
     above = near & (vals > m0 + max(5.0 * sigma, 0.02 * (hi - m0)))
+    if own is not None:
+        comp, _ = ndimage.label(above)
+        keep = np.unique(comp[own & above])
+        above = np.isin(comp, keep[keep > 0])
     core = vals[above]
-    for depth in (1, 2):  # as deep as leaves a core (the working values are smoothed: their skirt is wide)
+    for depth in (1, 2):  # as deep as leaves a core
         inner = ndimage.binary_erosion(above, iterations=depth)
         if np.count_nonzero(inner) < max(20, 0.1 * np.count_nonzero(above)):
             break
