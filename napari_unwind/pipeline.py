@@ -566,7 +566,8 @@ def candidates(features: Any, *, min_elongation: float = 3.0) -> tuple[Any, ...]
     """Every candidate specimen of ``features``, specimens and rejected alike, each with its reason: the
     segmentation's one definition of a specimen (:func:`napari_unwind.segmentation.candidates`; each
     :class:`~napari_unwind.segmentation.Candidate` has ``ids``, ``status`` ``"specimen"`` or ``"rejected"``,
-    ``reason``, ``stats``, and for a part of touching specimens its own working mask and isovalue).
+    ``reason``, ``stats``, and for a part of touching specimens its own working mask). :func:`select_step` refines
+    every candidate at the one isovalue rule, whatever isovalue the candidate records.
 
     The one place the pipeline asks what a specimen is.
     """
@@ -705,7 +706,7 @@ def run_iter(
     ids : sequence of int, optional
         Feature ids of ``features``.
     candidate : Candidate, optional
-        A specimen of :func:`candidates` of ``features`` (its own mask and isovalue).
+        A specimen of :func:`candidates` of ``features`` (its own working mask; refined at the one isovalue rule).
     features : Features, optional
         A segmentation of ``volume`` to pick from (default: segmented here with ``options.segment``).
     endpoints : Endpoints or (head, tail), optional

@@ -7,27 +7,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _scenes import rods_in_tube
 
 from napari_unwind.errors import InvalidInputError
 from napari_unwind.segmentation import Candidate, candidates, segment, specimens
 
 
 def _scene() -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """A tube around two rods, a rod outside it, a ball, a tiny speck."""
-    shape = (44, 44, 44)
-    vol = np.zeros(shape, np.float32)
-    i, j, k = np.indices(shape)
-    rho = np.hypot(j - 21.5, k - 21.5)
-    parts = {
-        "tube": (rho >= 12) & (rho <= 14) & (i >= 4) & (i < 40),
-        "rod_a": (i >= 8) & (i < 36) & (abs(j - 17) <= 1) & (abs(k - 21) <= 1),
-        "rod_b": (i >= 8) & (i < 34) & (abs(j - 26) <= 1) & (abs(k - 22) <= 1),
-        "rod_out": (i >= 10) & (i < 34) & (abs(j - 3) <= 1) & (abs(k - 3) <= 1),
-        "ball": (i - 22) ** 2 + (j - 36) ** 2 + (k - 36) ** 2 <= 9,
-    }
-    for m, v in zip(parts.values(), (5.0, 10.0, 9.0, 8.0, 7.0)):
-        vol[m] = v
-    return vol, parts
+    return rods_in_tube(ball_on_border=False)
 
 
 def _which(features, parts):

@@ -13,6 +13,7 @@ from pathlib import Path
 import dask.array as da
 import numpy as np
 import pytest
+from _scenes import rods_in_tube
 
 from napari_unwind.datasets import tank_phantom
 from napari_unwind.errors import InvalidInputError
@@ -68,21 +69,7 @@ def test_the_segmentation_modules_import_no_circle():
 # containers and specimens by construction
 # ------------------------------------------------------------------------------------------------------------------
 def _scene() -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """A tube (axis0, not touching the border) around two rods, a rod outside it, a ball on the border."""
-    shape = (44, 44, 44)
-    vol = np.zeros(shape, np.float32)
-    i, j, k = np.indices(shape)
-    rho = np.hypot(j - 21.5, k - 21.5)
-    parts = {
-        "tube": (rho >= 12) & (rho <= 14) & (i >= 4) & (i < 40),
-        "rod_a": (i >= 8) & (i < 36) & (abs(j - 17) <= 1) & (abs(k - 21) <= 1),
-        "rod_b": (i >= 8) & (i < 34) & (abs(j - 26) <= 1) & (abs(k - 22) <= 1),
-        "rod_out": (i >= 10) & (i < 34) & (abs(j - 3) <= 1) & (abs(k - 3) <= 1),
-        "ball": (i - 22) ** 2 + (j - 22) ** 2 + k**2 <= 16,  # cut by the face k = 0
-    }
-    for m, v in zip(parts.values(), (5.0, 10.0, 9.0, 8.0, 7.0)):
-        vol[m] = v
-    return vol, parts
+    return rods_in_tube(ball_on_border=True)
 
 
 def test_containers_and_specimens_follow_from_the_construction():
