@@ -124,7 +124,40 @@ def _print_job(job: Any, file=None) -> None:
         line += f"  {job.error.code}: {job.error.message}"
     if job.result.volume_id:
         line += f"  -> {job.result.volume_id}"
+    if job.result.HasField("verdict"):  # a skeleton or pipeline job: the pipeline's status of its specimen
+        line += f"  {_status(job)}"
     print(line, file=file or sys.stdout)
+
+
+def _status(job: Any) -> str:
+    """``ok`` or ``partial: <the pipeline's reason>`` (the job's verdict)."""
+    from .client import Client
+
+    r = Client.specimen(job)
+    return f"{r.status}: {_one_line(r.reason)}" if r.reason else r.status
+
+
+def _one_line(message: str) -> str:
+    return " ".join(message.split())
+
+
+def _exit_of(job: Any) -> int:
+    """The exit status of a finished job as the local command gives it: 0 succeeded (and, for a skeleton or
+    pipeline job, ``ok``), :data:`~napari_unwind.pipeline.EXIT_PARTIAL` for a ``partial`` specimen (with its reason
+    on stderr), 1 otherwise."""
+    from unwind_services._proto.unwind.v1 import common_pb2 as pb
+
+    from .client import Client
+    from .pipeline import exit_status
+
+    if job.state != pb.JOB_STATE_SUCCEEDED:
+        return 1
+    if job.kind not in (pb.JOB_KIND_ESTIMATE_DEFORMATION, pb.JOB_KIND_PIPELINE):
+        return 0
+    r = Client.specimen(job)
+    if r.status != "ok":
+        print(f"unwind: {r.status}: job {job.id}: {_one_line(r.reason)}", file=sys.stderr)
+    return exit_status([r])
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
@@ -137,13 +170,19 @@ def cmd_submit(args: argparse.Namespace) -> int:
             rows = client.run_batch(items, max_parallel=args.max_parallel, out_dir=args.out_dir,
                                     summary=args.summary, progress=not args.quiet)
             failed = [r for r in rows if r.get("state") != "succeeded"]
+            partial = [r for r in rows if r.get("state") == "succeeded" and r.get("status") != "ok"]
             if not args.quiet:
-                print(f"{len(rows) - len(failed)} of {len(rows)} specimens straightened"
+                print(f"{len(rows) - len(failed) - len(partial)} of {len(rows)} specimens straightened"
+                      + (f", {len(partial)} partial" if partial else "")
                       + (f"; summary: {args.summary or Path(args.out_dir) / 'summary.csv'}"
                          if args.summary or args.out_dir else ""))
-                for r in failed:
-                    print(f"unwind: {r['name']}: {r.get('error', '')}", file=sys.stderr)
-            return 1 if failed else 0
+            for r in failed:
+                print(f"unwind: {r['name']}: {r.get('error', '')}", file=sys.stderr)
+            for r in partial:  # straightened, but not to the goals: not a success (as unwind run)
+                print(f"unwind: {r.get('status') or 'partial'}: {r['name']}: {r.get('reason', '')}", file=sys.stderr)
+            from .pipeline import EXIT_PARTIAL
+
+            return 1 if failed else (EXIT_PARTIAL if partial else 0)
         if not args.input:
             raise InvalidInputError("give a scan (INPUT) or a collection (--batch FILE.csv)")
         if not args.select and not args.mask:
@@ -164,7 +203,7 @@ def cmd_submit(args: argparse.Namespace) -> int:
                               output_name=name, order=args.order, pad=args.pad, spacing=args.spacing,
                               allow_folds=args.allow_folds, wait=args.wait, name=name)
         _print_job(job)
-    return 0
+    return _exit_of(job) if args.wait else 0
 
 
 def _read_batch(path: Path, register: bool) -> list:
@@ -199,8 +238,6 @@ def _read_batch(path: Path, register: bool) -> list:
 # unwind jobs
 # ------------------------------------------------------------------------------------------------------------------
 def cmd_jobs(args: argparse.Namespace) -> int:
-    from unwind_services._proto.unwind.v1 import common_pb2 as pb
-
     if args.action != "list" and not args.job_id:
         raise InvalidInputError(f"unwind jobs {args.action} needs a job id")
     with _client(args) as client:
@@ -220,7 +257,7 @@ def cmd_jobs(args: argparse.Namespace) -> int:
         elif args.action == "watch":
             job = client.wait(args.job_id, check=False)
             _print_job(job)
-            return 0 if job.state == pb.JOB_STATE_SUCCEEDED else 1
+            return _exit_of(job)
         elif args.action == "cancel":
             _print_job(client.cancel(args.job_id))
         elif args.action == "resubmit":
@@ -247,6 +284,7 @@ def run_remote(args: argparse.Namespace) -> int:
     is the local scan. Returns the same exit status as the local run: 0 ok, 3 partial (the job's ``status``).
     """
     import time
+    from dataclasses import replace
 
     from ._cliargs import (
         _check_io,
@@ -259,7 +297,8 @@ def run_remote(args: argparse.Namespace) -> int:
     from .io import open_volume
     from .io._atomic import check_writable
     from .io._formats import output_format
-    from .pipeline import EXIT_PARTIAL
+    from .io._volume import unit_label
+    from .pipeline import exit_status
     from .session import Session, SourceInfo, save_session
 
     if args.mask and args.select:
@@ -291,6 +330,9 @@ def run_remote(args: argparse.Namespace) -> int:
             head=None if endpoints is None else endpoints.head, tail=None if endpoints is None else endpoints.tail,
             chain=None if endpoints is None else endpoints.chain, output_name="straight" + _suffix(args.output),
             name=Path(str(args.output)).name)
+        # the pipeline's verdict, judged on the server as on this computer (a result without one raises before
+        # anything is written: it is never taken for ok)
+        verdict = client.specimen(job)
         for w in job.result.warnings:
             print(f"unwind: warning: {w}", file=sys.stderr)
         written = client.download(job.result.volume_id, args.output, overwrite=args.overwrite)
@@ -300,16 +342,14 @@ def run_remote(args: argparse.Namespace) -> int:
                       segmentation=remote.segmentation, endpoints=remote.endpoints,
                       notes=f"unwind run --server {args.server} (job {job.id})")
     written_session = save_session(session, target, overwrite=args.overwrite)
-    f = job.result.figures
-    say(f"job {job.id} on {args.server}: length {f.get('length', '?')} {f.get('unit', '')}, "
-        f"{f.get('keyframes', '?')} keyframes")
+    result = replace(verdict, output=Path(written), session_path=Path(written_session), session=session)
+    say(f"job {job.id} on {args.server}: length {result.length:.4g} {unit_label(result.unit)}, "
+        f"{result.keyframes} keyframes, coverage {result.coverage:.3f}")
     say(f"straightened {args.input} -> {written}; session -> {written_session}; done in "
         f"{time.perf_counter() - t0:.1f} s")
-    status = f.get("status", "ok")
-    if status == "partial":  # the same verdict and exit status as the local run (napari_unwind.pipeline)
-        print(f"unwind: partial: the specimen: {' '.join(f.get('reason', '').split())}", file=sys.stderr)
-        return EXIT_PARTIAL
-    return 0 if status == "ok" else 1
+    if result.status != "ok":  # the same line and exit status as the local run (cli._say_results)
+        print(f"unwind: {result.status}: {_one_line(result.summary())}", file=sys.stderr)
+    return exit_status([result])
 
 
 # ------------------------------------------------------------------------------------------------------------------

@@ -493,6 +493,20 @@ class Client:
             raise InvalidInputError(f"job {job.id} produced no session")
         return Session.from_dict(json.loads(job.result.session_json))
 
+    @staticmethod
+    def specimen(job: Any, **fields_: Any):
+        """The pipeline's verdict on the specimen of a skeleton or pipeline job: a
+        :class:`~napari_unwind.pipeline.SpecimenResult` with its status (``ok`` or ``partial``, judged on the server by
+        :func:`napari_unwind.pipeline.judge` as on this computer), reason, figures (coverage, folded, lost,
+        length...) and warnings; ``fields_`` set the others (session, output...). A result without a verdict raises
+        :class:`~napari_unwind.errors.InvalidInputError`: it is never read as ok."""
+        from unwind_services.convert import specimen_result
+
+        try:
+            return specimen_result(job.result, **fields_)
+        except InvalidInputError as exc:
+            raise InvalidInputError(f"job {job.id}: {exc}") from None
+
     # -- the pipeline's steps ----------------------------------------------------------------------------------------
     def segment(self, volume_id: str, *, features: int = 5, level: int | None = None, smooth: float | None = None,
                 wait: bool = True):
@@ -608,7 +622,8 @@ class Client:
 
     def skeleton(self, mask_volume_id: str, *, volume_id: str = "", head: Any = None, tail: Any = None,
                  chain: Any = None, wait: bool = True, **options: Any):
-        """Skeleton solve (a job); ``Client.session(job)`` is the resulting session."""
+        """Skeleton solve (a job); ``Client.session(job)`` is the resulting session, ``Client.specimen(job)`` the
+        pipeline's verdict on it (status ok or partial, reason, coverage, folds)."""
         from unwind_services._proto.unwind.v1 import jobs_pb2, skeleton_pb2
 
         req = skeleton_pb2.EstimateDeformationRequest(mask_volume_id=mask_volume_id, volume_id=volume_id,
@@ -681,9 +696,10 @@ class Client:
     def pipeline(self, volume_id: str, *, wait: bool = True, name: str = "", **options: Any):
         """``unwind run`` on the server: segment (or a mask), select, skeleton, straighten (a job).
 
-        Its result holds the straight volume (``result.volume_id``), the session (``Client.session(job)``) and
-        figures: ``status`` (``ok`` or ``partial``, see :mod:`napari_unwind.pipeline`), ``reason``, length,
-        keyframes, coverage, seconds... Options: see :meth:`pipeline_request`.
+        Its result holds the straight volume (``result.volume_id``), the session (``Client.session(job)``), the
+        pipeline's verdict (``result.verdict``; decoded by ``Client.specimen(job)``: status ``ok`` or ``partial``, see
+        :mod:`napari_unwind.pipeline`, reason, coverage, folds...) and figures as text (length, keyframes,
+        seconds...). Options: see :meth:`pipeline_request`.
         """
         return self.submit(self.pipeline_request(volume_id, **options), wait=wait, name=name)
 
@@ -699,7 +715,9 @@ class Client:
         times, and a job that had finished is never run again (its output is fetched). With ``out_dir`` every
         straight volume (``suffix`` format) and its session are downloaded. Returns one summary row per specimen
         and writes them as CSV to ``summary`` (default ``out_dir/summary.csv`` when ``out_dir`` is given): name,
-        scan, job, state, figures, the ids of jobs that were interrupted and resubmitted (``resubmitted``), error.
+        scan, job, state, the specimen's status and reason (``ok`` or ``partial``: the pipeline's verdict; a
+        ``partial`` specimen is not a success), figures, the ids of jobs that were interrupted and resubmitted
+        (``resubmitted``), error.
         """
         from unwind_services._proto.unwind.v1 import common_pb2 as pb
 
@@ -758,6 +776,8 @@ class Client:
                     row["error"] = f"{job.error.code}: {job.error.message}"
                 else:
                     row.update(dict(job.result.figures))
+                    verdict = self.specimen(job)  # the status a row reports is the pipeline's verdict
+                    row.update(status=verdict.status, reason=verdict.reason)
                     row["volume_id"] = job.result.volume_id
                     if out is not None:
                         row["output"] = str(again(lambda: self.download(
@@ -797,8 +817,9 @@ class Client:
         rows.sort(key=lambda r: r["name"])
         target = Path(summary) if summary is not None else (out / "summary.csv" if out is not None else None)
         if target is not None:
-            columns = ["name", "scan", "job", "state", "volume_id", "length", "unit", "keyframes", "ids", "isovalue",
-                       "seconds", "skeleton_seconds", "export_seconds", "output", "resubmitted", "error"]
+            columns = ["name", "scan", "job", "state", "status", "reason", "volume_id", "length", "unit", "keyframes",
+                       "ids", "isovalue", "seconds", "skeleton_seconds", "export_seconds", "output", "resubmitted",
+                       "error"]
             columns += sorted({k for r in rows for k in r} - set(columns))
             with open(target, "w", newline="") as f:
                 w = csv.DictWriter(f, fieldnames=columns, restval="")

@@ -213,7 +213,9 @@ def suggest_ends_iter(server: Server, volume_id: str, mask_id: str) -> Generator
 def skeleton_iter(server: Server, volume_id: str, mask_id: str, ends: Any, *, options: Any = None
                   ) -> Generator[Progress, None, Any]:
     """The skeleton job on the server with ``options`` (a :class:`~napari_unwind.pipeline.SkeletonOptions`; None:
-    its defaults); returns (its Session, the stored session's id, the core's warnings)."""
+    its defaults); returns (its Session, the stored session's id, the pipeline's verdict: a
+    :class:`~napari_unwind.pipeline.SpecimenResult` with the status, reason, figures and warnings the server's
+    pipeline judged)."""
     from ..client import Client
 
     kw: dict[str, Any] = {}
@@ -222,7 +224,8 @@ def skeleton_iter(server: Server, volume_id: str, mask_id: str, ends: Any, *, op
     with server.client() as c:
         job = c.skeleton(mask_id, volume_id=volume_id, wait=False, options=options, **kw)
         done = yield from _follow(c, job)
-    return Client.session(done), done.result.session_id, tuple(done.result.warnings)
+    session = Client.session(done)
+    return session, done.result.session_id, Client.specimen(done, session=session)
 
 
 def export_iter(server: Server, volume_id: str, session_id: str, target: Path, *, options: Any = None,

@@ -1234,14 +1234,16 @@ class UnwindWidget(QWidget):
 
         def then(volume_id: str) -> Generator[Progress, None, Any]:
             mid = yield from mask(volume_id)
-            session, session_id, warnings = yield from skeleton_iter(server, volume_id, mid, ends, options=options)
-            return session, session_id, warnings, mid
+            session, session_id, specimen = yield from skeleton_iter(server, volume_id, mid, ends, options=options)
+            return session, session_id, specimen, mid
 
         def done(value: Any) -> None:
-            session, session_id, warnings, mid = value
+            session, session_id, specimen, mid = value
+            warnings = specimen.warnings
             self._remote["mask"] = (key, mid)
             d = session.deformation
-            lines = [f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes (server {server.address}, "
+            lines = [_status_line(specimen),  # the server's pipeline judged it as this computer's does
+                     f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes (server {server.address}, "
                      f"session {session_id})"]
             folds = d.folds()
             if folds:
@@ -1252,10 +1254,11 @@ class UnwindWidget(QWidget):
             if session.endpoints is not None and self._ends_layer is None:
                 self._show_session_ends(session.endpoints)
             self.model.set_deformation(d)
-            self.specimen = None  # the server sends no coverage: the status is not known here
+            self.specimen = specimen
             self._skeleton_deformation = self.model.deformation
             self._remote["session"] = (session_id, self.model.deformation)  # an edit makes another object
-            self._say("skeleton done (server)" + (" with warnings (see Skeleton)" if warnings or folds else ""))
+            self._say(_status_line(specimen) + " (server)"
+                      + (" (warnings: see Skeleton)" if warnings or folds else ""))
 
         return self._start(self._with_scan_uploaded(then), "computing the skeleton", done, (self.skeleton_cancel,))
 

@@ -13,7 +13,8 @@ from ._proto.unwind.v1 import common_pb2 as pb
 from ._proto.unwind.v1 import segmentation_pb2, skeleton_pb2, volume_pb2, warp_pb2
 
 __all__ = ["DTYPES", "dtype_of", "dtype_enum", "points", "point_msg", "endpoints", "volume_info", "feature_msg",
-           "skeleton_options", "skeleton_options_msg", "export_options", "export_options_msg", "result_figures"]
+           "skeleton_options", "skeleton_options_msg", "export_options", "export_options_msg",
+           "result_figures", "verdict_msg", "specimen_result", "STATUSES"]
 
 DTYPES = {
     pb.DTYPE_UINT8: np.dtype("uint8"), pb.DTYPE_INT8: np.dtype("int8"),
@@ -152,3 +153,47 @@ def result_figures(r: Any) -> dict[str, Any]:
                   min_jacobian=r.min_jacobian, max_tilt=r.max_tilt, coverage=r.coverage, folded=r.folded,
                   lost=format_lost(r.lost, unit_label(r.unit)) if r.lost else "")
     return {k: v for k, v in values.items() if v is not None}
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# the pipeline's verdict on a specimen (napari_unwind.pipeline.SpecimenResult <-> SpecimenVerdict)
+# ------------------------------------------------------------------------------------------------------------------
+#: SpecimenStatus values and the pipeline's status names (napari_unwind.pipeline.STATUSES).
+STATUSES = {pb.SPECIMEN_STATUS_OK: "ok", pb.SPECIMEN_STATUS_PARTIAL: "partial", pb.SPECIMEN_STATUS_FAILED: "failed",
+            pb.SPECIMEN_STATUS_REJECTED: "rejected"}
+_STATUS_ENUMS = {v: k for k, v in STATUSES.items()}
+_OPTIONAL = ("length", "keyframes", "min_jacobian", "max_tilt", "coverage", "folded", "voxels")
+
+
+def verdict_msg(r: Any) -> pb.SpecimenVerdict:
+    """The message of a :class:`napari_unwind.pipeline.SpecimenResult`: its status, reason and figures as the
+    pipeline judged them (None figures left unset)."""
+    msg = pb.SpecimenVerdict(status=_STATUS_ENUMS[r.status], reason=r.reason, unit=r.unit or "",
+                             ids=[int(i) for i in r.ids])
+    for name in _OPTIONAL:
+        v = getattr(r, name)
+        if v is not None:
+            setattr(msg, name, int(v) if name in ("keyframes", "voxels") else float(v))
+    for a, b, f in r.lost:
+        msg.lost.add(s_start=float(a), s_end=float(b), fraction=float(f))
+    return msg
+
+
+def specimen_result(result: pb.JobResult, **fields_: Any):
+    """The :class:`napari_unwind.pipeline.SpecimenResult` a skeleton or pipeline job's result carries (status,
+    reason, figures, warnings); ``fields_`` set the others (session, output...). Raises
+    :class:`~napari_unwind.errors.InvalidInputError` when the result holds no verdict (it is never read as ok)."""
+    from napari_unwind.pipeline import SpecimenResult
+
+    if not result.HasField("verdict") or result.verdict.status not in STATUSES:
+        raise InvalidInputError("the job's result carries no verdict (status, reason, coverage): a skeleton or "
+                                "pipeline job of a server of this version has one")
+    v = result.verdict
+    values: dict[str, Any] = dict(status=STATUSES[v.status], reason=v.reason, unit=v.unit or None,
+                                  ids=tuple(int(i) for i in v.ids),
+                                  lost=tuple((x.s_start, x.s_end, x.fraction) for x in v.lost),
+                                  warnings=tuple(result.warnings))
+    for name in _OPTIONAL:
+        values[name] = getattr(v, name) if v.HasField(name) else None
+    values.update(fields_)
+    return SpecimenResult(**values)

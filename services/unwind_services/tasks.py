@@ -2,8 +2,8 @@
 
 Thin glue only: protobuf in, core calls, protobuf out. The pipeline and skeleton jobs call
 :mod:`napari_unwind.pipeline` (the same run, options, defaults and fold rule as ``unwind run``), so the local and
-the remote pipeline write the same voxels; their results carry the specimen's ``status`` and ``reason`` in the
-figures.
+the remote pipeline write the same voxels; their results carry the pipeline's verdict on the specimen (``verdict``:
+status, reason, coverage, folds; :func:`napari_unwind.pipeline.judge`), and the same in the figures as text.
 """
 
 from __future__ import annotations
@@ -166,7 +166,7 @@ def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:
     yield Progress("checksum", 1, 1)
     r = SpecimenResult.of(result)
     return pb.JobResult(session_id=sid, session_json=text, warnings=list(result.warnings), figures=_figures(
-        **convert.result_figures(r), seconds=dt, suggested=bool(result.suggested)))
+        **convert.result_figures(r), seconds=dt, suggested=bool(result.suggested)), verdict=convert.verdict_msg(r))
 
 
 def straighten(ctx: TaskContext, req: Any) -> TaskGen:
@@ -243,7 +243,7 @@ def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
     e = r.session.endpoints
     figures.update(seconds=time.perf_counter() - t_all, head=list(np.round(e.head, 3)), tail=list(np.round(e.tail, 3)))
     return pb.JobResult(volume_id=ctx.register(r.output, out.name), session_id=sid, session_json=text,
-                        warnings=list(r.warnings), figures=_figures(**figures))
+                        warnings=list(r.warnings), figures=_figures(**figures), verdict=convert.verdict_msg(r))
 
 
 _REFS = (("volume_id", "volume"), ("mask_volume_id", "volume"), ("segmentation_id", "segmentation"),

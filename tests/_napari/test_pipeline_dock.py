@@ -3,11 +3,16 @@ makes (its skeleton in a child process) is byte for byte the deformation of ``na
 mask and ends with the default options, its status is the pipeline's, and its export applies the one fold rule."""
 
 import json
+import sys
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 pytest.importorskip("napari")
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "services"))
 
 from test_workflow import fish_voxel, wait  # noqa: E402 - the workflow test's helpers
 
@@ -69,6 +74,60 @@ def test_dock_skeleton_is_the_pipelines_byte_for_byte(make_napari_viewer, qtbot,
     assert text.startswith(f"skeleton: {whole.status}"), text
     if whole.reason:
         assert whole.reason in text
+
+
+def test_dock_on_a_server_shows_the_status_line_of_the_local_dock(make_napari_viewer, qtbot, fish, scan_path,
+                                                                   tmp_path):
+    """The same selection and ends, the skeleton on this computer and then on a server (the server's pipeline
+    judges it and sends its verdict): the same status line, ok with the default cage and partial (with the same
+    reason and coverage) with a cage too small for the body; the verdict is the local pipeline's judge."""
+    pytest.importorskip("grpc")
+    from _servers import ServerProcess
+
+    from napari_unwind._napari._widget import _status_line
+
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    viewer.window.add_dock_widget(w, name="Unwind")
+    wait(qtbot, w, w.open_scan(scan_path))
+    wait(qtbot, w, w.segment())  # on this computer: the server gets the selection's mask uploaded
+    qtbot.waitUntil(lambda: w.idle and w.features is not None, timeout=60_000)
+    w.select_features([int(w.features.ids_at([tuple(fish_voxel(fish))])[0])])
+    wait(qtbot, w, w.suggest_ends())
+    ends, mask, vol = w.endpoints(), w.mask(), w.volume
+    cages = {"ok": pipeline.SkeletonOptions(), "partial": pipeline.SkeletonOptions(half_extent=(1.5, 1.5))}
+    figures = ("status", "reason", "coverage", "folded", "lost", "length", "keyframes", "min_jacobian", "max_tilt")
+    local = {}
+    for name, options in cages.items():
+        w.options = replace(w.options, skeleton=options)
+        wait(qtbot, w, w.run_skeleton(), timeout=180_000)
+        line = _status_line(w.specimen)
+        assert w.skeleton_report.toPlainText().splitlines()[0] == line and w.status.text().startswith(line)
+        # the pipeline's judge on the same mask and ends
+        direct = run(pipeline.skeleton_step(mask, ends, spacing=vol.spacing, origin=vol.origin, unit=vol.unit,
+                                            volume=vol.data, options=options))
+        assert (w.specimen.status, w.specimen.reason) == pipeline.judge(direct)
+        assert w.specimen.status == name, line
+        local[name] = (line, {k: getattr(w.specimen, k) for k in figures})
+    assert local["partial"][0].startswith("skeleton: partial: coverage")
+
+    srv = ServerProcess(tmp_path / "data", "--workers", "1")
+    try:
+        w.backend_combo.setCurrentIndex(w.backend_combo.findData("server"))
+        w.server_address.setText(srv.address)
+        job = w.connect_server()
+        qtbot.waitUntil(lambda: job.done, timeout=30_000)
+        assert w.server is not None, w.status.text()
+        for name, options in cages.items():
+            w.options = replace(w.options, skeleton=options)
+            w.specimen = None
+            wait(qtbot, w, w.run_skeleton(), timeout=180_000)
+            line, values = local[name]
+            assert w.specimen is not None and {k: getattr(w.specimen, k) for k in figures} == values
+            assert w.skeleton_report.toPlainText().splitlines()[0] == line  # the local dock's line
+            assert w.status.text().startswith(line + " (server)"), w.status.text()
+    finally:
+        srv.stop()
 
 
 def test_partial_status_and_fold_rule_in_the_dock(make_napari_viewer, qtbot, tmp_path):

@@ -53,7 +53,7 @@ def _declarations(text: str):
     """(line number, declaration, previous non-blank line) for every message, enum, field, value, rpc, service."""
     lines = text.splitlines()
     decl = re.compile(r"^\s*(message|enum|service|rpc|oneof)\s+\w+"
-                      r"|^\s*(repeated\s+|map<[^>]+>\s+)?[\w.]+\s+\w+\s*=\s*\d+;|^\s*\w+\s*=\s*\d+;")
+                      r"|^\s*(repeated\s+|optional\s+|map<[^>]+>\s+)?[\w.]+\s+\w+\s*=\s*\d+;|^\s*\w+\s*=\s*\d+;")
     for i, line in enumerate(lines):
         if decl.match(line):
             j = i - 1

@@ -38,6 +38,14 @@ class JobState(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     JOB_STATE_SUCCEEDED: _ClassVar[JobState]
     JOB_STATE_FAILED: _ClassVar[JobState]
     JOB_STATE_CANCELLED: _ClassVar[JobState]
+
+class SpecimenStatus(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    SPECIMEN_STATUS_UNSPECIFIED: _ClassVar[SpecimenStatus]
+    SPECIMEN_STATUS_OK: _ClassVar[SpecimenStatus]
+    SPECIMEN_STATUS_PARTIAL: _ClassVar[SpecimenStatus]
+    SPECIMEN_STATUS_FAILED: _ClassVar[SpecimenStatus]
+    SPECIMEN_STATUS_REJECTED: _ClassVar[SpecimenStatus]
 DTYPE_UNSPECIFIED: DType
 DTYPE_UINT8: DType
 DTYPE_INT8: DType
@@ -60,6 +68,11 @@ JOB_STATE_RUNNING: JobState
 JOB_STATE_SUCCEEDED: JobState
 JOB_STATE_FAILED: JobState
 JOB_STATE_CANCELLED: JobState
+SPECIMEN_STATUS_UNSPECIFIED: SpecimenStatus
+SPECIMEN_STATUS_OK: SpecimenStatus
+SPECIMEN_STATUS_PARTIAL: SpecimenStatus
+SPECIMEN_STATUS_FAILED: SpecimenStatus
+SPECIMEN_STATUS_REJECTED: SpecimenStatus
 
 class Point(_message.Message):
     __slots__ = ("axis0", "axis1", "axis2")
@@ -93,8 +106,46 @@ class JobError(_message.Message):
     message: str
     def __init__(self, code: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
 
+class LostInterval(_message.Message):
+    __slots__ = ("s_start", "s_end", "fraction")
+    S_START_FIELD_NUMBER: _ClassVar[int]
+    S_END_FIELD_NUMBER: _ClassVar[int]
+    FRACTION_FIELD_NUMBER: _ClassVar[int]
+    s_start: float
+    s_end: float
+    fraction: float
+    def __init__(self, s_start: _Optional[float] = ..., s_end: _Optional[float] = ..., fraction: _Optional[float] = ...) -> None: ...
+
+class SpecimenVerdict(_message.Message):
+    __slots__ = ("status", "reason", "length", "unit", "keyframes", "min_jacobian", "max_tilt", "coverage", "folded", "lost", "ids", "voxels")
+    STATUS_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    LENGTH_FIELD_NUMBER: _ClassVar[int]
+    UNIT_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    MIN_JACOBIAN_FIELD_NUMBER: _ClassVar[int]
+    MAX_TILT_FIELD_NUMBER: _ClassVar[int]
+    COVERAGE_FIELD_NUMBER: _ClassVar[int]
+    FOLDED_FIELD_NUMBER: _ClassVar[int]
+    LOST_FIELD_NUMBER: _ClassVar[int]
+    IDS_FIELD_NUMBER: _ClassVar[int]
+    VOXELS_FIELD_NUMBER: _ClassVar[int]
+    status: SpecimenStatus
+    reason: str
+    length: float
+    unit: str
+    keyframes: int
+    min_jacobian: float
+    max_tilt: float
+    coverage: float
+    folded: float
+    lost: _containers.RepeatedCompositeFieldContainer[LostInterval]
+    ids: _containers.RepeatedScalarFieldContainer[int]
+    voxels: int
+    def __init__(self, status: _Optional[_Union[SpecimenStatus, str]] = ..., reason: _Optional[str] = ..., length: _Optional[float] = ..., unit: _Optional[str] = ..., keyframes: _Optional[int] = ..., min_jacobian: _Optional[float] = ..., max_tilt: _Optional[float] = ..., coverage: _Optional[float] = ..., folded: _Optional[float] = ..., lost: _Optional[_Iterable[_Union[LostInterval, _Mapping]]] = ..., ids: _Optional[_Iterable[int]] = ..., voxels: _Optional[int] = ...) -> None: ...
+
 class JobResult(_message.Message):
-    __slots__ = ("volume_id", "segmentation_id", "session_json", "session_id", "figures", "warnings")
+    __slots__ = ("volume_id", "segmentation_id", "session_json", "session_id", "figures", "warnings", "verdict")
     class FiguresEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -108,13 +159,15 @@ class JobResult(_message.Message):
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     FIGURES_FIELD_NUMBER: _ClassVar[int]
     WARNINGS_FIELD_NUMBER: _ClassVar[int]
+    VERDICT_FIELD_NUMBER: _ClassVar[int]
     volume_id: str
     segmentation_id: str
     session_json: str
     session_id: str
     figures: _containers.ScalarMap[str, str]
     warnings: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, volume_id: _Optional[str] = ..., segmentation_id: _Optional[str] = ..., session_json: _Optional[str] = ..., session_id: _Optional[str] = ..., figures: _Optional[_Mapping[str, str]] = ..., warnings: _Optional[_Iterable[str]] = ...) -> None: ...
+    verdict: SpecimenVerdict
+    def __init__(self, volume_id: _Optional[str] = ..., segmentation_id: _Optional[str] = ..., session_json: _Optional[str] = ..., session_id: _Optional[str] = ..., figures: _Optional[_Mapping[str, str]] = ..., warnings: _Optional[_Iterable[str]] = ..., verdict: _Optional[_Union[SpecimenVerdict, _Mapping]] = ...) -> None: ...
 
 class Job(_message.Message):
     __slots__ = ("id", "kind", "state", "progress", "error", "result", "interrupted", "created", "started", "finished", "name")

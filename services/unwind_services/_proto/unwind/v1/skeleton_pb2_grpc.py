@@ -61,7 +61,7 @@ class SkeletonServiceServicer:
         raise NotImplementedError('Method not implemented!')
 
     def EstimateDeformation(self, request, context):
-        """Estimate the deformation of a mask: a job whose result is a session.
+        """Estimate the deformation of a mask: a job whose result is a session and the pipeline's verdict on it.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
