@@ -4,9 +4,13 @@
     .venv/bin/python -m benchmarks.bench_startup --before /tmp/head    # and another source tree, same run
 
 Every command runs in a fresh interpreter, ``--runs`` times (default 5), and its median wall time is printed
-with its ratio to a baseline measured in the same run: ``python -c "import numpy"`` (the machine's speed and load
-change from run to run; the ratio changes less). ``unwind info`` opens the shared aorta CT (gzip NRRD) and the
-same voxels written to a temporary folder by the project's own writers (raw NRRD, TIFF, OME-Zarr).
+with its ratios to two baselines measured in the same run: ``python -c pass`` (the interpreter alone) and
+``python -c "import numpy"`` (the machine's speed and load change from run to run; the ratios change less).
+``unwind info`` opens the shared aorta CT (gzip NRRD) and the same voxels written to a temporary folder by the
+project's own writers (raw NRRD, NIfTI .nii.gz, TIFF, OME-Zarr); NRRD, NIfTI and OME-Zarr take the header-only
+fast path (napari_unwind.io._headers, no numpy), TIFF the full reader. The run's ``PYTHONDONTWRITEBYTECODE`` is
+printed: set, every module is compiled from source in every run (slower than an installed package, whose modules
+are compiled once).
 ``--before DIR`` runs every command a second time with ``DIR`` (a folder holding another ``napari_unwind``, e.g.
 ``mkdir /tmp/head && git archive HEAD napari_unwind | tar -x -C /tmp/head``) first on ``sys.path``.
 """
@@ -47,7 +51,8 @@ def scans(folder: Path) -> dict[str, Path]:
 
     vol = open_volume(AORTA)
     out = {"NRRD gzip (aorta_ct.nrrd)": AORTA}
-    for label, name, options in (("NRRD raw", "aorta_raw.nrrd", {"encoding": "raw"}), ("TIFF", "aorta.tif", {}),
+    for label, name, options in (("NRRD raw", "aorta_raw.nrrd", {"encoding": "raw"}),
+                                 ("NIfTI gzip", "aorta.nii.gz", {}), ("TIFF", "aorta.tif", {}),
                                  ("OME-Zarr", "aorta.zarr", {})):
         out[label] = write_volume(vol, folder / name, **options)
     return out
@@ -61,7 +66,8 @@ def main() -> None:
     args = parser.parse_args()
     py = sys.executable
     with tempfile.TemporaryDirectory(prefix="bench-startup-") as tmp:
-        commands = [("python -c 'import numpy' (baseline)", [py, "-c", "import numpy"]),
+        commands = [("python -c pass (baseline)", [py, "-c", "pass"]),
+                    ("python -c 'import numpy' (baseline)", [py, "-c", "import numpy"]),
                     ("python -c 'import napari_unwind'", [py, "-c", "import napari_unwind"]),
                     ("unwind --version", [py, "-c", UNWIND, "--version"])]
         commands += [(f"unwind info: {label}", [py, "-c", UNWIND, "info", str(path)])
@@ -80,11 +86,14 @@ def main() -> None:
                 raise SystemExit(f"--before {where}: napari_unwind came from {located}")
             print(f"{tree}: napari_unwind from {Path(located).parent}", flush=True)
             results[tree] = {label: wall(argv, runs=args.runs, env=env, cwd=tmp) for label, argv in commands}
-    base = {tree: r[commands[0][0]] for tree, r in results.items()}
-    header = ["command"] + [f"{tree}: s (x baseline)" for tree, _ in trees]
-    rows = [header] + [[label] + [f"{results[tree][label]:.3f} ({results[tree][label] / base[tree]:.2f}x)"
-                                  for tree, _ in trees] for label, _ in commands]
-    print(f"median of {args.runs} runs, {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}")
+    bare = {tree: r[commands[0][0]] for tree, r in results.items()}
+    base = {tree: r[commands[1][0]] for tree, r in results.items()}
+    header = ["command"] + [f"{tree}: s (x pass, x numpy)" for tree, _ in trees]
+    rows = [header] + [[label] + [f"{results[tree][label]:.3f} ({results[tree][label] / bare[tree]:.2f}x, "
+                                  f"{results[tree][label] / base[tree]:.2f}x)" for tree, _ in trees]
+                       for label, _ in commands]
+    print(f"median of {args.runs} runs, {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}, "
+          f"PYTHONDONTWRITEBYTECODE={os.environ.get('PYTHONDONTWRITEBYTECODE', '(unset)')}")
     print(table(rows))
 
 

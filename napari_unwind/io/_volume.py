@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import InvalidInputError
+from ._units import UNIT_ABBREVIATIONS, normalise_unit, unit_label  # noqa: F401 (also this module's interface)
+from ._units import UNITS as _UNITS  # noqa: F401
 
 if TYPE_CHECKING:
     import dask.array as da
@@ -21,39 +23,6 @@ __all__ = ["Volume", "LazyArray", "SUPPORTED_DTYPES", "check_spacing", "normalis
 SUPPORTED_DTYPES = tuple(
     np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
 )
-
-# NGFF unit names (UDUNITS-2) for the spellings file formats use.
-_UNITS = {
-    "m": "meter", "meter": "meter", "metre": "meter",
-    "cm": "centimeter", "centimeter": "centimeter",
-    "mm": "millimeter", "millimeter": "millimeter", "millimetre": "millimeter",
-    "um": "micrometer", "µm": "micrometer", "μm": "micrometer", "micron": "micrometer", "microns": "micrometer",
-    "micrometer": "micrometer", "micrometre": "micrometer", "\\u00b5m": "micrometer",
-    "nm": "nanometer", "nanometer": "nanometer",
-    "pixel": None, "": None, "unknown": None, "none": None,
-}
-
-#: Short spellings for display and for formats that want them.
-UNIT_ABBREVIATIONS = {"meter": "m", "centimeter": "cm", "millimeter": "mm", "micrometer": "um", "nanometer": "nm"}
-
-
-def unit_label(unit: str | None) -> str:
-    """How a length in ``unit`` is labelled for people: ``"um"`` for micrometer; ``"voxels"`` without a unit."""
-    if not unit:
-        return "voxels"
-    return UNIT_ABBREVIATIONS.get(unit, unit)
-
-
-def normalise_unit(unit: str | None) -> str | None:
-    """Return the NGFF name of a length unit (``"mm"`` -> ``"millimeter"``), or None when unknown."""
-    if unit is None:
-        return None
-    key = str(unit).strip().lower()
-    if key in _UNITS:
-        return _UNITS[key]
-    raise InvalidInputError(
-        f"unknown length unit {unit!r}; use one of meter, millimeter, micrometer, nanometer (or m, mm, um, nm)"
-    )
 
 
 def check_spacing(spacing: Any, ndim: int = 3) -> tuple[float, ...]:
