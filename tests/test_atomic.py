@@ -26,7 +26,7 @@ def test_success_renames_into_place(tmp_path):
 def test_crash_leaves_nothing_and_keeps_old_output(tmp_path):
     target = tmp_path / "out.bin"
     target.write_bytes(b"old")
-    with pytest.raises(RuntimeError):
+    with pytest.raises(RuntimeError, match="crash while writing"):
         with atomic_output(target, overwrite=True) as tmp:
             tmp.write_bytes(b"half")
             raise RuntimeError("crash while writing")
@@ -74,7 +74,7 @@ def test_unwritable_path_under_a_file_is_a_clear_error(tmp_path):
     # works for root too: a regular file cannot hold children
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    with pytest.raises(OutputError):
+    with pytest.raises(OutputError, match="does not exist; create it first"):
         write_volume(np.zeros((2, 3, 4), np.uint8), blocker / "a.zarr")
 
 

@@ -210,7 +210,7 @@ def test_straight_to_bent_follows_the_centerline(fish):
     u, v, _ = fish.frames[k]
     got = fish.straight_to_bent([2.0, -3.0, fish.arclength[k]], physical=True)
     np.testing.assert_allclose(got, fish.centerline_physical[k] + 2.0 * u - 3.0 * v, atol=1e-9)
-    with pytest.raises(InvalidInputError):
+    with pytest.raises(InvalidInputError, match=r"must have shape \(\.\.\., 3\).*got \(4, 2\)"):
         fish.straight_to_bent(np.zeros((4, 2)))
 
 

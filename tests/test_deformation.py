@@ -184,9 +184,11 @@ def test_edits_do_what_they_say():
     assert len(d.delete_keyframe(-1)) == 4
     padded = d.with_pad(4.0, 2.0)
     assert padded.output_shape(1.0)[0] == d.output_shape(1.0)[0] + 6
-    for bad in (lambda: d.delete_keyframe(9), lambda: d.tilt_keyframe(0, 0.1, axis="n"),
-                lambda: straight_deformation().delete_keyframe(0), lambda: d.with_pad(-1, 0)):
-        with pytest.raises(InvalidInputError):
+    for bad, why in ((lambda: d.delete_keyframe(9), "index 9 is out of range"),
+                     (lambda: d.tilt_keyframe(0, 0.1, axis="n"), "tilt axis must be 'u' or 'v', got 'n'"),
+                     (lambda: straight_deformation().delete_keyframe(0), "at least 2 keyframes"),
+                     (lambda: d.with_pad(-1, 0), r"padding must be >= 0 at both ends, got \(-1, 0\)")):
+        with pytest.raises(InvalidInputError, match=why):
             bad()
 
 

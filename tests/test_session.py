@@ -497,7 +497,7 @@ def test_empty_folder_and_missing_path(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(InvalidInputError, match="empty folder"):
         checksum(tmp_path / "empty")
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(FileNotFoundError, match="nothing.tif does not exist"):
         checksum(tmp_path / "nothing.tif")
 
 

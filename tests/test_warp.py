@@ -489,7 +489,7 @@ def test_export_tiff_round_trip_and_refusals(tmp_path):
     np.testing.assert_allclose(back.origin, expected.origin)
     from napari_unwind.errors import OutputError
 
-    with pytest.raises(OutputError):
+    with pytest.raises(OutputError, match="already exists; pass overwrite=True"):
         export(vol, d, tmp_path / "fish.tif")
     with pytest.raises(InvalidInputError, match="scheduler"):
         export(vol, d, tmp_path / "other.tif", scheduler="nonsense")

@@ -136,7 +136,7 @@ def test_parse_size(text, expected):
 
 @pytest.mark.parametrize("text", ["", "G", "-1G", "0", "0.1", "1.5.2G", "5X", "nan", "inf", "1e400", "lots", "5 G B"])
 def test_parse_size_refuses(text):
-    with pytest.raises(argparse.ArgumentTypeError):
+    with pytest.raises(argparse.ArgumentTypeError, match="expected a size"):
         cli.parse_size(text)
 
 

@@ -75,7 +75,7 @@ def test_a_dimension_of_size_zero_is_refused(tmp_path):
         write_volume(np.zeros((0, 4, 4), np.uint8), tmp_path / "a.nrrd")
     (tmp_path / "z.dat").write_text("RawFile: z.raw\nResolution: 4 0 3\nFormat: UCHAR\n")
     (tmp_path / "z.raw").write_bytes(b"")
-    with pytest.raises(InvalidInputError):
+    with pytest.raises(InvalidInputError, match="Resolution sizes must be positive"):
         open_volume(tmp_path / "z.dat")
     assert not (tmp_path / "a.nrrd").exists()
 

@@ -229,7 +229,7 @@ def test_existing_companion_is_not_clobbered(tmp_path):
 def test_overwrite_replaces_the_pair(tmp_path):
     first, second = _data("uint8", seed=1), _data("int16", seed=2)
     write_volume(first, tmp_path / "fish.dat")
-    with pytest.raises(OutputError):
+    with pytest.raises(OutputError, match="already exists"):
         write_volume(second, tmp_path / "fish.dat")
     write_volume(second, tmp_path / "fish.dat", overwrite=True)
     vol = open_volume(tmp_path / "fish.dat")

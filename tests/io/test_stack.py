@@ -285,7 +285,8 @@ def test_unsupported_type_names_the_alternative(tmp_path, suffix, dtype, match):
 @pytest.mark.parametrize("pattern", ["fish.png", "fish_{}_{}.png", "fish_{name}.png", "fish_{:04d}.txt",
                                      "sub/fish_{}.png"])
 def test_bad_patterns(tmp_path, pattern):
-    with pytest.raises(InvalidInputError):
+    why = "needs exactly one {} field|must end with an image suffix|one plain file name per slice"
+    with pytest.raises(InvalidInputError, match=why):
         list(write_stack(Volume(_data(shape=(2, 3, 4))), tmp_path / "x", pattern=pattern))
 
 
@@ -308,7 +309,7 @@ def test_split_stack_target(tmp_path):
         split_stack_target("fish_{:04d}.png")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        with pytest.raises(InvalidInputError):
+        with pytest.raises(InvalidInputError, match="needs exactly one {} field"):
             split_stack_target(tmp_path / "x" / "fish.png")
 
 

@@ -57,19 +57,22 @@ def test_paths_stay_inside_the_data_root(tmp_path):
     os.symlink(root.root / "scans" / "a.tif", root.root / "scans" / "inside-link.tif")
     assert root.resolve_client_path("scans/a.tif") == root.root / "scans" / "a.tif"
     assert root.resolve_client_path("scans/inside-link.tif") == root.root / "scans" / "a.tif"
-    for bad in ("../secret", "scans/../../secret", "/etc/passwd", "C:\\x", "scans/escape", "scans/escape/f.tif",
-                ".unwind/unwind.sqlite", ".unwind"):
-        with pytest.raises(E.PermissionDeniedError):
+    for bad, why in (("../secret", "'..' is not allowed"), ("scans/../../secret", "'..' is not allowed"),
+                     ("/etc/passwd", "absolute paths are not allowed"), ("C:\\x", "absolute paths are not allowed"),
+                     ("scans/escape", "outside the server's data root"),
+                     ("scans/escape/f.tif", "outside the server's data root"),
+                     (".unwind/unwind.sqlite", "server's own folder"), (".unwind", "server's own folder")):
+        with pytest.raises(E.PermissionDeniedError, match=why):
             root.resolve_client_path(bad)
     for bad in ("", " ", "a\x00b"):
-        with pytest.raises(InvalidInputError):
+        with pytest.raises(InvalidInputError, match="give a path relative to the server's data root"):
             root.resolve_client_path(bad)
     assert root.scrub(f"{root.root}/scans/a.tif is broken") == "scans/a.tif is broken"
 
 
 @pytest.mark.parametrize("name", ["../x.zarr", "a/b.zarr", ".hidden.zarr", "", "x" * 200, "a\\b.tif"])
 def test_output_names_are_plain_file_names(name):
-    with pytest.raises(InvalidInputError):
+    with pytest.raises(InvalidInputError, match="must be a plain file name"):
         check_file_name(name)
 
 
