@@ -33,3 +33,22 @@ def run_unwind(*args) -> tuple[int, str, str]:
     """Run ``unwind ARGS...`` as a user would; returns (exit status, stdout, stderr)."""
     r = subprocess.run([str(UNWIND), *map(str, args)], capture_output=True, text=True)
     return r.returncode, r.stdout, r.stderr
+
+
+@pytest.fixture(autouse=True)
+def _qt_deletions_done_before_each_test():
+    """Deliver the Qt deletions an earlier test left pending before this test starts.
+
+    pytest-qt closes a test's widgets with ``deleteLater``; the deletion then runs inside the next test's event
+    loop (``qtbot.waitUntil``). A vispy canvas deleted there takes its GL context with it and leaves no context
+    current, while vispy still reports a current canvas, so napari's GL queries (``get_gl_extensions`` when the
+    next Image layer is added) read None: ``tests/_napari/test_editor_canvas.py`` then ``test_workflow.py`` failed
+    with "'NoneType' object has no attribute 'decode'" when the workflow opened its scan (issue 19).
+    """
+    if "qtpy.QtCore" in sys.modules:  # Qt already loaded by an earlier test; nothing to do otherwise
+        from qtpy.QtCore import QCoreApplication, QEvent
+
+        if QCoreApplication.instance() is not None:
+            QCoreApplication.sendPostedEvents(None, QEvent.Type.DeferredDelete)
+            QCoreApplication.processEvents()
+    yield
