@@ -9,12 +9,42 @@ import pytest
 
 from napari_unwind import _cli_remote, cli
 
+# Each command line, the function the parser must hand it to, and the options it must parse to (typed values,
+# written out here by hand from the help texts; a default is checked where the command relies on it).
+WIRING = [
+    (["serve", "--data-root", "/tmp/x", "--port", "0", "--service", "jobs", "--service", "warp", "--workers", "3",
+      "--max-jobs-per-user", "2"],
+     "cmd_serve", dict(data_root="/tmp/x", port=0, service=["jobs", "warp"], workers=3, max_jobs_per_user=2,
+                       listen="127.0.0.1", drain=10.0, max_message_bytes=64 * 1024**2)),
+    (["submit", "scan.tif", "--select", "1,2,3", "--select", "4.5,5,6", "--order", "3", "--pad", "2", "--wait",
+      "--server", "h:1", "--token=-abc", "--timeout", "5"],
+     "cmd_submit", dict(input="scan.tif", select=[(1.0, 2.0, 3.0), (4.5, 5.0, 6.0)], order=3, pad=2, wait=True,
+                        server="h:1", token="-abc", timeout=5.0, batch=None, max_parallel=4, quiet=False)),
+    (["jobs", "list"], "cmd_jobs", dict(action="list", job_id=None, limit=50, json=False, token=None)),
+    (["jobs", "cancel", "job-7", "--limit", "3", "-q", "--server", "h:2"],
+     "cmd_jobs", dict(action="cancel", job_id="job-7", limit=3, quiet=True, server="h:2")),
+    (["jobs", "get", "job-8", "--json", "--tls"], "cmd_jobs", dict(action="get", job_id="job-8", json=True, tls=True)),
+]
 
-def test_unwind_lists_and_parses_the_remote_commands():
+
+@pytest.mark.parametrize("argv, func, values", WIRING, ids=lambda x: x[0] if isinstance(x, list) else None)
+def test_each_remote_command_reaches_its_function_with_its_options(argv, func, values, monkeypatch):
+    for name in ("UNWIND_SERVER", "UNWIND_TOKEN", "UNWIND_TOKEN_FILE"):
+        monkeypatch.delenv(name, raising=False)
+    args = cli.build_parser().parse_args(argv)
+    assert args.func is getattr(_cli_remote, func), (argv[0], args.func)
+    assert {k: getattr(args, k) for k in values} == values
+
+
+def test_the_local_commands_reach_their_functions():
     parser = cli.build_parser()
-    for argv in (["serve", "--data-root", "/tmp/x", "--port", "0"], ["jobs", "list"]):
-        args = parser.parse_args(argv)
-        assert callable(args.func)
+    for argv, func in ((["info", "a.tif"], cli.cmd_info), (["run", "a.tif", "-o", "b.tif"], cli.cmd_run),
+                       (["straighten", "a.tif", "--session", "s.json", "-o", "b.tif"], cli.cmd_straighten),
+                       (["bend", "a.tif", "--session", "s.json", "-o", "b.tif"], cli.cmd_bend)):
+        assert parser.parse_args(argv).func is func, argv[0]
+
+
+def test_unwind_lists_the_remote_commands():
     out = subprocess.run([sys.executable, "-m", "napari_unwind.cli", "serve", "--help"], capture_output=True,
                          text=True, timeout=120)
     assert out.returncode == 0, out.stderr
