@@ -1,8 +1,8 @@
 """`unwind run` on the real scans of ../shared/data with their masks and the suggested ends, no edit (issue 10).
 
 Each run is a subprocess, as a user types it; the session it writes is read back for the figures. The spine's
-curve is compared with the manual centreline (an independent expert annotation); the aorta's coverage is
-recomputed here from the saved deformation and the mask with the inverse map.
+curve is compared with the manual centreline (an independent expert annotation); the coverage of both masks is
+recomputed from the saved deformation by tests/cage_reference.py's own inverse (independent of napari_unwind.warp).
 """
 
 import subprocess
@@ -33,16 +33,14 @@ def _session(out):
 
 
 def _coverage(deformation, mask_path):
+    """Fraction of the mask's voxels (at the physical positions the mask file gives them) that the saved
+    deformation's cage holds unfolded, by the inverse written in tests/cage_reference.py (nothing of warp)."""
+    from cage_reference import coverage
+
     from napari_unwind.io import open_volume
-    from napari_unwind.warp import _fast_inverse
 
     m = open_volume(mask_path)
-    pts = deformation.to_physical(np.argwhere(np.asarray(m.data) != 0).astype(float))
-    xys, inside = _fast_inverse(deformation, pts)
-    ok = inside & np.isfinite(xys[:, 2])
-    det = np.full(len(pts), -1.0)
-    det[ok] = deformation.jacobian(xys[ok])
-    return float(np.mean(ok & (det > 0)))
+    return coverage(deformation, np.asarray(m.data), m.spacing, m.origin)
 
 
 def test_aorta_runs_without_folds_and_keeps_the_mask(tmp_path):
