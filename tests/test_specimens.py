@@ -175,6 +175,55 @@ def _check_batch(tank, result, outdir: Path) -> dict[str, float]:
     return out
 
 
+def _check_rows_against_the_fish(tank, table, outdir: Path) -> None:
+    """Each row's specimen against the phantom's truth, one fish per row (the skeleton's goals of
+    tests/skeleton/test_skeleton.py, and the coverage goal):
+
+    - its centre within 1 voxel RMS of the fish's centreline (the phantom's own dense samples of c(s));
+    - its length within 2 % of the fish's arclength s (the phantom's) between the points its two ends fall on;
+    - its span, padding included, reaching the fish's ends in the scan (the s of the fish's labelled voxels; a
+      fish cut by a face ends there): the centreline may stop short of a thin tip, the padding then holds it;
+    - its cage holding at least 99 % of the fish's labelled voxels unfolded, by tests/cage_reference.py's inverse.
+    """
+    from cage_reference import coverage
+    from scipy.spatial import cKDTree
+
+    from napari_unwind.session import load_session
+
+    matched = set()
+    for r in table:
+        assert r["reason"] == "" and (outdir / r["output"]).is_dir()
+        d = load_session(outdir / r["session"]).deformation
+        # the row is the session's deformation (the csv keeps 6 digits)
+        assert int(r["keyframes"]) == len(d.keyframes) and float(r["length"]) == pytest.approx(d.length, rel=1e-5)
+        c, _ = d.sample(np.linspace(0.0, d.length, 2000))
+        c = c - np.asarray(d.origin)
+        rms = [float(np.sqrt(np.mean(cKDTree(f.centerline_physical).query(c)[0] ** 2))) / min(tank.spacing)
+               for f in tank.fish]
+        i = int(np.argmin(rms))
+        fish = tank.fish[i]
+        assert i not in matched, (r["specimen"], fish.name)
+        matched.add(i)
+        tree = cKDTree(fish.centerline_physical)
+        s_ends = fish.arclength[tree.query(c[[0, -1]])[1]]
+        head_first = s_ends[0] <= s_ends[1]
+        spanned = abs(s_ends[1] - s_ends[0])
+        fish_vox = np.argwhere(tank.labels == i + 1) * np.asarray(tank.spacing)
+        s_fish = fish.arclength[tree.query(fish_vox)[1]]
+        pads = d.pad if head_first else d.pad[::-1]
+        reach = (min(s_ends) - pads[0], max(s_ends) + pads[1])
+        held = coverage(d, tank.labels == i + 1, tank.spacing)
+        print(f"specimen {r['specimen']} -> {fish.name}: RMS {rms[i]:.2f} voxels, length {d.length:.2f} over true "
+              f"s {min(s_ends):.2f}..{max(s_ends):.2f} ({spanned:.2f}); with its padding {reach[0]:.2f}..{reach[1]:.2f}"
+              f", the fish in the scan {s_fish.min():.2f}..{s_fish.max():.2f} of {fish.length:.2f}; coverage "
+              f"{held:.4f}")
+        assert rms[i] <= 1.0, (fish.name, rms[i])
+        assert abs(d.length / spanned - 1) <= 0.02, (fish.name, d.length, spanned)
+        assert reach[0] <= s_fish.min() and reach[1] >= s_fish.max(), (fish.name, reach, s_fish.min(), s_fish.max())
+        assert held >= 0.99, (fish.name, held)
+    assert len(matched) == len(tank.fish)
+
+
 def test_run_all_on_a_small_dense_tank(tmp_path):
     """The CLI as a user runs it: one straight volume and session per fish, the table, exit 0."""
     from conftest import run_unwind
@@ -186,9 +235,7 @@ def test_run_all_on_a_small_dense_tank(tmp_path):
     with open(tmp_path / "out" / "specimens.csv", newline="") as fh:
         table = [r for r in csv.DictReader(fh) if r["status"] != "rejected"]  # rejected candidates are rows too
     assert len(table) == 3 and {r["status"] for r in table} == {"ok"}
-    for r in table:
-        assert float(r["length"]) > 100 and int(r["keyframes"]) >= 2 and r["reason"] == ""
-        assert (tmp_path / "out" / r["output"]).is_dir() and (tmp_path / "out" / r["session"]).is_file()
+    _check_rows_against_the_fish(tank, table, tmp_path / "out")
     # a second run into the same folder needs --overwrite; --all takes no click options
     code, _, err = run_unwind("run", scan, "--all", "-o", tmp_path / "out", "-q")
     assert code == 1 and "--overwrite" in err and "Traceback" not in err
