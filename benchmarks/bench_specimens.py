@@ -1,6 +1,9 @@
 """Per-case recall and Dice of segmentation.candidates on hard_tank_phantom seeds (run --all's k features).
 
-Usage: .venv/bin/python benchmarks/bench_specimens.py SEED [SEED ...]   (default seeds 0..7)
+Usage: .venv/bin/python benchmarks/bench_specimens.py [--touching] SEED [SEED ...]   (default seeds 0..7)
+
+--touching: hard_tank_phantom(seed, touching=True), every tank packed to gap 0 (fish against each other and
+against the wall's arcs).
 """
 import sys
 import time
@@ -15,9 +18,9 @@ from napari_unwind.segmentation._common import MAX_FEATURES
 def dice(a, b):
     return 2.0 * np.count_nonzero(a & b) / max(np.count_nonzero(a) + np.count_nonzero(b), 1)
 
-def run(seed, verbose=False):
+def run(seed, verbose=False, touching=False):
     t0 = time.time()
-    h = hard_tank_phantom(seed)
+    h = hard_tank_phantom(seed, touching=True) if touching else hard_tank_phantom(seed)
     tree = join_tree(h.volume)
     k = int(min(MAX_FEATURES, max(1, int(tree.significant.sum())), tree.n_maxima))
     f = tree.simplify(k)
@@ -50,11 +53,12 @@ def run(seed, verbose=False):
     return found, h.n_fish, dices
 
 if __name__ == "__main__":
-    seeds = [int(a) for a in sys.argv[1:]] or list(range(8))
+    touching = "--touching" in sys.argv[1:]
+    seeds = [int(a) for a in sys.argv[1:] if a != "--touching"] or list(range(8))
     tot = n = 0
     alld = []
     for s in seeds:
-        a, b, d = run(s, verbose=len(seeds) == 1)
+        a, b, d = run(s, verbose=len(seeds) == 1, touching=touching)
         tot += a
         n += b
         alld += d

@@ -114,3 +114,30 @@ def test_the_body_is_cut_between_medium_and_soft_tissue():
             assert 400 < c.isovalue < 700, c
     with pytest.raises(AssertionError):  # the planted bug: the features' own thresholds
         check_tank(tank, candidates(features, body=False), features)
+
+
+# A fish pressed against a wall arc (gap 0): its flesh meets the wall in the join tree at the flesh's own level, so
+# its feature is only its bright spine and the values around the spine are its own flesh. Its body must still be
+# cut halfway between the liquid and the flesh (candidates' working body and the full-resolution isovalue that
+# run --all refines it at), not between flesh and spine (then it was rejected as "too small"). Seeds 208 and 226
+# are the tanks of seeds 200-229 where that happens; with the own-body rule of specimen_isovalue off both fail.
+@pytest.mark.parametrize("seed", [208, 226])
+def test_a_fish_pressed_against_the_wall_keeps_its_flesh(seed):
+    from scipy import ndimage
+
+    from napari_unwind.segmentation import default_isovalue
+
+    tank = hard_tank_phantom(seed, touching=True)
+    near_wall = ndimage.binary_dilation(tank.wall, iterations=2)
+    pressed = [i for i in range(1, tank.n_fish + 1) if np.any(near_wall & (tank.labels == i))]
+    assert pressed, (tank, "no fish against the wall: the case tests nothing")
+    features = _features(tank)
+    found = candidates(features)
+    check_tank(tank, found, features)
+    spec = [c for c in found if c.is_specimen]
+    for i in pressed:
+        fish = tank.labels == i
+        c = max(spec, key=lambda c: dice(c.working_mask(features), fish))
+        # halfway between the liquid (100) and the flesh (1000), read from the scan as run --all does
+        iso = default_isovalue(features, c.working_mask(features), volume=tank.volume)
+        assert 400 < iso < 700, (tank, f"fish {i}", iso)

@@ -160,13 +160,21 @@ def specimen_isovalue(features: Features, ids: Any, *, volume: Any = None) -> fl
     boundary of CT). Unlike the features' own thresholds (:attr:`FeatureStats.threshold`, which may sit between
     flesh and bone when a bright spine holds the maximum), this keeps the whole body above the medium.
 
+    When the features' labels are only the bright core of their own body (a fish whose flesh touches a tank's
+    wall is cut above the saddle where it meets the wall: its spine; the values around the spine are its
+    flesh), the levels are read around that body instead: the tissue around the labels is the features' own
+    body when at least half of it lies in their basins, and the medium is then the most common value on the
+    outer shell of the basins (the rule is ``_own_body``'s; it needs the tree, so features loaded from a label
+    file read the levels around their labels only). The soft tissue around a CT's bone spreads over many
+    features' basins and stays the medium.
+
     With ``volume`` (the scan the features were computed on) the levels are read from the scan itself at full
     resolution, inside the box of the features' labels grown by three body thicknesses (strided when it holds
     more than :data:`SCAN_BUDGET` voxels), the region being the voxels of no other feature: the working level's
     smoothing and downsampling, which darken a thin body's interior (a fish two working voxels wide has no
     voxel at its flesh level there), do not bias it, and the features' tree is not needed (features loaded from
-    a label file give the same value). Without ``volume`` the smoothed working values of the features' basins
-    are read (needs the tree).
+    a label file give the same value, but for labels that are only a body's core, above). Without ``volume``
+    the smoothed working values of the features' basins are read (needs the tree).
 
     Parameters
     ----------
@@ -198,6 +206,10 @@ def specimen_isovalue(features: Features, ids: Any, *, volume: Any = None) -> fl
     if not lab.any():
         return fallback
     if volume is not None:
+        if features.tree is not None and features.feature_of_branch is not None:
+            basin_id = features.feature_of_branch[features.tree.branch]
+            body = _own_body(features, ids, lab, basin_id, _levels_around(features, ids, lab, basin_id))
+            lab = lab if body is None else body
         levels = _scan_levels(features, ids, lab, volume)
         return fallback if levels is None else float(0.5 * (levels[0] + levels[1]))
     if features.tree is None or features.feature_of_branch is None:
@@ -247,13 +259,66 @@ def _isovalue(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.
 
 def _levels(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray) -> tuple[float, float] | None:
     """The medium around features ``ids`` and their body's level (see :func:`specimen_isovalue`); None when the
-    histogram has no second mode."""
+    histogram has no second mode. When the labels are only the core of the features' own body
+    (:func:`_own_body`), the levels are read around that body instead."""
+    levels = _levels_around(features, ids, lab, basin_id)
+    body = _own_body(features, ids, lab, basin_id, levels)
+    return levels if body is None else _levels_around(features, ids, body, basin_id)
+
+
+def _levels_around(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray
+                   ) -> tuple[float, float] | None:
     thick = float(ndimage.distance_transform_edt(np.pad(lab[_box(lab, 0)], 1)).max())
     pad = int(np.ceil(max(4.0, 3.0 * thick)))
     box = _box(lab, pad)
     dist = ndimage.distance_transform_edt(~lab[box])
     near = np.isin(basin_id[box], ids) & (dist <= pad)
     return _medium_and_body(features.tree.values[box], near)
+
+
+def _own_body(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray,
+              levels: tuple[float, float] | None) -> np.ndarray | None:
+    """The features' own body when their labels are only its bright core, else None.
+
+    A fish whose flesh touches a brighter structure (a tank's wall) merges with it in the join tree at its flesh
+    level, so its feature (cut above that saddle) is only its spine, and the most common value around the spine
+    is its own flesh, not the liquid. The bone of a CT lies in soft tissue the same way, but that tissue is a
+    larger body's: it spreads over the basins of many features. So, with ``(m0, m1)`` the levels read around the
+    labels (working values): the *lower medium* is the most common value on the outer shell of the features'
+    basins (their voxels with a face neighbour in another basin; the scan's faces are not a shell); when it is
+    darker than ``m0`` by more than half the contrast ``m1 - m0``, the *tissue* is the connected region of
+    voxels from halfway between the lower medium and ``m0`` up to (not including) halfway between ``m0`` and
+    ``m1`` that meets the labels (a face neighbour), within the box of the features' basins. When at least half
+    of that tissue lies in the features' basins, it is their own body: the returned mask is the tissue inside
+    their basins together with the labels (working shape).
+    """
+    if levels is None:
+        return None
+    m0, m1 = levels
+    if m1 <= m0:
+        return None
+    basin = np.isin(basin_id, ids)
+    box = _box(basin, 0)
+    b = basin[box]
+    shell = b & ~ndimage.binary_erosion(b, border_value=1)
+    vals = features.tree.values[box]
+    sv = vals[shell].astype(np.float64)
+    if sv.size < 50:
+        return None
+    lo, hi = np.percentile(sv, [0.5, 99.5])
+    lower = _mode(sv, float(lo), float(hi))
+    if lower >= m0 - 0.5 * (m1 - m0):
+        return None
+    band = (vals >= 0.5 * (lower + m0)) & (vals < 0.5 * (m0 + m1))
+    comp, _ = ndimage.label(band)
+    touch = np.unique(comp[ndimage.binary_dilation(lab[box]) & band])
+    tissue = np.isin(comp, touch[touch > 0])
+    n = np.count_nonzero(tissue)
+    if n == 0 or np.count_nonzero(tissue & b) < 0.5 * n:
+        return None
+    body = lab.copy()
+    body[box] |= tissue & b
+    return body
 
 
 def _medium_and_body(vals: np.ndarray, near: np.ndarray, *, own: np.ndarray | None = None
