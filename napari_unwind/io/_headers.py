@@ -83,7 +83,7 @@ def _check(condition: Any) -> None:
 
 
 def _regular_chunks(shape: tuple[int, ...], chunks: tuple[int, ...]) -> tuple[tuple[int, ...], ...]:
-    """Dask's normalised chunks of a regular chunk shape (as :func:`napari_unwind.io._volume._regular_chunks`)."""
+    """Dask's normalised chunks of a regular chunk shape (the one copy; io._volume imports it)."""
     out = []
     for n, c in zip(shape, chunks, strict=True):
         c = max(1, min(int(c), n)) if n else 0

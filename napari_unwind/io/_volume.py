@@ -44,13 +44,8 @@ def _is_dask(value: Any) -> bool:
     return da is not None and isinstance(value, da.Array)
 
 
-def _regular_chunks(shape: tuple[int, ...], chunks: tuple[int, ...]) -> tuple[tuple[int, ...], ...]:
-    """Dask's normalised chunks of a regular chunk shape (the last block of an axis takes what is left)."""
-    out = []
-    for n, c in zip(shape, chunks, strict=True):
-        c = max(1, min(int(c), n)) if n else 0
-        out.append((c,) * (n // c) + ((n % c,) if n % c else ()) if c else (0,))
-    return tuple(out)
+# one copy, numpy-free, shared with the header reader (unwind info's fast path)
+from ._headers import _regular_chunks  # noqa: E402
 
 
 class LazyArray:
