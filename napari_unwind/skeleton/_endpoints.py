@@ -14,10 +14,10 @@ Suggestion (:func:`suggest_endpoints`)
        tip is compared (the head and trunk of a fish against its tapering tail); when the two are within 10 %
        and a volume is given, the end with the denser tissue (the skull) is the head; otherwise a warning says
        that the order is a guess.
-    6. The returned points lie inside the mask, slightly inside each tip: the mask voxel geodesically nearest
-       the tip whose distance to the mask boundary is at least ``min(2 voxels, half of the largest such
-       distance within the end quarter)`` (so about a local radius in from a blunt tip, and right at the tip of
-       a thin one). The full-resolution distance transform is computed only around the two end quarters.
+    6. The returned points are the tips themselves: of the coarse voxel at each tip, its mask voxel deepest
+       inside the mask (on the axis of a thin tail that crosses it). A point set back from the tip leaves the end
+       of the specimen to the cage's straight padding and shortens its centreline: a rule "at least 2 voxels
+       from the boundary" stopped 19.5 voxels (14 %) short of a fish's 1-voxel-thin tail in a dense tank.
 
 Snapping (:func:`snap_to_mask`)
     A click inside the mask is kept; a click outside moves to the nearest mask voxel centre if that is within
@@ -239,9 +239,9 @@ def suggest_endpoints(
                 stacklevel=2,
             )
 
-    # -- a point slightly inside each tip
-    end_a = _inset_point(crop, coarse, f, sp, coords, da, length)
-    end_b = _inset_point(crop, coarse, f, sp, coords, db, length)
+    # -- a point at each tip
+    end_a = _tip_point(crop, coarse, f, sp, coords, da)
+    end_b = _tip_point(crop, coarse, f, sp, coords, db)
     end_a, end_b = end_a + lo, end_b + lo
     return (end_a, end_b) if a_is_head else (end_b, end_a)
 
@@ -262,40 +262,30 @@ def _end_density(volume: Any, box: tuple[slice, ...], f: np.ndarray, nodes: np.n
     return float(np.mean(vals[sel], dtype=np.float64))
 
 
-def _inset_point(
+def _tip_point(
     crop: np.ndarray,
     coarse: np.ndarray,
     f: np.ndarray,
     sp: np.ndarray,
     coords: np.ndarray,
     dist: np.ndarray,
-    length: float,
 ) -> np.ndarray:
-    """The mask voxel nearest (geodesically) to a tip that is at least ``inset`` from the mask boundary.
+    """The deepest mask voxel of the tip's coarse node (index coordinates of ``crop``).
 
-    ``coords`` are the coarse nodes of the part, ``dist`` their geodesic distance from the tip. Among the nodes of
-    the end quarter, those holding a voxel at least ``inset = min(2 voxels, half the largest such distance in
-    the end quarter)`` from the boundary are candidates; the one geodesically nearest the tip wins, and its
-    deepest voxel is returned (index coordinates of ``crop``).
+    ``coords`` are the coarse nodes of the part, ``dist`` their geodesic distance from the tip (0 at the tip).
+    Only the part's own voxels count (another part in the same block does not), and the depth is the distance to
+    the mask's boundary, so of a tip block that a thin tail crosses, the voxel on the tail's axis is returned.
     """
-    near = dist <= _END_FRACTION * length
-    window, wdist = coords[near], dist[near]
-    margin = 2
-    lo_c = np.maximum(window.min(axis=0) - margin, 0)
-    hi_c = np.minimum(window.max(axis=0) + margin + 1, coarse.shape)
+    node = coords[int(np.argmin(dist))]
+    lo_c = np.maximum(node - 1, 0)
+    hi_c = np.minimum(node + 2, coarse.shape)
     lo, hi = lo_c * f, np.minimum(hi_c * f, crop.shape)
     sub = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
-    # the part's own voxels in this region (another part nearby does not count)
     part = coarse[tuple(slice(int(a), int(b)) for a, b in zip(lo_c, hi_c))]
     for ax in range(3):
         part = np.repeat(part, f[ax], axis=ax)
     local = crop[sub] & part[: hi[0] - lo[0], : hi[1] - lo[1], : hi[2] - lo[2]]
     edt = ndimage.distance_transform_edt(np.pad(local, 1), sampling=sp)[1:-1, 1:-1, 1:-1]
-    depth = _pool(edt, f, "max")  # deepest voxel of each coarse node of the region
-    radii = depth[tuple((window - lo_c).T)]
-    inset = min(2.0 * float(sp.max()), 0.5 * float(radii.max()))
-    cand = np.flatnonzero(radii >= inset - 1e-9)
-    node = window[cand[int(np.argmin(wdist[cand]))]]
     q = node * f - lo
     blk = edt[q[0]:q[0] + f[0], q[1]:q[1] + f[1], q[2]:q[2] + f[2]]
     k = np.asarray(np.unravel_index(int(np.argmax(blk)), blk.shape))

@@ -7,8 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
-from napari_unwind.datasets import fish_phantom, tank_phantom
+from napari_unwind.datasets import fish_phantom, hard_fish_phantom, tank_phantom
 from napari_unwind.errors import InvalidInputError
 from napari_unwind.skeleton._endpoints import snap_to_mask, suggest_endpoints
 
@@ -66,6 +67,38 @@ def test_tank_fish():
         mask = tank.labels == i + 1
         head, tail = suggest_endpoints(mask, spacing=tank.spacing, volume=tank.volume)
         _check_ends(mask, tank.spacing, head, tail, ph.head, ph.tail)
+
+
+def _shortfall(ph, mask, spacing, point, end):
+    """How far (in voxels of the coarsest axis) a suggested end stops short of the specimen's end in the scan,
+    along its true centreline: the phantom's arclength of the point against that of the mask's extreme voxels."""
+    sp = np.asarray(spacing, dtype=float) * np.ones(3)
+    tree = cKDTree(ph.centerline_physical)
+    s_mask = ph.arclength[tree.query(np.argwhere(mask) * sp)[1]]
+    s = ph.arclength[tree.query(point * sp)[1]]
+    return float((s - s_mask.min()) if end == "head" else (s_mask.max() - s)) / sp.max()
+
+
+@pytest.mark.parametrize("source", ["dense tank 0", "dense tank 1", "dense tank 2", "hard 0", "hard 21", "hard 5"])
+def test_the_ends_reach_the_tips_of_a_thin_tail(source):
+    """A fish's tail tapers to 1 voxel of half width in a dense tank: the suggested tail is at its tip, not where
+    the body is still 2 voxels thick (19 voxels short, the old rule), so the centreline spans the whole fish."""
+    kind, seed = source.rsplit(" ", 1)
+    if kind == "dense tank":
+        tank = tank_phantom(n_fish=3, seed=int(seed), wall_value=3000, wall_thickness=6, wall_noise=600)
+        cases = [(ph, tank.labels == i + 1, tank.volume) for i, ph in enumerate(tank.fish)]
+        spacing = tank.spacing
+    else:
+        ph = hard_fish_phantom(int(seed))
+        cases, spacing = [(ph, ph.mask, ph.volume)], ph.spacing
+    for ph, mask, volume in cases:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            head, tail = suggest_endpoints(mask, spacing=spacing, volume=volume)
+        short_head = _shortfall(ph, mask, spacing, head, "head")
+        short_tail = _shortfall(ph, mask, spacing, tail, "tail")
+        assert short_tail <= 2.0, f"{ph.name}: the tail stops {short_tail:.1f} voxels short of the tip"
+        assert short_head <= 4.0, f"{ph.name}: the head stops {short_head:.1f} voxels short of the tip"
 
 
 def test_several_parts_use_the_largest_and_warn():
