@@ -7,7 +7,19 @@
 #   scripts/mutation.sh 'napari_unwind.skeleton._curve.*'      # mutant-name globs: a module, a function ...
 #   scripts/mutation.sh 'napari_unwind.session.*__mutmut_*0'   # ... or a sample (here one mutant in ten)
 #
-# Environment: MUTATION_JOBS (workers, default 1), MUTATION_KEEP=1 (keep the private worktree, with mutants/, to
+# Named sets (issue 19): MUTATION_SET=NAME mutates only that set's modules against only its tests
+# ([tool.mutmut.sets.NAME] in pyproject.toml: atomic, editing, foldfree, services), e.g.
+#
+#   MUTATION_SET=atomic scripts/mutation.sh 'napari_unwind.io._atomic.*__mutmut_*[05]'   # one mutant in five
+#   MUTATION_SET=services scripts/mutation.sh 'unwind_services.*'
+#
+# mutmut reads only [tool.mutmut] and only puts mutants/ (or mutants/src) on sys.path, so for a set the script
+# (a) writes the set's only_mutate and tests over [tool.mutmut] in the private worktree's pyproject.toml, and
+# (b) copies services/unwind_services to ./unwind_services there, listed in source_paths beside napari_unwind: the
+# service package (installed from services/, outside napari_unwind) is then mutated as `unwind_services.auth` ...
+# and imported from mutants/, never from the shared work tree through the editable install.
+#
+# Environment: MUTATION_SET (above), MUTATION_JOBS (workers, default 1), MUTATION_KEEP=1 (keep the private worktree, with mutants/, to
 # look at mutants afterwards: `cd <it> && mutmut show NAME` or `mutmut browse`), PYTHON (default .venv/bin/python).
 # Needs the `mutation` extra: .venv/bin/uv pip install --python .venv/bin/python -e ".[test,mutation]".
 #
@@ -36,6 +48,35 @@ trap cleanup EXIT
 rmdir "$wt"
 git -C "$root" worktree add --detach --quiet "$wt" HEAD
 cd "$wt"
+
+if [ -n "${MUTATION_SET:-}" ]; then
+    cp -r services/unwind_services unwind_services
+    MUTATION_SET=$MUTATION_SET "$py" - <<'PY'
+import json
+import os
+import re
+import tomllib
+from pathlib import Path
+
+name = os.environ["MUTATION_SET"]
+p = Path("pyproject.toml")
+text = p.read_text()
+sets = tomllib.loads(text)["tool"]["mutmut"].get("sets", {})
+if name not in sets:
+    raise SystemExit(f"mutation.sh: no set {name!r} in [tool.mutmut.sets] (have: {', '.join(sets)})")
+s = sets[name]
+block = (f"[tool.mutmut]\n# MUTATION_SET={name}, written by scripts/mutation.sh\n"
+         f'source_paths = ["napari_unwind", "unwind_services"]\n'
+         f"only_mutate = {json.dumps(s['only_mutate'])}\n"
+         f"pytest_add_cli_args_test_selection = {json.dumps(s['tests'])}\n"
+         f'pytest_add_cli_args = ["-p", "no:cacheprovider"]\nprocess_isolation = "forkserver"\n\n')
+# the whole [tool.mutmut] table with its sub-tables, up to the next table that is not one of them
+new, n = re.subn(r"(?ms)^\[tool\.mutmut[].].*?(?=^\[(?!tool\.mutmut[].]))", lambda _: block, text, count=1)
+assert n == 1, "mutation.sh: [tool.mutmut] not found"
+p.write_text(new)
+print(f"mutation.sh: set {name}: {s['only_mutate']} against {s['tests']}")
+PY
+fi
 
 start=$(date +%s)
 "$mutmut" run --max-children "${MUTATION_JOBS:-1}" "$@" > mutation.log 2>&1 || {
