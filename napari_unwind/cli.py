@@ -315,7 +315,7 @@ def cmd_map_points(args: argparse.Namespace) -> int:
 
 def cmd_segment(args: argparse.Namespace) -> int:
     from .io import open_volume
-    from .segmentation import check_segmentation_output, save_features_iter, segment_iter, specimens
+    from .segmentation import candidates, check_segmentation_output, save_features_iter, segment_iter
 
     check_segmentation_output(args.output, overwrite=args.overwrite)  # before minutes of work, not after
     _check_io([args.output], [args.input])
@@ -325,23 +325,28 @@ def cmd_segment(args: argparse.Namespace) -> int:
                              args.quiet)
     dt = time.perf_counter() - t0
     written = _run_with_bar(save_features_iter(features, args.output, overwrite=args.overwrite), args.quiet)
-    found = specimens(features)
-    specimen_ids = {st.id for st in found}
-    if args.specimens and args.quiet:  # for scripts: the specimen ids alone
-        print(",".join(str(st.id) for st in found))
+    found = [c for c in candidates(features) if c.is_specimen]
+    specimen_ids = {i for c in found if not c.unclaimed for i in c.ids}
+    if args.specimens and args.quiet:  # for scripts: the specimens' names (a feature id, or "3.1" for a part)
+        print(",".join(c.name for c in found))
     if not args.quiet:
         print(f"segmented {args.input} at level {features.level} ({_fmt_triple(features.shape)}) into "
               f"{features.k} features in {dt:.1f} s -> {written}")
-        print(f"{'id':>3} {'voxels':>9} {'values':>17} {'bounding box (full-resolution voxels)':>40} "
+        print(f"{'id':>4} {'voxels':>9} {'values':>17} {'bounding box (full-resolution voxels)':>40} "
               f"{'elongation':>10}  kind")
-        for st in found if args.specimens else features.stats:
+        rows = [(c.name, c.stats, "specimen") for c in found] if args.specimens else [
+            (str(st.id), st, "specimen" if st.id in specimen_ids else "container" if st.container else "-")
+            for st in features.stats]
+        for name, st, kind in rows:
             box = st.bbox_full
-            kind = "specimen" if st.id in specimen_ids else "container" if st.container else "-"
-            print(f"{st.id:>3} {st.voxel_count:>9} {st.value_min:>8.4g}-{st.value_max:<8.4g} "
+            print(f"{name:>4} {st.voxel_count:>9} {st.value_min:>8.4g}-{st.value_max:<8.4g} "
                   f"{box[0]:>6}:{box[3]:<6} {box[1]:>6}:{box[4]:<6} {box[2]:>6}:{box[5]:<6} "
                   f"{st.elongation:>10.2f}  {kind}")
         print(f"{len(found)} specimen(s) (elongated, inside the scan, not containers): "
-              f"{', '.join(str(st.id) for st in found) or 'none'}")
+              f"{', '.join(c.name for c in found) or 'none'}")
+        for c in found:
+            if c.reason:
+                print(f"  {c.name}: {c.reason}")
         print("pick features with: unwind select LABELS --at A0,A1,A2 -o MASK (points in full-resolution voxels)")
     return 0
 

@@ -2,7 +2,7 @@
 tank with touching fish, fish cut by a face of the scan and a wall the field of view cuts into arcs, each to the
 goals (status ``ok``), and nothing else. Reference: the phantom's true fish labels.
 
-Two tanks from the seeded family here (about 40 s); ``benchmarks/bench_tanks.py`` runs more (RESULTS.md).
+Three tanks from the seeded family here (about 45 s); ``benchmarks/bench_tanks.py`` runs more (RESULTS.md).
 """
 
 from __future__ import annotations
@@ -16,7 +16,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository's
 from benchmarks.bench_tanks import one  # noqa: E402
 
 
-@pytest.mark.parametrize("seed", [202, 204])  # touching pairs (1-5, 4-5; 4-8), wall arcs, every fish cut by a face
+# 202, 204: touching pairs (1-5, 4-5; 4-8), wall arcs, every fish cut by a face; 106: fish 4 pressed against a wall
+# arc is in no feature (candidates' rule 7 finds it, and its isovalue is read around its own mask)
+@pytest.mark.parametrize("seed", [202, 204, 106])
 def test_run_all_straightens_every_fish_of_a_hard_tank(seed):
     r = one(seed)
     t = r["tank"]

@@ -44,6 +44,9 @@ class Candidate:
         How many parts its features were split into (1 when not split).
     isovalue : float or None
         The isovalue its working mask was cut at (None: the features' own thresholds).
+    unclaimed : bool
+        True for a body no feature holds (rule 7 of :func:`candidates`): ``ids`` is then the feature whose basin
+        holds most of it, not a feature of its own.
     """
 
     ids: tuple[int, ...]
@@ -53,6 +56,7 @@ class Candidate:
     part: int = 0
     n_parts: int = 1
     isovalue: float | None = None
+    unclaimed: bool = False
     _box: tuple[int, int, int, int, int, int] | None = field(default=None, repr=False)
     _crop: np.ndarray | None = field(default=None, repr=False)
 
@@ -597,6 +601,16 @@ def candidates(
        three voxels deep and away from the scan's faces, is as bright as the candidate's body). A rib or a
        vertebra in a CT lies in soft tissue bounded by skin and lungs; a fish lies in a liquid that is either the
        scan's background or held by a tube's wall.
+    7. **Unclaimed tissue**: a body that no feature holds is still a candidate. The join tree can merge a specimen
+       into a brighter neighbour when the specimen's flesh meets it at the flesh's own level (a fish pressed
+       against a dense, noisy wall: its branch is then no higher above that saddle than the wall's noise, and it
+       is pruned into the wall's feature). The tissue above the specimens' isovalue (the median feature's) that
+       lies two voxels clear of every candidate's mask and every feature's labels -- and of what is brighter than
+       a body and connected to a rejected feature's labels, the rest of a dense wall -- is opened, and each piece
+       of at least the size floor whose median level is that of a body (not more than 1.5 times the contrast
+       over the medium) is grown back over the two voxels and split as in rule 4. Each part is named after the
+       feature whose basin holds most of it (``"1.1"``) and goes through rules 5-6 --
+       ``"tissue outside every feature's labels, in feature 1's basin: ..."``.
 
     Parameters
     ----------
@@ -759,11 +773,16 @@ def candidates(
         st = _part_stats(features, stats[ids[0]], mask, iso, spacing)
         _, ev, _ = _principal(mask, spacing)
         rows.append((p, gi, idx, ids, box, mask[box], iso, st, 4.0 * float(np.sqrt(ev[0]))))
+    floor = max(min_voxels, min_size_fraction * max([r[7].voxel_count for r in rows
+                                                     if r[7].elongation >= min_elongation], default=0))
+    unclaimed, unclaimed_levels = _unclaimed_rows(features, out, rows, body_of, iso_of, levels_of, basin_id, spacing,
+                                                  split_saddle, len(part_info), floor)
+    rows += unclaimed
     largest = max([r[7].voxel_count for r in rows if r[7].elongation >= min_elongation], default=0)
     out_names = {i: "+".join(map(str, r[3])) for r in rows for i in r[3]}  # a feature's body, for the reason
     size_floor = max(min_voxels, int(np.ceil(min_size_fraction * largest)))
     for _p, gi, idx, ids, box, crop, iso, st, length in rows:
-        n = n_parts_of[gi]
+        n = n_parts_of[gi] if gi > 0 else 1
         if st.voxel_count < size_floor:
             why = f"too small: {st.voxel_count} voxels < {size_floor}"
             if size_floor > min_voxels:
@@ -773,23 +792,95 @@ def candidates(
         elif length < min_length_fraction * scan_side:
             why = (f"too short: length {length:.3g} < {100 * min_length_fraction:g} % of the scan's largest side "
                    f"({scan_side:.3g})")
+        elif embedded and use_body and gi < 0:
+            why = _embedded_reason(features, ids, box, crop, {ids[0]: iso}, {ids[0]: unclaimed_levels}, out_names)
         elif embedded and use_body:
             why = _embedded_reason(features, ids, box, crop, iso_of, levels_of, out_names)
         else:
             why = ""
-        if n > 1:
+        if gi < 0:
+            note = (f"tissue outside every feature's labels, in feature {ids[0]}'s basin: a body the join tree merged "
+                    f"into a brighter neighbour (a fish pressed against a wall)")
+        elif n > 1:
             note = f"touching specimens: split into {n} at the distance transform's saddle (part {idx})"
         elif len(ids) > 1:
             note = f"features {', '.join(map(str, ids))} make one body"
         else:
             note = ""
         reason = f"{why}; {note}" if why and note else (why or note)
-        out.append(Candidate(ids, REJECTED if why else SPECIMEN, reason, st, part=idx if n > 1 else 0, n_parts=n,
-                             isovalue=iso, _box=tuple(int(v) for v in (*[b.start for b in box],
-                                                                        *[b.stop for b in box])),
+        corners = tuple(int(v) for v in (*[b.start for b in box], *[b.stop for b in box]))
+        out.append(Candidate(ids, REJECTED if why else SPECIMEN, reason, st, part=idx if n > 1 or gi < 0 else 0,
+                             n_parts=n, isovalue=iso, unclaimed=gi < 0, _box=corners,
                              _crop=np.ascontiguousarray(crop)))
     out.sort(key=lambda c: (c.ids[0], c.part))
     return tuple(out)
+
+
+def _unclaimed_rows(features: Features, out: list[Candidate], rows: list[tuple], body_of: dict, iso_of: dict,
+                    levels_of: dict, basin_id: np.ndarray | None, spacing: np.ndarray, split_saddle: float,
+                    n_parts: int, floor: float) -> tuple[list[tuple], tuple[float, float] | None]:
+    """Rule 7's bodies: tissue above the specimens' isovalue that no candidate holds (see :func:`candidates`),
+    in pieces of at least ``floor`` voxels (smaller ones are specks, not candidates).
+
+    Returns rows like :func:`candidates`' own, with the group ``-1`` and a part number after every part of the
+    same first feature, so that each name is unique, and the levels (medium, body) they were cut at: those of the
+    feature whose isovalue is the median of all features' (rule 6 reads them)."""
+    with_levels = sorted((v, f) for f, v in iso_of.items() if v is not None and levels_of.get(f) is not None)
+    if basin_id is None or not with_levels:
+        return [], None
+    iso, median_feature = with_levels[(len(with_levels) - 1) // 2]
+    levels = levels_of[median_feature]
+    m0, m1 = levels
+    values = features.tree.values
+    claimed = features.labels > 0
+    rejected = np.zeros(claimed.shape, bool)
+    for c in out:  # rejected so far: their labels (containers, wall arcs, empty features)
+        rejected |= c.working_mask(features)
+    # and what is brighter than a body and connected to them (a dense wall's noise leaves much of it below its
+    # feature's threshold)
+    bright, _ = ndimage.label(values >= m1 + 0.5 * (m1 - m0))
+    hit = np.unique(bright[rejected])
+    claimed |= rejected | np.isin(bright, hit[hit > 0])
+    for box, m in body_of.values():
+        claimed[box] |= m
+    tissue = values >= iso
+    # two voxels clear of everything claimed (the partial volume of a neighbour's edge), opened (its slivers)
+    left = tissue & ~ndimage.binary_dilation(claimed, iterations=2)
+    left = ndimage.binary_opening(left)
+    comp, n = ndimage.label(left)
+    if n == 0:
+        return [], levels
+    sizes = np.bincount(comp.ravel(), minlength=n + 1)
+    used: dict[int, int] = {}
+    for r in rows:
+        used[r[3][0]] = max(used.get(r[3][0], 0), r[2])
+    extra = []
+    # grown back over the two voxels it was cut clear by, through unclaimed tissue no brighter than a body
+    core = tissue & ~claimed & (values < m1 + 0.5 * (m1 - m0))
+    for i, sl in enumerate(ndimage.find_objects(comp), start=1):
+        if sl is None or sizes[i] < floor:
+            continue
+        piece = np.zeros(comp.shape, bool)
+        piece[sl] = comp[sl] == i
+        if np.median(values[piece]) - m0 > 1.5 * (m1 - m0):
+            continue  # the unlabelled rest of a brighter structure (a dense wall), not a body
+        piece = ndimage.binary_dilation(piece, iterations=2, mask=core) | piece
+        parts, k = _split(piece, spacing, saddle=split_saddle, min_share=0.2) if split_saddle > 0 else (
+            piece.astype(np.int32), 1)
+        for q in range(1, k + 1):
+            mask = parts == q
+            owners, counts = np.unique(basin_id[mask], return_counts=True)
+            counts[owners == 0] = 0
+            if not counts.any():
+                continue
+            owner = int(owners[int(np.argmax(counts))])
+            used[owner] = used.get(owner, 0) + 1
+            box = _box(mask, 0)
+            st = _part_stats(features, features.stat(owner), mask, iso, spacing)
+            _, ev, _ = _principal(mask, spacing)
+            extra.append((n_parts + len(extra) + 1, -1, used[owner], (owner,), box, mask[box], iso, st,
+                          4.0 * float(np.sqrt(ev[0]))))
+    return extra, levels
 
 
 def _embedded_reason(features: Features, ids: tuple[int, ...], box: tuple[slice, ...], crop: np.ndarray,

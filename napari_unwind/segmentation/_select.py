@@ -228,7 +228,8 @@ def default_isovalue(features: Features, mask: Any, *, volume: Any = None) -> fl
     With ``volume`` (the scan; :func:`refine_mask` passes its own) the two levels are read from the scan at full
     resolution, so the working level does not bias them and features loaded from a label file (no tree) give
     the same value as the segmentation itself. Where the values show no body above the medium, the smallest
-    threshold of the covered features (the features' own cut).
+    threshold of the covered features (the features' own cut). A mask that covers no feature (a body no feature
+    holds: rule 7 of :func:`~napari_unwind.segmentation.candidates`) is read around itself, and needs ``volume``.
 
     One rule for the dock, ``unwind select``, ``unwind run`` and the server's jobs.
 
@@ -250,7 +251,14 @@ def default_isovalue(features: Features, mask: Any, *, volume: Any = None) -> fl
     covered = np.unique(features.labels[mask])
     covered = covered[covered > 0]
     if covered.size == 0:
-        raise InvalidInputError("the mask covers no feature; give isovalue=")
+        # a body no feature holds (candidates' rule 7): its levels read from the scan around the mask itself
+        from ._candidates import _scan_levels
+
+        levels = None if volume is None or not mask.any() else _scan_levels(features, [], mask, volume)
+        if levels is None:
+            raise InvalidInputError("the mask covers no feature" + ("" if volume is None else " and the scan shows no "
+                                    "body above the medium around it") + "; give isovalue=")
+        return float(0.5 * (levels[0] + levels[1]))
     # the lowest of the features' own, as candidates() cuts a body of several features: a dimmer feature the
     # selection encloses (fill_holes) stays in
     return float(min(specimen_isovalue(features, [int(i)], volume=volume) for i in covered))
