@@ -1,8 +1,10 @@
 import os
+import re
 import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -310,3 +312,163 @@ def test_a_new_output_inside_an_input_folder_through_a_symlink_is_refused(tmp_pa
         check_not_input([data / "new.tif"], [tmp_path / "alias" / "scan.zarr"])
     # a sibling of the input through the same link is fine
     check_not_input([tmp_path / "alias" / "other.tif"], [data])
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# planted-bug pass (docs/testing-mutation.md, issue 19): companions, messages, the fault branches of the renames
+# ------------------------------------------------------------------------------------------------------------------
+def _nhdr(path, data_line):
+    path.write_text(f"NRRD0004\ntype: uint8\ndimension: 1\nsizes: 4\nencoding: raw\n{data_line}\n")
+    return path
+
+
+def test_companions_of_an_output_against_a_headers_data_file(tmp_path):
+    """Each companion rule alone: the input is a detached header whose data file (read from the header) is the
+    output's companion, so only the output's .dat/.raw pairing can see the clash."""
+    from napari_unwind.io._atomic import check_not_input
+
+    tmp_path = tmp_path.resolve()
+    on_raw = _nhdr(tmp_path / "a.nhdr", "data file: x.raw")
+    with pytest.raises(OutputError) as info:
+        check_not_input([tmp_path / "x.dat"], [on_raw])
+    assert str(info.value) == (f"{tmp_path}/x.raw, written with the output {tmp_path}/x.dat, is {tmp_path}/x.raw, "
+                               f"part of the input {on_raw} (both resolve to {tmp_path}/x.raw); inputs are never "
+                               "modified: choose another output path")
+    on_dat = _nhdr(tmp_path / "b.nhdr", "data file: y.dat")
+    with pytest.raises(OutputError, match="y.dat, written with the output"):
+        check_not_input([tmp_path / "y.raw"], [on_dat])
+    # the same path twice, nothing resolved differently: no "(both resolve to ...)"
+    with pytest.raises(OutputError) as info:
+        check_not_input([tmp_path / "s.tif"], [tmp_path / "s.tif"])
+    assert str(info.value) == (f"the output {tmp_path}/s.tif is the input {tmp_path}/s.tif; inputs are never "
+                               "modified: choose another output path")
+
+
+def test_a_headers_default_data_names_and_the_data_lines_it_does_not_follow(tmp_path):
+    """A header that names no usable data file (none, LIST, a pattern with spaces), or does not exist yet, stands
+    for STEM.raw, STEM.raw.gz and STEM.raw.bz2 (STEM = the name without ".nhdr"); an output header is an output
+    (our writer names its data STEM.raw whatever an old header there says)."""
+    from napari_unwind.io._atomic import check_not_input
+
+    tmp_path = tmp_path.resolve()
+    for name, line in (("abcdef.nhdr", None), ("b.nhdr", "datafile: LIST"), ("c.nhdr", "data file: c%03d.raw 0 3 1"),
+                       ("d.nhdr", "encoding: raw")):
+        header = tmp_path / name
+        if line is not None:
+            _nhdr(header, line)
+        stem = name[: -len(".nhdr")]
+        for suffix in (".raw", ".raw.gz", ".raw.bz2"):
+            with pytest.raises(OutputError, match=f"the output .*/{stem}{suffix} is "):
+                check_not_input([tmp_path / f"{stem}{suffix}"], [header])
+        check_not_input([tmp_path / f"{stem}.raw.xz"], [header])  # not one of the three
+    old = _nhdr(tmp_path / "o.nhdr", "data file: elsewhere.bin")
+    with pytest.raises(OutputError, match=r"o\.raw, written with the output .*o\.nhdr"):
+        check_not_input([old], [tmp_path / "o.raw"])
+    check_not_input([old], [tmp_path / "elsewhere.bin"])
+
+
+def test_a_symlinked_output_that_is_the_input_says_both_resolve(tmp_path):
+    from napari_unwind.io._atomic import check_not_input
+
+    tmp_path = tmp_path.resolve()
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "scan.tif").write_bytes(b"x")
+    (tmp_path / "alias").symlink_to(tmp_path / "data", target_is_directory=True)
+    with pytest.raises(OutputError) as info:
+        check_not_input([tmp_path / "alias" / "scan.tif"], [tmp_path / "data" / "scan.tif"])
+    assert str(info.value).endswith(f"(both resolve to {tmp_path}/data/scan.tif); inputs are never modified: "
+                                    "choose another output path")
+
+
+def test_a_dead_pid_has_no_start_time_and_a_live_writer_is_not_signalled(tmp_path):
+    """Asking whether a writer lives must not send it a signal (signal 0 only checks): a live process whose SIGHUP
+    kills it (its default) is still running after its temporary output was judged; /proc has no start time for
+    a dead pid (0: unknown)."""
+    assert _atomic._start_time(_dead_pid()) == 0
+    child = subprocess.Popen([sys.executable, "-c", "import signal, time; signal.signal(signal.SIGHUP, "
+                              "signal.SIG_DFL); print('ready', flush=True); time.sleep(30)"], stdout=subprocess.PIPE)
+    try:
+        assert child.stdout.readline().strip() == b"ready"
+        target = tmp_path / "fish.zarr"
+        live = _tmp_name(target, child.pid, _atomic._start_time(child.pid), _atomic._host_tag())
+        live.write_text("being written")
+        assert _atomic.remove_stale_temps(target) == [] and live.exists()
+        time.sleep(0.2)
+        assert child.poll() is None
+    finally:
+        child.kill()
+        child.wait()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="renameat2 is Linux's")
+def test_renameat2_is_found_on_linux_and_a_refusing_filesystem_falls_back(tmp_path, monkeypatch):
+    """glibc has renameat2 (2.28+); a filesystem that answers EINVAL (no RENAME_NOREPLACE there) falls back to the
+    portable rename, which still moves the output into place."""
+    import ctypes
+    import errno
+
+    assert _atomic._load_renameat2() is not None
+
+    def refuse(*args):
+        ctypes.set_errno(errno.EINVAL)
+        return -1
+
+    monkeypatch.setattr(_atomic, "_renameat2_fn", refuse)
+    target = tmp_path / "out.csv"
+    with atomic_output(target, overwrite=False) as tmp:
+        tmp.write_text("written")
+    assert target.read_text() == "written" and no_leftovers(tmp_path) == []
+
+
+def test_a_target_that_vanishes_during_the_swap_still_gets_the_output(tmp_path, monkeypatch):
+    target = tmp_path / "out.zarr"
+    target.mkdir()
+    (target / "old").write_text("x")
+    real = _atomic._renameat2
+
+    def vanish(src, dst, flags):
+        if flags == _atomic._RENAME_EXCHANGE:
+            _atomic.remove_path(dst)
+            raise FileNotFoundError(2, "gone", str(dst))
+        return real(src, dst, flags)
+
+    monkeypatch.setattr(_atomic, "_renameat2", vanish)
+    with atomic_output(target) as tmp:
+        tmp.mkdir()
+        (tmp / "new").write_text("y")
+    assert sorted(p.name for p in target.iterdir()) == ["new"] and no_leftovers(tmp_path) == []
+
+
+def test_a_failed_portable_swap_puts_the_old_output_back(tmp_path, monkeypatch):
+    monkeypatch.setattr(_atomic, "_renameat2_fn", None)
+    target = tmp_path / "out.zarr"
+    target.mkdir()
+    (target / "old").write_text("keep me")
+    real = os.replace
+
+    def failing(src, dst):
+        if Path(dst) == target and ".old" not in Path(src).name:
+            raise OSError(5, "Input/output error")
+        return real(src, dst)
+
+    monkeypatch.setattr(_atomic.os, "replace", failing)
+    with pytest.raises(OSError, match="Input/output error"):
+        with atomic_output(target) as tmp:
+            tmp.mkdir()
+            (tmp / "new").write_text("y")
+    monkeypatch.undo()
+    assert (target / "old").read_text() == "keep me" and no_leftovers(tmp_path) == []
+
+
+def test_remove_path_of_nothing_is_quiet_and_check_writable_says_what_to_do(tmp_path, monkeypatch):
+    _atomic.remove_path(tmp_path / "missing.bin")
+    with pytest.raises(OutputError, match=re.escape(f"e.g. {tmp_path}/sub/../out.zarr") + "$"):
+        _atomic.check_writable(tmp_path / "sub" / "..")
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    with pytest.raises(OutputError, match="not a file or folder; choose another output path$"):
+        _atomic.check_writable(fifo)
+    monkeypatch.setattr(_atomic.os, "access", lambda *a, **k: False)  # as root, permission bits do not apply
+    with pytest.raises(OutputError, match="^" + re.escape(f"cannot write {tmp_path}/x: the folder {tmp_path} is not "
+                                                          "writable; choose another output path") + "$"):
+        _atomic.check_writable(tmp_path / "x")
