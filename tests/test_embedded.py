@@ -126,6 +126,10 @@ def test_the_chest_ct_reports_no_bone_as_a_specimen():
     spec = [(c, dice(c.working_mask(features), aorta)) for c in found if c.is_specimen]
     assert all(d >= 0.7 for _, d in spec), [(c.name, c.stats.voxel_count, round(d, 3)) for c, d in spec]
     assert len(spec) <= 1
+    # every candidate's name is unique (output files are named after it): features 23, 53 and 57 each have labels
+    # in two bodies here, and were two rows named "23" ...
+    names = [c.name for c in found]
+    assert len(set(names)) == len(names), sorted(n for n in names if names.count(n) > 1)
     off = [c for c in candidates(features, min_elongation=seg.min_elongation, embedded=False) if c.is_specimen]
     assert any(dice(c.working_mask(features), aorta) < 0.7 for c in off), "the planted bug would pass"
     print(f"chest CT: {len(spec)} specimens; rule off: {', '.join(c.name for c in off)}")

@@ -800,7 +800,7 @@ def candidates(
             why = ""
         if gi < 0:
             note = (f"tissue outside every feature's labels, in feature {ids[0]}'s basin: a body the join tree merged "
-                    f"into a brighter neighbour (a fish pressed against a wall)")
+                    f"into a brighter neighbour")
         elif n > 1:
             note = f"touching specimens: split into {n} at the distance transform's saddle (part {idx})"
         elif len(ids) > 1:
@@ -812,6 +812,17 @@ def candidates(
         out.append(Candidate(ids, REJECTED if why else SPECIMEN, reason, st, part=idx if n > 1 or gi < 0 else 0,
                              n_parts=n, isovalue=iso, unclaimed=gi < 0, _box=corners,
                              _crop=np.ascontiguousarray(crop)))
+    # a feature whose labels lie in two bodies gives two whole candidates: number them, so that every name (and
+    # every output file named after it) is unique
+    seen: dict[tuple[int, ...], list[int]] = {}
+    for i, c in enumerate(out):
+        if c.part == 0:
+            seen.setdefault(c.ids, []).append(i)
+    for same in seen.values():
+        if len(same) > 1:
+            top = max([c.part for c in out if c.ids == out[same[0]].ids], default=0)
+            for j, i in enumerate(same, start=top + 1):
+                out[i] = replace(out[i], part=j)
     out.sort(key=lambda c: (c.ids[0], c.part))
     return tuple(out)
 
