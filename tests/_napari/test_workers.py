@@ -4,6 +4,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 
 def test_a_script_without_a_main_guard_is_not_run_again_in_the_child(tmp_path):
     """napari scripts rarely guard their top level with ``if __name__ == "__main__"``; the spawned child of a job
@@ -33,3 +35,16 @@ def test_a_script_without_a_main_guard_is_not_run_again_in_the_child(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     assert "RESULT True True" in done.stdout, done.stdout + done.stderr[-2000:]
     assert marker.read_text().count("run") == 1, "the child ran the user's script again"
+
+
+def test_the_dock_names_the_skeleton_step_that_exists():
+    """The dock names its skeleton step by string (its UI thread must not import the solver); the name must be the
+    steps module's own and resolve to the function the child process calls."""
+    import importlib
+
+    pytest.importorskip("qtpy")
+    from napari_unwind._napari import _steps, _widget
+
+    assert _widget._SKELETON == _steps.SKELETON
+    module, _, name = _widget._SKELETON.partition(":")
+    assert getattr(importlib.import_module(module), name) is _steps.skeleton
