@@ -5,7 +5,8 @@ prints a short report. A user's mistake prints one clear ``unwind: error: ...`` 
 means a bug.
 
 Exit status: 0 success; 1 an error, a wrong option included (one line ``unwind: error: ...``); 3 (``unwind
-run``) a specimen straightened only in part (:data:`napari_unwind.pipeline.EXIT_PARTIAL`); 130 interrupted
+run``, ``run --server``, ``submit --wait``, ``submit --batch`` and ``jobs watch``) a specimen straightened only in
+part (:data:`napari_unwind.pipeline.EXIT_PARTIAL`); 130 interrupted
 (Ctrl-C, SIGINT); 143 terminated (SIGTERM), 129 hung up (SIGHUP). Interrupted or terminated, no partial output
 is left behind. Before any work, every command refuses an output that is, contains or lies inside one of its
 inputs.

@@ -106,6 +106,15 @@ def _status_line(specimen: Any, where: str = "") -> str:
     return f"{head}: {specimen.reason}" if specimen.reason else head
 
 
+def _folds_line(deformation: Any, folded: float | None, advice: str) -> str:
+    """``FOLDS at s = a..b (x % of the mask): <advice>``, or "" when the deformation does not fold."""
+    folds = deformation.folds()
+    if not folds:
+        return ""
+    share = "" if folded is None else f" ({100 * folded:.2g} % of the mask)"
+    return "FOLDS at s = " + ", ".join(f"{a:.4g}..{b:.4g}" for a, b in folds) + f"{share}: {advice}"
+
+
 def volume_from_layer(layer: Any) -> Volume:
     """The :class:`~napari_unwind.io.Volume` behind a napari Image layer: its data (lazy), scale as spacing,
     translate as origin, its unit; the pyramid when it is multiscale.
@@ -1007,10 +1016,9 @@ class UnwindWidget(QWidget):
         d = result.deformation
         lines = [f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes"
                  + (" (suggested ends)" if result.suggested else ""), result.report()]
-        folds = d.folds()
+        folds = _folds_line(d, result.folded, "edit the keyframes there (Refine)")
         if folds:
-            lines.append("FOLDS at s = " + ", ".join(f"{a:.4g}..{b:.4g}" for a, b in folds)
-                         + f" ({100 * result.folded:.2g} % of the mask): edit the keyframes there (Refine)")
+            lines.append(folds)
         lines += [f"warning: {w}" for w in result.warnings]
         lines.insert(0, _status_line(specimen))
         self.skeleton_report.setPlainText("\n".join(lines))
@@ -1245,10 +1253,9 @@ class UnwindWidget(QWidget):
             lines = [_status_line(specimen),  # the server's pipeline judged it as this computer's does
                      f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes (server {server.address}, "
                      f"session {session_id})"]
-            folds = d.folds()
+            folds = _folds_line(d, specimen.folded, "edit the keyframes there (Refine), then export on this computer")
             if folds:
-                lines.append("FOLDS at s = " + ", ".join(f"{a:.4g}..{b:.4g}" for a, b in folds)
-                             + ": edit the keyframes there (Refine), then export on this computer")
+                lines.append(folds)
             lines += [f"warning: {w}" for w in warnings]
             self.skeleton_report.setPlainText("\n".join(lines))
             if session.endpoints is not None and self._ends_layer is None:
