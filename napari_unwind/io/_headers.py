@@ -451,12 +451,19 @@ def _transforms(transforms: Any, ndim: int) -> tuple[list[float], list[float]]:
         _check(all(type(v) in (int, float) for v in t[kind]))
         values = [float(v) for v in t[kind]]
         _check(len(values) == ndim and all(math.isfinite(v) for v in values))
-        if kind == "scale":
-            scale = [s * v for s, v in zip(scale, values, strict=True)]
-            offset = [o * v for o, v in zip(offset, values, strict=True)]
-        else:
-            offset = [o + v for o, v in zip(offset, values, strict=True)]
+        scale, offset = compose_transform(scale, offset, kind, values)
     return scale, offset
+
+
+def compose_transform(scale: list[float], offset: list[float], kind: str, values: list[float]
+                      ) -> tuple[list[float], list[float]]:
+    """``(scale, offset)`` after one more OME-NGFF coordinate transformation (``kind`` ``"scale"`` or
+    ``"translation"``, checked ``values``): a scale multiplies the offset so far too. Shared with
+    :mod:`napari_unwind.io.ome_zarr`."""
+    if kind == "scale":
+        return ([s * v for s, v in zip(scale, values, strict=True)],
+                [o * v for o, v in zip(offset, values, strict=True)])
+    return scale, [o + v for o, v in zip(offset, values, strict=True)]
 
 
 def _ome_zarr(path: Path) -> Header:

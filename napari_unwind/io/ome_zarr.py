@@ -45,6 +45,7 @@ from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec
 from ..errors import InvalidInputError, UnknownFormatError
 from ..progress import Progress
 from ._atomic import final_name
+from ._headers import compose_transform
 from ._volume import LazyArray, Volume
 
 if TYPE_CHECKING:
@@ -92,11 +93,7 @@ def _affine(transforms: Any, ndim: int, where: str) -> tuple[list[float], list[f
         values = [float(v) for v in t[kind]]
         if len(values) != ndim or not all(np.isfinite(values)):
             raise InvalidInputError(f"{where}: the {kind} {t[kind]!r} needs {ndim} finite numbers")
-        if kind == "scale":
-            scale = [s * v for s, v in zip(scale, values, strict=True)]
-            offset = [o * v for o, v in zip(offset, values, strict=True)]
-        else:
-            offset = [o + v for o, v in zip(offset, values, strict=True)]
+        scale, offset = compose_transform(scale, offset, kind, values)
     return scale, offset
 
 
