@@ -161,3 +161,17 @@ def test_a_fish_no_feature_holds_is_found_as_unclaimed_tissue(seed, touching, mo
     monkeypatch.setattr(_candidates, "_unclaimed_rows", lambda *a, **k: ([], None))  # the rule off
     with pytest.raises(AssertionError, match="fish"):
         check_tank(tank, candidates(features), features)
+
+
+# Three fish touching in a chain (seed 9 with touching=True: 3-11 and 6-11), 3 and 11 side by side along their
+# length: the distance transform's saddle between them is shallow, so the first split left them one part ("not
+# elongated: 3 < 3"). Each is a feature of its own, elongated and of the same size: the part is split by them.
+def test_two_fish_side_by_side_in_one_part_are_split_by_their_features(monkeypatch):
+    from napari_unwind.segmentation import _candidates
+
+    tank = hard_tank_phantom(9, touching=True)
+    features = _features(tank)
+    check_tank(tank, candidates(features), features)
+    monkeypatch.setattr(_candidates, "_split_by_features", lambda parts, n, *a: (parts, n))  # the rule off
+    with pytest.raises(AssertionError, match="fish"):
+        check_tank(tank, candidates(features), features)

@@ -524,6 +524,38 @@ def _split(body: np.ndarray, spacing: np.ndarray, *, saddle: float, min_share: f
     return relabel[lut][parts], int(len(roots))
 
 
+def _split_by_features(parts: np.ndarray, n: int, labels: np.ndarray, stats: dict[int, FeatureStats],
+                       spacing: np.ndarray, min_elongation: float) -> tuple[np.ndarray, int]:
+    """Parts that hold two or more bodies of their own, apart: a part in which several features are each elongated,
+    mostly inside it and at least half as large as the largest of them (two fish lying side by side along their
+    length, which the distance transform's saddle does not part) is split by a watershed of its distance
+    transform seeded by those features' labels. A spine and a head bone of one fish (a small second feature) stay
+    one part. Returns the new part labels and their number."""
+    from skimage.segmentation import watershed
+
+    out = np.zeros_like(parts)
+    m = 0
+    for q in range(1, n + 1):
+        part = parts == q
+        ids, counts = np.unique(labels[part], return_counts=True)
+        own = {int(f): int(c) for f, c in zip(ids, counts) if f > 0 and c >= 0.5 * stats[int(f)].voxel_count
+               and stats[int(f)].elongation >= min_elongation}
+        big = [f for f, c in own.items() if c >= 0.5 * max(own.values())] if own else []
+        if len(big) < 2:
+            m += 1
+            out[part] = m
+            continue
+        markers = np.zeros(parts.shape, np.int32)
+        for j, f in enumerate(big, start=1):
+            markers[part & (labels == f)] = j
+        edt = ndimage.distance_transform_edt(np.pad(part, 1), sampling=spacing)[1:-1, 1:-1, 1:-1]
+        sub = watershed(-edt, markers, mask=part)
+        for j in range(1, len(big) + 1):
+            m += 1
+            out[sub == j] = m
+    return out, m
+
+
 def _part_stats(features: Features, template: FeatureStats, mask: np.ndarray, iso: float | None,
                 spacing: np.ndarray) -> FeatureStats:
     """The figures of a body or a part (its own voxels, box, values, elongation, border)."""
@@ -587,8 +619,11 @@ def candidates(
        a head bone of one fish, or two touching fish).
     4. **Split**: a group is split by a watershed of its distance transform seeded by its maxima; regions whose
        saddle is shallow (``>= split_saddle`` x the lower peak) or that are small (under a fifth of a
-       neighbour) merge back. Each part is a candidate (``part`` 1..``n_parts``), with the features it holds as
-       ``ids`` -- ``"touching specimens: split into 2 at the distance transform's saddle"``.
+       neighbour) merge back. A part that still holds several features that are each elongated, mostly inside it
+       and at least half as large as the largest of them (two fish side by side along their length) is split
+       again by a watershed of its distance transform seeded by those features' labels. Each part is a candidate
+       (``part`` 1..``n_parts``), with the features it holds as ``ids`` -- ``"touching specimens: split into 2 at
+       the distance transform's saddle"``.
     5. **Size and shape** of each part: ``"too small: 40 voxels < 200"`` (under ``min_voxels`` or
        ``min_size_fraction`` of the largest elongated part), ``"not elongated: 1.6 < 3"``, ``"too short: ..."`` (its
        length, 4 standard deviations along its principal axis, under ``min_length_fraction`` of the scan's
@@ -733,6 +768,7 @@ def candidates(
         g = groups[sl] == gi
         if split_saddle > 0:
             parts, n = _split(g, spacing, saddle=split_saddle, min_share=0.2)
+            parts, n = _split_by_features(parts, n, labels[sl], stats, spacing, min_elongation)
         else:
             parts, n = g.astype(np.int32), 1
         base = len(part_info)
