@@ -304,3 +304,114 @@ def test_undo_of_a_move_reselects_the_keyframe_at_its_old_place():
     assert seen == [(s_before, 2)]
     assert model.redo()
     assert model.s == s_after and model.keyframe == 2
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# planted-bug pass (docs/testing-mutation.md, issue 19): the events' values, boundaries, messages, defaults
+# ------------------------------------------------------------------------------------------------------------------
+def test_every_event_carries_the_state_it_announces():
+    d = arc_deformation()
+    m = EditModel(d)
+    assert m.s == 0.0 and m.keyframe == 0  # a new model starts at the head, on keyframe 0
+    log = []
+    for name in ("deformation_changed", "position_changed", "history_changed"):
+        getattr(m, name).connect(lambda *a, name=name: log.append((name, a)))
+
+    def take(name):
+        got = [a for n, a in log if n == name]
+        log.clear()
+        return got
+
+    m.set_s(d.knots[1])
+    assert take("position_changed") == [(d.knots[1], 1)]
+    m.set_pad(2.0, 3.0)
+    padded = m.deformation
+    assert [a for n, a in log if n == "deformation_changed"] == [(padded,)]
+    assert take("history_changed") == [(True, False)]
+    m.undo()
+    assert take("history_changed") == [(False, True)]
+    m.set_deformation(d, keep_history=True)
+    assert [a for n, a in log if n == "deformation_changed"] == [(d,)]
+    assert take("history_changed") == [(True, False)]
+    with m.gesture("move"):
+        m.move(0.5, 0.0)
+    assert take("history_changed") == [(True, False)]
+    s0, k0 = m.s, m.keyframe
+    m.begin_gesture("move")
+    m.move(1.0, 0.0)
+    log.clear()
+    m.cancel_gesture()
+    assert take("position_changed") == [(s0, k0)] and k0 == 1
+    m.move(0.25, 0.0)
+    assert take("history_changed") == [(True, False)]
+    m.delete_keyframe(4)
+    assert [a[1] for n, a in log if n == "position_changed"] == [1]
+    assert take("history_changed") == [(True, False)]
+
+
+def test_a_gesture_between_keyframes_is_one_step_under_its_own_label():
+    d = arc_deformation()
+    m = EditModel(d)
+    m.set_s(0.5 * (d.knots[1] + d.knots[2]))
+    with m.gesture("move"):
+        m.move(0.5, 0.0)
+        m.move(1.0, 0.0)
+    m.set_cage((-1.0, 2.0, -3.0, 4.0))
+    assert [st.label for st in m.history] == ["move", "resize"]
+
+
+def test_the_smallest_history_and_the_edges_of_the_edits():
+    d = arc_deformation()
+    m = EditModel(d, max_history=1)
+    m.select_keyframe(1)
+    m.move(1.0, 0.0)
+    m.move(1.0, 0.0)
+    assert len(m.history) == 1 and m.undo() and not m.undo()
+    m.select_keyframe(0)
+    m.previous_keyframe()
+    assert m.keyframe == 0
+    with pytest.raises(InvalidInputError, match=r"^keyframe index must be a whole number in \[-6, 5\], got 6$"):
+        m.select_keyframe(6)
+    with pytest.raises(InvalidInputError, match=r"^keyframe index must be a whole number in \[-6, 5\], got -7$"):
+        m.delete_keyframe(-7)
+    with pytest.raises(InvalidInputError, match="^tilt axis must be 'u' or 'v', got 'n'$"):
+        m.tilt(0.1, axis="n")
+    with pytest.raises(InvalidInputError, match="cage bounds must be 4 finite numbers"):
+        m.set_cage([0.0, 1.0, 2.0])
+    for before, after in ((-1.0, 2.0), (2.0, -1.0)):
+        with pytest.raises(InvalidInputError, match="padding must be >= 0 at both ends"):
+            m.set_pad(before, after)
+    with pytest.raises(InvalidInputError, match=r"^there is a keyframe at s=0 already \(keyframe 0\)"):
+        m.add_keyframe()
+    m.set_s(0.5 * (d.knots[1] + d.knots[2]))
+    with pytest.raises(InvalidInputError, match=r"^no keyframe at s=.* to delete; go to one first"):
+        m.delete_keyframe()
+
+
+def test_cross_section_sizes_and_values_worked_out_by_hand():
+    """A straight deformation along axis0: the default pixel of a view taller than wide (cage x 100, y 500:
+    1.5 x 500 = 750 half height, 1500 / 512 = 2.9296875 per pixel), the 2-pixel minimum, nearest sampling, and
+    0 (float32) wherever the plane leaves the scan."""
+    frame = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    d = Deformation.from_keyframes(np.array([[2.0, 15.0, 10.0], [37.0, 15.0, 10.0]]), np.stack([frame, frame]),
+                                   (100.0, 500.0))
+    vol = np.ones((40, 30, 20), np.float32)
+    sec = cross_section(vol, d, 11.0)
+    assert sec.pixel == 1500 / 512
+    assert sec.image.shape == (513, 104)  # ceil(2 * 750 / p) + 1, ceil(2 * 150 / p) + 1
+    np.testing.assert_allclose(sec.to_plane(2, 3), (sec.x0 + 2 * sec.pixel, sec.y0 + 3 * sec.pixel))
+    assert cross_section(vol, d, 11.0, half_size=(0.4, 0.4), pixel=1.0).image.shape == (2, 2)
+    # rows run along v = axis1 (scan row 15 at y = 0), columns along u = -axis2 (scan column 10 at x = 0)
+    ramp = np.broadcast_to(np.arange(20, dtype=np.float32), (40, 30, 20))
+    near = cross_section(ramp, d, 11.0, half_size=(3.0, 3.0), pixel=1.0, order=0)
+    np.testing.assert_array_equal(near.image, np.tile(np.arange(13.0, 6.0, -1.0), (7, 1)))
+    # a plane past the scan's end reads 0, in float32; one half out reads 0 on the outside half
+    out = cross_section(vol, d.with_pad(0.0, 20.0), 50.0, half_size=(3.0, 3.0), pixel=1.0)
+    assert out.image.dtype == np.float32 and not out.image.any()
+    edge = cross_section(vol, d, 11.0, half_size=(20.0, 3.0), pixel=1.0)
+    # columns j: x = -20 + j, scan column 10 - x: inside for x in [-9, 10], 0 beyond 1 voxel past the edge
+    assert (edge.image[:, :10] == 0).all() and (edge.image[:, 12:30] == 1).all() and (edge.image[:, 32:] == 0).all()
+    with pytest.raises(InvalidInputError, match="volume must be a 3D array"):
+        cross_section(object(), d, 11.0)
+    with pytest.raises(InvalidInputError, match="^the volume must hold numbers, got dtype complex128$"):
+        cross_section(np.zeros((40, 30, 20), complex), d, 11.0, half_size=2.0)
