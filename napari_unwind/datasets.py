@@ -1878,11 +1878,7 @@ def hard_tank_phantom(
                         wall_thickness=5.0, wall_noise=600.0, max_tries=40)
     labels = tank.labels
     # the wall, from the tank's radii (unit spacing)
-    c1, c2 = tank.tube_center
-    r_in, r_out = tank.tube_radii
-    jj, kk = np.mgrid[: tank.shape[1], : tank.shape[2]]
-    rho = np.hypot(jj - c1, kk - c2)
-    wall = np.broadcast_to(((rho >= r_in) & (rho <= r_out))[None], tank.shape)
+    (c1, c2), _, rho, wall = _tube_wall(tank)
     lo = [0, 0, 0]
     hi = list(tank.shape)
     if wall_cut:  # a square field of view just around the fish: the ring shows in its corners only
@@ -1894,20 +1890,8 @@ def hard_tank_phantom(
             lo[a] = max(int(np.floor(c - h)), 0)
             hi[a] = min(int(np.ceil(c + h)) + 1, tank.shape[a])
     if face_cut:  # the upper face along axis0 cuts one fish by 10-30 % of its length (and its neighbours with it)
-        ext = [np.flatnonzero((labels == i + 1).any(axis=(1, 2))) for i in range(int(n_fish))]
-        f = int(rng.integers(int(n_fish)))
-        a, b = int(ext[f][0]), int(ext[f][-1])
-        hi[0] = b + 1 - int(round(rng.uniform(0.1, 0.3) * (b - a + 1)))
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
-    labels = np.ascontiguousarray(labels[box])
-    volume = np.ascontiguousarray(tank.volume[box])
-    wall = np.ascontiguousarray(wall[box])
-    spine = (labels > 0) & (volume >= (FLESH + SPINE) / 2.0)
-    faces = np.zeros(labels.shape, bool)
-    faces[[0, -1]] = True
-    faces[:, [0, -1]] = True
-    faces[:, :, [0, -1]] = True
-    cut = tuple(int(i) for i in np.unique(labels[faces]) if i > 0)
+        hi[0] = _face_cut(labels, int(n_fish), rng)
+    volume, labels, wall, spine, cut = _crop_tank(tank.volume, labels, wall, lo, hi, 0.0)
     return HardTank(volume=volume, labels=labels, spine=spine, wall=wall, n_fish=int(n_fish),
                     spacing=tuple(float(v) for v in tank.spacing), unit=tank.unit,
                     touching=_touching_pairs(labels, int(n_fish)), wall_cut=wall_cut, cut_fish=cut, seed=seed)
@@ -2074,6 +2058,41 @@ def body_phantom(seed: int, *, lungs: bool | None = None, noise: float = 15.0) -
 WATER_LIFT = 1000
 
 
+def _tube_wall(tank: Any) -> tuple[tuple[float, float], tuple[float, float], np.ndarray, np.ndarray]:
+    """A tank's tube: its centre and radii (axes 1, 2), the distance ``rho`` of every (axis1, axis2) column from its
+    axis, and its wall (bool, the tank's shape)."""
+    c1, c2 = tank.tube_center
+    r_in, r_out = tank.tube_radii
+    jj, kk = np.mgrid[: tank.shape[1], : tank.shape[2]]
+    rho = np.hypot(jj - c1, kk - c2)
+    return (c1, c2), (r_in, r_out), rho, np.broadcast_to(((rho >= r_in) & (rho <= r_out))[None], tank.shape)
+
+
+def _face_cut(labels: np.ndarray, n_fish: int, rng: np.random.Generator) -> int:
+    """The upper bound along axis0 that cuts one fish (drawn) by 10-30 % of its length."""
+    ext = [np.flatnonzero((labels == i + 1).any(axis=(1, 2))) for i in range(n_fish)]
+    f = int(rng.integers(n_fish))
+    a, b = int(ext[f][0]), int(ext[f][-1])
+    return b + 1 - int(round(rng.uniform(0.1, 0.3) * (b - a + 1)))
+
+
+def _crop_tank(volume: np.ndarray, labels: np.ndarray, wall: np.ndarray, lo: list[int], hi: list[int],
+               lift: float) -> tuple[np.ndarray, ...]:
+    """A tank cropped to the field of view ``lo:hi``: its volume (uint16), labels, wall, spine (the fish's voxels
+    above halfway between flesh and spine, ``lift`` added) and the fish that a face of the view cuts."""
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    labels = np.ascontiguousarray(labels[box])
+    volume = np.ascontiguousarray(np.round(volume[box]).astype(np.uint16))
+    wall = np.ascontiguousarray(wall[box])
+    spine = (labels > 0) & (volume >= lift + (FLESH + SPINE) / 2.0)
+    faces = np.zeros(labels.shape, bool)
+    faces[[0, -1]] = True
+    faces[:, [0, -1]] = True
+    faces[:, :, [0, -1]] = True
+    cut = tuple(int(i) for i in np.unique(labels[faces]) if i > 0)
+    return volume, labels, wall, spine, cut
+
+
 def air_tank_phantom(seed: int, *, n_fish: int | None = None, face_cut: bool | None = None) -> HardTank:
     """The opposite of :func:`body_phantom`: fish in water inside a dense tube, in air, scanned through a field of
     view that every side face of the scan cuts through the tube (its wall or its water; the corners show air
@@ -2114,13 +2133,9 @@ def air_tank_phantom(seed: int, *, n_fish: int | None = None, face_cut: bool | N
     face_cut = bool(rng.random() < 0.5) if face_cut is None else bool(face_cut)
     tank = tank_phantom(n_fish=int(n_fish), seed=seed, length=110.0, body_radius=6.0, gap=float(rng.uniform(2, 3)),
                         wall_value=3000.0, wall_thickness=5.0, wall_noise=600.0, max_tries=40)
-    c1, c2 = tank.tube_center
-    r_in, r_out = tank.tube_radii
-    jj, kk = np.mgrid[: tank.shape[1], : tank.shape[2]]
-    rho = np.hypot(jj - c1, kk - c2)
+    (c1, c2), (r_in, r_out), rho, wall = _tube_wall(tank)
     lift = (WATER_LIFT * _soft(rho - r_out, 1.0)).astype(np.float32)
     volume = np.clip(tank.volume.astype(np.float32) + lift[None], 0, np.iinfo(np.uint16).max)
-    wall = np.broadcast_to(((rho >= r_in) & (rho <= r_out))[None], tank.shape)
     labels = tank.labels
     h = float(rng.uniform(r_in + 2.0, r_out - 1.0))  # every side face cuts the tube; air shows in the corners
     lo, hi = [0, 0, 0], list(tank.shape)
@@ -2128,20 +2143,8 @@ def air_tank_phantom(seed: int, *, n_fish: int | None = None, face_cut: bool | N
         lo[a] = max(int(np.floor(c - h)), 0)
         hi[a] = min(int(np.ceil(c + h)) + 1, tank.shape[a])
     if face_cut:
-        ext = [np.flatnonzero((labels == i + 1).any(axis=(1, 2))) for i in range(int(n_fish))]
-        f = int(rng.integers(int(n_fish)))
-        a, b = int(ext[f][0]), int(ext[f][-1])
-        hi[0] = b + 1 - int(round(rng.uniform(0.1, 0.3) * (b - a + 1)))
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
-    labels = np.ascontiguousarray(labels[box])
-    volume = np.ascontiguousarray(np.round(volume[box]).astype(np.uint16))
-    wall = np.ascontiguousarray(wall[box])
-    spine = (labels > 0) & (volume >= WATER_LIFT + (FLESH + SPINE) / 2.0)
-    faces = np.zeros(labels.shape, bool)
-    faces[[0, -1]] = True
-    faces[:, [0, -1]] = True
-    faces[:, :, [0, -1]] = True
-    cut = tuple(int(i) for i in np.unique(labels[faces]) if i > 0)
+        hi[0] = _face_cut(labels, int(n_fish), rng)
+    volume, labels, wall, spine, cut = _crop_tank(volume, labels, wall, lo, hi, WATER_LIFT)
     return HardTank(volume=volume, labels=labels, spine=spine, wall=wall, n_fish=int(n_fish),
                     spacing=tuple(float(v) for v in tank.spacing), unit=tank.unit, touching=(), wall_cut=True,
                     cut_fish=cut, seed=seed)
