@@ -210,3 +210,37 @@ def test_the_tilt_holds_more_of_a_tight_helix_than_the_untilted_cages(monkeypatc
     untilted = held()
     # the bound: between the two, 0.3 % from each (the figures do not vary run to run)
     assert tilted >= 0.995 > untilted, (tilted, untilted)
+
+
+def test_format_lost_keeps_the_largest_in_order_of_s_and_counts_the_rest():
+    from napari_unwind.skeleton._foldfree import format_lost
+
+    lost = ((0.0, 2.0, 0.01), (4.0, 6.0, 0.05), (8.0, 10.0, 0.02), (12.0, 14.0, 0.03), (16.0, 18.0, 0.001))
+    assert format_lost(lost, "mm") == ("s = 4..6 mm (5 %), s = 8..10 mm (2 %), s = 12..14 mm (3 %) and 2 more")
+    assert format_lost(lost[:2], "mm") == "s = 0..2 mm (1 %), s = 4..6 mm (5 %)"
+    assert format_lost((), "mm") == "none"
+
+
+def test_coverage_of_no_points_is_whole():
+    pts, frames = _straight_curve(11)
+    d = Deformation.from_keyframes(pts[[0, -1]], frames[[0, -1]], 2.0)
+    c = coverage(d, np.zeros((0, 3)))
+    assert (c.fraction, c.lost, c.folded) == (1.0, (), 0.0)
+
+
+def test_tilted_normal_is_the_gaussian_mean_of_the_tangents():
+    """21 dense samples 1 apart: tangents along axis0 up to sample 10, along axis1 after it. At key 8 with sigma 2
+    the new normal is (A, B, 0) / |(A, B)|, A and B the sums of exp(-(j - 8)^2 / 8) over each part (written out
+    here); the minimal rotation about axis2 keeps u = axis2."""
+    j = np.arange(21.0)
+    n = np.where((j <= 10)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    u = np.tile([0.0, 0.0, 1.0], (21, 1))
+    frames = np.stack([u, np.cross(n, u), n], axis=1)
+    out = tilted_frames(frames, j, np.array([8, 15]), np.array([2.0, 0.0]))
+    a = sum(np.exp(-((k - 8) ** 2) / 8) for k in range(11))
+    b = sum(np.exp(-((k - 8) ** 2) / 8) for k in range(11, 21))
+    want = np.array([a, b, 0.0]) / np.hypot(a, b)
+    np.testing.assert_allclose(out[0, 2], want, atol=1e-12)
+    np.testing.assert_allclose(out[0, 0], [0.0, 0.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(out[0, 1], np.cross(want, [0.0, 0.0, 1.0]), atol=1e-12)
+    np.testing.assert_array_equal(out[1], frames[15])
