@@ -244,3 +244,17 @@ def test_tilted_normal_is_the_gaussian_mean_of_the_tangents():
     np.testing.assert_allclose(out[0, 0], [0.0, 0.0, 1.0], atol=1e-12)
     np.testing.assert_allclose(out[0, 1], np.cross(want, [0.0, 0.0, 1.0]), atol=1e-12)
     np.testing.assert_array_equal(out[1], frames[15])
+
+
+def test_unfold_shrinks_the_inner_y_side_when_v_points_to_the_centre():
+    """The arc of the test above with its frames turned a quarter about n (u' = -v, v' = u): v now points to the
+    centre of curvature, det J = 1 - y / R, and only y_hi shrinks, to R (1 - eps)."""
+    radius, eps = 10.0, 0.2
+    d = _arc(radius)
+    turned = [np.stack([-k.frame[1], k.frame[0], k.frame[2]]) for k in d.keyframes]
+    d = Deformation.from_keyframes([k.position for k in d.keyframes], turned, 1.0).set_cage(None, (-3.0, 3.0, -12.0,
+                                                                                                   14.0))
+    assert d.folds()
+    u = unfold(d, eps=eps)
+    np.testing.assert_allclose(u.bounds[:, [0, 1, 2]], np.tile([-3.0, 3.0, -12.0], (len(u), 1)))
+    np.testing.assert_allclose(u.bounds[:, 3], radius * (1 - eps), atol=0.01)
