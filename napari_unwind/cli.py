@@ -18,6 +18,7 @@ import argparse
 import logging
 import math
 import os
+import re
 import signal
 import sys
 import threading
@@ -264,31 +265,19 @@ def cmd_bend(args: argparse.Namespace) -> int:
 
 
 def _read_points(args: argparse.Namespace):
+    """The points of ``map-points``: ``--at`` (repeatable) or a points file
+    (:func:`napari_unwind.io.points.read_points`), never both."""
     import numpy as np
 
+    if args.at and args.points:
+        raise UnwindError(f"give points with --at or a file, not both (got --at and {args.points})")
     if args.at:
         return np.array(args.at, dtype=float)
     if not args.points:
         raise UnwindError("give points with --at A0,A1,A2 (repeatable) or a CSV file of 3 columns")
-    path = Path(args.points)
-    if not path.exists():
-        raise FileNotFoundError(f"{path} does not exist")
-    rows = []
-    for n, line in enumerate(path.read_text().splitlines(), start=1):
-        cells = [c.strip() for c in line.replace(";", ",").split(",") if c.strip()]
-        if not cells or cells[0].startswith("#"):
-            continue
-        try:
-            rows.append([float(c) for c in cells[:3]])
-        except ValueError:
-            if not rows and n == 1:
-                continue  # a header line
-            raise UnwindError(f"{path} line {n}: expected 3 numbers, got {line!r}") from None
-        if len(rows[-1]) != 3:
-            raise UnwindError(f"{path} line {n}: expected 3 numbers (axis0, axis1, axis2), got {line!r}")
-    if not rows:
-        raise UnwindError(f"{path} holds no points")
-    return np.array(rows)
+    from .io.points import read_points
+
+    return read_points(args.points)
 
 
 def cmd_map_points(args: argparse.Namespace) -> int:
@@ -297,8 +286,8 @@ def cmd_map_points(args: argparse.Namespace) -> int:
     from .io._atomic import atomic_output
     from .warp import map_points
 
+    pts = _read_points(args)  # a mistake in the points is told before the session is read
     session = _load_session_for(args, None, [args.output], [args.points])
-    pts = _read_points(args)
     mapped = map_points(pts, session.deformation, to=args.to, spacing=args.spacing)
     header = "axis0,axis1,axis2" if args.to == "scan" else "s_index,y_index,x_index"
     lines = [f"# {'scan' if args.to == 'straight' else 'straight'} -> {args.to} voxels; NaN: outside the cage",
@@ -727,12 +716,19 @@ def _add_max_output(p: argparse.ArgumentParser) -> None:
                    "napari_unwind.warp.DEFAULT_MAX_OUTPUT)")
 
 
+#: One number or comma-separated numbers whose first is negative: "-3", "-3,10,10", "-1.5e2,0,.5".
+_NEGATIVE_NUMBERS = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?(,[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)*$")
+
+
 class _Parser(argparse.ArgumentParser):
     """An ArgumentParser whose mistakes are one line and exit status 1, like every other error of ``unwind``."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         kwargs.setdefault("epilog", EPILOG)
         super().__init__(*args, **kwargs)
+        # a value such as -3,10,10 (--head -3,10,10, --at -1.5,2,2) is a value, not an unknown option: argparse's
+        # own pattern knows only single numbers (-3, -.5); no option of unwind looks like a number
+        self._negative_number_matcher = _NEGATIVE_NUMBERS
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(1, f"unwind: error: {' '.join(message.split())}; see {self.prog} --help\n")
@@ -903,8 +899,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_input_options(p)
 
     p = sub.add_parser("map-points", help="carry points between the scan and the straight volume")
-    p.add_argument("points", nargs="?", help="CSV of points, 3 columns in array index order (voxels)")
-    p.add_argument("--at", type=_triple, action="append", help="one point A0,A1,A2 (repeatable)")
+    p.add_argument("points", nargs="?", help="CSV of points in full-resolution voxels, array index order: napari's "
+                   "Points CSV (index,axis-0,axis-1,axis-2) or 3 columns with or without a header; ',', ';' or tab "
+                   "separated, '.' as the decimal mark")
+    p.add_argument("--at", type=_triple, action="append", help="one point A0,A1,A2 (repeatable; instead of a file)")
     p.add_argument("--session", required=True, help="the session file (*.unwind.json) holding the deformation")
     p.add_argument("--to", choices=("straight", "scan"), default="straight",
                    help="straight: scan voxels -> straight voxels (default); scan: the other way")

@@ -17,6 +17,7 @@ _LAZY = {
     "FORMATS": "_formats",
     "detect_format": "_formats",
     "Volume": "_volume",
+    "read_points": "points",
 }
 
 __getattr__, __dir__ = lazy_attributes(__name__, _LAZY, globals())
@@ -31,6 +32,7 @@ __all__ = [
     "import_volume",
     "import_volume_iter",
     "open_volume",
+    "read_points",
     "write_volume",
     "write_volume_iter",
 ]
