@@ -39,6 +39,7 @@ def test_crash_leaves_nothing_and_keeps_old_output(tmp_path):
 def test_folder_outputs_replace_existing_folder(tmp_path):
     target = tmp_path / "store.zarr"
     target.mkdir()
+    (target / ".zgroup").write_text('{"zarr_format": 2}')  # a store (a folder of other files is never replaced)
     (target / "old").write_text("x")
     with atomic_output(target, overwrite=True) as tmp:
         tmp.mkdir()
@@ -154,18 +155,29 @@ def test_an_empty_folder_made_meanwhile_is_not_replaced(tmp_path, monkeypatch, p
 
 
 @pytest.mark.parametrize("portable", [False, True], ids=["renameat2", "portable"])
-def test_overwrite_replaces_folders_and_files_either_way(tmp_path, monkeypatch, portable):
+def test_overwrite_never_swaps_a_folder_and_a_file(tmp_path, monkeypatch, portable):
+    """A folder over a file or a file over a folder is refused, both left as they were (issue 20: --overwrite
+    replaced a folder of a user's files with a TIFF); a store of ours over a store of ours is replaced."""
     if portable:
         monkeypatch.setattr(_atomic, "_renameat2_fn", None)
     target = tmp_path / "out"
     target.write_text("a file")
-    with atomic_output(target, overwrite=True) as tmp:  # a folder over a file
+    with pytest.raises(OutputError, match="it is a file and the output is a folder"):
+        with atomic_output(target, overwrite=True) as tmp:
+            tmp.mkdir()
+            (tmp / "x").write_text("folder")
+    assert target.read_text() == "a file"
+    target.unlink()
+    target.mkdir()
+    (target / ".zgroup").write_text("{}")  # a store of ours
+    with pytest.raises(OutputError, match="it is a folder and the output is a file"):
+        with atomic_output(target, overwrite=True) as tmp:
+            tmp.write_text("file again")
+    assert (target / ".zgroup").read_text() == "{}"
+    with atomic_output(target, overwrite=True) as tmp:  # a store over a store
         tmp.mkdir()
-        (tmp / "x").write_text("folder")
-    assert (target / "x").read_text() == "folder"
-    with atomic_output(target, overwrite=True) as tmp:  # a file over a folder
-        tmp.write_text("file again")
-    assert target.read_text() == "file again"
+        (tmp / "zarr.json").write_text("{}")
+    assert sorted(p.name for p in target.iterdir()) == ["zarr.json"]
     assert no_leftovers(tmp_path) == []
 
 
@@ -423,6 +435,7 @@ def test_renameat2_is_found_on_linux_and_a_refusing_filesystem_falls_back(tmp_pa
 def test_a_target_that_vanishes_during_the_swap_still_gets_the_output(tmp_path, monkeypatch):
     target = tmp_path / "out.zarr"
     target.mkdir()
+    (target / ".zgroup").write_text("{}")  # a store of ours: replaceable
     (target / "old").write_text("x")
     real = _atomic._renameat2
 
@@ -443,6 +456,7 @@ def test_a_failed_portable_swap_puts_the_old_output_back(tmp_path, monkeypatch):
     monkeypatch.setattr(_atomic, "_renameat2_fn", None)
     target = tmp_path / "out.zarr"
     target.mkdir()
+    (target / ".zgroup").write_text("{}")  # a store of ours: replaceable
     (target / "old").write_text("keep me")
     real = os.replace
 

@@ -271,7 +271,46 @@ def check_writable(path: str | os.PathLike, *, overwrite: bool = True) -> Path:
         raise OutputError(f"cannot write {path}: the folder {parent} is not writable; choose another output path")
     if path.exists() and not overwrite:
         raise OutputError(f"{path} already exists; pass overwrite=True (CLI: --overwrite) or choose another name")
+    if path.is_dir() and not path.is_symlink():
+        why = _foreign(path)
+        if why:
+            raise OutputError(f"cannot replace {path}: it is a folder that holds {why}, not an output of "
+                              "napari-unwind; overwrite replaces only a file or a store this program writes: remove it "
+                              "yourself or choose another name")
     return path
+
+
+#: Suffixes of the files of the folder outputs this program writes (a DICOM series, a stack of 2D slices) and of
+#: the files a run --all folder holds.
+_OUR_SUFFIXES = frozenset({".dcm", ".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg", ".csv", ".json"})
+_ZARR_MARKS = ("zarr.json", ".zgroup", ".zarray")
+
+
+def _foreign(folder: Path) -> str:
+    """What in an existing output ``folder`` this program could not have written ("" when nothing): a folder is
+    replaceable when it is empty, a zarr store, or holds only the files of a DICOM series, a slice stack or
+    ``run --all``'s table and sessions (and the stores of its specimens)."""
+    if any((folder / m).is_file() for m in _ZARR_MARKS):
+        return ""
+    try:
+        entries = sorted(os.scandir(folder), key=lambda e: e.name)
+    except OSError as exc:
+        return f"entries that cannot be listed ({exc.strerror or exc})"
+    for e in entries:
+        name = e.name
+        if e.is_dir(follow_symlinks=False):
+            if name.endswith(".zarr") and any(os.path.isfile(os.path.join(e.path, m)) for m in _ZARR_MARKS):
+                continue
+            if TMP_MARK in name:
+                continue
+            return f"the folder {name!r}"
+        if not e.is_file(follow_symlinks=False):
+            return f"{name!r}, which is not a regular file"
+        if TMP_MARK in name or name.startswith("."):
+            continue
+        if Path(name).suffix.lower() not in _OUR_SUFFIXES:
+            return f"the file {name!r}"
+    return ""
 
 
 _NHDR_DATA = re.compile(rb"^data ?file: *(\S.*?)\s*$", re.IGNORECASE | re.MULTILINE)
@@ -376,6 +415,13 @@ def atomic_output(path: str | os.PathLike, *, overwrite: bool = True) -> Iterato
         if not os.path.lexists(tmp):
             raise OutputError(f"internal error: nothing was written for {path}")
         if overwrite:
+            if os.path.lexists(path) and tmp.is_dir() != (path.is_dir() and not path.is_symlink()):
+                what = "a folder" if path.is_dir() else "a file"
+                raise OutputError(f"cannot replace {path}: it is {what} and the output is "
+                                  f"{'a folder' if tmp.is_dir() else 'a file'}; remove it yourself or choose "
+                                  "another name")
+            if path.is_dir() and not path.is_symlink() and _foreign(path):  # made meanwhile
+                check_writable(path, overwrite=True)
             _replace(tmp, path)
         else:
             try:
