@@ -89,8 +89,12 @@ def tree_hash(*paths: Path) -> str:
 
 
 def leftovers(*folders: Path) -> list[Path]:
-    """Temporary outputs of atomic writes (``*.unwind-tmp``) anywhere under ``folders``."""
-    return [p for f in folders for p in Path(f).rglob("*") if "unwind-tmp" in p.name]
+    """Temporary outputs of atomic writes (``*.unwind-tmp``) anywhere under ``folders``.
+
+    Read with ``os.walk``, which passes over a folder that vanishes while it is read: a test watches these while a
+    process writes and removes them (``Path.rglob`` raised FileNotFoundError there once, on a loaded machine)."""
+    return [Path(root) / name for f in folders for root, dirs, files in os.walk(f) for name in (*dirs, *files)
+            if "unwind-tmp" in name]
 
 
 def run(*args, cwd: Path | None = None, timeout: float = 120) -> tuple[int, str, str]:
