@@ -3,7 +3,7 @@
 # file). Each run must pass; a failure names its order and seed, so it can be replayed with
 #   .venv/bin/python -m pytest -p pytest_order --order-seed SEED tests/_napari   (PYTHONPATH=scripts, under Xvfb)
 #   bash scripts/test_order.sh [SEED ...]        (default seeds: 1 2 3; the default suite's order is unchanged)
-# Not part of the default run nor of CI's: about 3 full passes over tests/_napari.
+# Not part of the default run; CI (.ci/run) does one shuffled pass, seeded by the commit. This: about 3 passes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export QT_QPA_PLATFORM=xcb PYTHONPATH="scripts${PYTHONPATH:+:$PYTHONPATH}"
