@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress, run
-from ._atomic import atomic_output, check_writable, final_name
+from ._atomic import atomic_output, check_not_input, check_writable, final_name
 from ._formats import detect_format, output_format, reader_for, writer_for
 from ._volume import Volume
 
@@ -187,6 +187,8 @@ def write_volume_iter(
         options.setdefault("pattern", pattern)
     volume = _checked(as_volume(data, spacing=spacing, unit=unit, origin=origin), nan_value)
     target = check_writable(path, overwrite=overwrite)
+    # a volume read from a file is never written into, over or around that file (the CLI's rule, for the API too)
+    check_not_input([target], [getattr(data, "source", None)] if isinstance(data, Volume) else [])
     try:
         with atomic_output(target, overwrite=overwrite) as tmp:  # removes the temporary output on any error
             yield from writer(volume, tmp, **options)

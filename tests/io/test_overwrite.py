@@ -107,3 +107,18 @@ def test_a_folder_of_slices_is_ours_to_replace_but_not_with_a_stranger_among_the
     (stack / "README.txt").unlink()
     write_volume(data, stack / "slice_{:04d}.png", overwrite=True)  # a stack of slices: ours to replace
     assert sorted(p.name for p in stack.iterdir()) == [f"slice_{i:04d}.png" for i in range(4)]
+
+
+def test_the_api_refuses_to_write_into_its_own_input(small, tmp_path):
+    """import_volume("X.zarr", "X.zarr/inner.zarr") wrote into its own input from Python; the CLI refused it."""
+    from napari_unwind.io import import_volume, open_volume
+
+    data, scan = small
+    before = _tree(scan)
+    for target in (scan / "inner.zarr", scan):
+        with pytest.raises(OutputError, match="input"):
+            import_volume(scan, target, overwrite=True)
+        with pytest.raises(OutputError, match="input"):
+            write_volume(open_volume(scan), target, overwrite=True)
+    assert _tree(scan) == before
+    _no_temps(tmp_path)
