@@ -6,6 +6,7 @@ import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -256,3 +257,12 @@ Volume.data = _Voxels()  # type: ignore[assignment,misc]
 Volume.data.__set_name__(Volume, "data")
 Volume.levels = _Voxels()  # type: ignore[assignment,misc]
 Volume.levels.__set_name__(Volume, "levels")
+
+
+def warn_bad_spacing(path: Any, axis: int, value: float) -> None:
+    """Say that a file declares a voxel size that is not a positive number along array ``axis``, read as 1."""
+    import warnings
+
+    warnings.warn(f"{Path(str(path)).name} declares a voxel size of {value:g} along axis{axis}, which is not a "
+                  "positive number: it is read as 1; give the real spacing (--spacing A0,A1,A2, or spacing= in "
+                  "Python) or fix the file's header", UserWarning, stacklevel=3)

@@ -48,7 +48,7 @@ from ..errors import InvalidInputError
 from ..progress import Progress
 from ._atomic import final_name
 from ._lazy import write_slab_depth
-from ._volume import SUPPORTED_DTYPES, Volume, normalise_unit
+from ._volume import SUPPORTED_DTYPES, Volume, normalise_unit, warn_bad_spacing
 
 __all__ = ["read_nifti", "write_nifti"]
 
@@ -172,6 +172,19 @@ class _GzipPlanes:
         return out[0] if single else out
 
 
+def _file_pixdims(path: Path, header_class: Any) -> list[float | None]:
+    """pixdim[1..3] as the file states them, before nibabel's fix of zeros (None each when it cannot be read)."""
+    import gzip
+
+    try:
+        opener = gzip.open if str(path).lower().endswith(".gz") else open
+        with opener(path, "rb") as fh:
+            raw = header_class.from_fileobj(fh, check=False)
+        return [float(v) for v in raw["pixdim"][1:4]]
+    except Exception:  # noqa: BLE001 - the header was read once already; this is only to say more
+        return [None, None, None]
+
+
 def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
     """Open a NIfTI-1 or NIfTI-2 volume (``.nii`` or ``.nii.gz``) lazily.
 
@@ -252,7 +265,12 @@ def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
                              asarray=False).transpose(2, 1, 0)
 
     zooms = [float(z) for z in hdr.get_zooms()[:3]]
-    zooms = [z if np.isfinite(z) and z > 0 else 1.0 for z in zooms]
+    # nibabel sets a zero pixdim to 1 on load (a log line no one sees): read the file's own values to say so
+    zooms = [z if r is None or (np.isfinite(r) and r > 0) else r for z, r in zip(zooms, _file_pixdims(path, type(hdr)))]
+    for k, z in enumerate(zooms):
+        if not (np.isfinite(z) and z > 0):
+            warn_bad_spacing(path, 2 - k, z)
+            zooms[k] = 1.0
     xyz_unit, _ = hdr.get_xyzt_units()
     try:
         unit = normalise_unit(xyz_unit)

@@ -44,7 +44,7 @@ from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import final_name, remove_path, temp_path
 from ._lazy import RawFileArray, iter_slabs, write_slab_depth
-from ._volume import UNIT_ABBREVIATIONS, LazyArray, Volume, normalise_unit
+from ._volume import UNIT_ABBREVIATIONS, LazyArray, Volume, normalise_unit, warn_bad_spacing
 
 if TYPE_CHECKING:
     import dask.array as da
@@ -311,14 +311,17 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
     # spacing, origin, unit (file order, then reversed into array order)
     spacing_file = []
     spacings = header.get("spacings")
-    for i in spatial:
+    for k, i in enumerate(spatial):
         if vectors[i] is not None:
             s = float(np.linalg.norm(vectors[i]))
-        elif spacings is not None and i < len(spacings) and np.isfinite(spacings[i]):
+        elif spacings is not None and i < len(spacings):
             s = abs(float(spacings[i]))
         else:
+            s = 1.0  # the file states no voxel size: 1, as every NRRD reader reads it
+        if not (np.isfinite(s) and s > 0):
+            warn_bad_spacing(path, 2 - k, s)
             s = 1.0
-        spacing_file.append(s if s > 0 else 1.0)
+        spacing_file.append(s)
     origin_file = [0.0, 0.0, 0.0]
     if header.get("space origin") is not None:
         o = np.asarray(header["space origin"], dtype=float)

@@ -1,0 +1,60 @@
+"""A file that declares a voxel size that is not a positive number (0, NaN) is read as 1 with a warning that names
+the file, the axis and the value, never silently (issue 20: NRRD and NIfTI with zero or NaN spacing were read as 1
+without a word). A file that states no voxel size at all is read as 1 quietly, as every reader of the format does."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from napari_unwind.io import open_volume
+
+
+def _read(path):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        v = open_volume(path)
+    return v, [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+
+
+@pytest.mark.parametrize("bad, shown", [(0.0, "0"), (float("nan"), "nan")])
+def test_nrrd_spacing_that_is_not_positive_is_said(tmp_path, bad, shown):
+    import nrrd
+
+    a = np.zeros((4, 5, 6), np.uint8)
+    path = tmp_path / "lies.nrrd"
+    # file axes are the array's reversed: the first "spacings" entry is array axis2
+    nrrd.write(str(path), a, {"spacings": [bad, 2.0, 3.0]}, index_order="C")
+    v, said = _read(path)
+    assert v.spacing == (3.0, 2.0, 1.0)
+    assert said == [f"lies.nrrd declares a voxel size of {shown} along axis2, which is not a positive number: it is "
+                    "read as 1; give the real spacing (--spacing A0,A1,A2, or spacing= in Python) or fix the file's "
+                    "header"]
+    path2 = tmp_path / "dirs.nrrd"
+    nrrd.write(str(path2), a, {"space": "left-posterior-superior",
+                               "space directions": np.diag([1.5, 0.0, 1.0])}, index_order="C")
+    v, said = _read(path2)
+    assert v.spacing == (1.0, 1.0, 1.5) and len(said) == 1 and "of 0 along axis1" in said[0]
+
+
+def test_nrrd_without_a_voxel_size_is_read_as_1_quietly(tmp_path):
+    import nrrd
+
+    path = tmp_path / "plain.nrrd"
+    nrrd.write(str(path), np.zeros((4, 5, 6), np.uint8), index_order="C")
+    v, said = _read(path)
+    assert v.spacing == (1.0, 1.0, 1.0) and said == []
+
+
+def test_nifti_zero_zoom_is_said(tmp_path):
+    import nibabel as nib
+
+    path = tmp_path / "lies.nii"
+    img = nib.Nifti1Image(np.zeros((6, 5, 4), np.uint8), np.diag([1.0, 2.0, 3.0, 1.0]))
+    img.header["pixdim"][2] = 0.0  # the j axis (array axis1 after the transpose to K, J, I)
+    raw = img.header.binaryblock + b"\x00" * 4 + np.zeros((6, 5, 4), np.uint8).tobytes(order="F")
+    path.write_bytes(raw)
+    v, said = _read(path)
+    assert v.spacing[1] == 1.0 and any("lies.nii declares a voxel size of 0 along axis1" in m for m in said), said
