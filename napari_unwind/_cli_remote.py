@@ -75,6 +75,26 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _port(text: str) -> int:
+    """A TCP port, 0..65535 (0: any free port); gRPC took 99999 and listened on a port of its choosing."""
+    v = _positive_int(text)
+    if v > 65535:
+        raise argparse.ArgumentTypeError(f"a port is a whole number in 0..65535 (0: any free port), got {text!r}")
+    return v
+
+
+def _days(text: str) -> float:
+    """A positive, finite number of days (--expires-days inf gave a traceback)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of days > 0, got {text!r}") from None
+    if not (v > 0 and v <= 36500):
+        raise argparse.ArgumentTypeError(f"expected a number of days in (0, 36500], got {text!r}; leave "
+                                         "--expires-days out for a token that does not expire")
+    return v
+
+
 # ------------------------------------------------------------------------------------------------------------------
 # unwind serve
 # ------------------------------------------------------------------------------------------------------------------
@@ -360,7 +380,7 @@ def add_remote_commands(subparsers: Any) -> None:
     p = subparsers.add_parser("serve", help="run the gRPC server: every service in one process by default")
     p.add_argument("--data-root", default=None, metavar="DIR",
                    help="folder of the server's data: uploads, outputs, the job table (SQLite)")
-    p.add_argument("--port", type=_positive_int, default=50051, help="port (default 50051; 0: any free port)")
+    p.add_argument("--port", type=_port, default=50051, help="port (default 50051; 0: any free port)")
     p.add_argument("--listen", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1, this machine only; 0.0.0.0 needs --tokens)")
     p.add_argument("--service", action="append", choices=("volume", "segmentation", "skeleton", "warp", "jobs"),
@@ -374,7 +394,7 @@ def add_remote_commands(subparsers: Any) -> None:
     p.add_argument("--tokens", default=None, metavar="FILE", help="tokens file: USER sha256:<hash> per line")
     p.add_argument("--add-token", default=None, metavar="USER",
                    help="print a new token for USER, store its hash in --tokens FILE, and exit")
-    p.add_argument("--expires-days", type=float, default=None, help="with --add-token: the token expires after this")
+    p.add_argument("--expires-days", type=_days, default=None, help="with --add-token: the token expires after this")
     p.add_argument("--tls-cert", default=None, metavar="PEM", help="TLS certificate chain (with --tls-key)")
     p.add_argument("--tls-key", default=None, metavar="PEM", help="TLS private key (with --tls-cert)")
     p.add_argument("--max-upload-bytes", type=_positive_int, default=8 * 1024**3,
