@@ -258,3 +258,74 @@ def test_unfold_shrinks_the_inner_y_side_when_v_points_to_the_centre():
     u = unfold(d, eps=eps)
     np.testing.assert_allclose(u.bounds[:, [0, 1, 2]], np.tile([-3.0, 3.0, -12.0], (len(u), 1)))
     np.testing.assert_allclose(u.bounds[:, 3], radius * (1 - eps), atol=0.01)
+
+
+def _turned_arc(radius, theta, bounds):
+    """The quarter arc of :func:`_arc` (80 keyframes) with every frame turned by ``theta`` about n (u' = cos u +
+    sin v, v' = -sin u + cos v). Towards the centre of curvature is u = cos(theta) u' - sin(theta) v', so on every
+    segment det J = n . c' - k (x cos(theta) - y sin(theta)): a bend about both axes at once, w_x = k sin(theta),
+    w_y = k cos(theta). Between keyframes an angle 2h apart the chord is 2 R sin(h), so exactly n . c' = cos(h)
+    at both ends of a segment and k = 2h / chord = h / (R sin(h)). Returns the deformation, cos(h) and k."""
+    d = _arc(radius)
+    c, s = np.cos(theta), np.sin(theta)
+    turned = [np.stack([c * k.frame[0] + s * k.frame[1], -s * k.frame[0] + c * k.frame[1], k.frame[2]])
+              for k in d.keyframes]
+    d = Deformation.from_keyframes([k.position for k in d.keyframes], turned, 1.0).set_cage(None, bounds)
+    h = np.pi / 2 / (len(d) - 1) / 2
+    return d, np.cos(h), h / (radius * np.sin(h))
+
+
+# (theta in degrees, cage, floor, side -> its unfolded value as f(base - eps, kx, ky), kx = k |cos|, ky = k |sin|)
+_BOTH_SIDES = {
+    # x rotates faster (cos 30 > sin 30): the inner x side x_hi takes the whole deficit, y_lo = -12 is kept
+    "x-faster": (30, (-3.0, 14.0, -12.0, 3.0), None, {1: lambda m, kx, ky: (m - 12 * ky) / kx}),
+    # y rotates faster (sin 60 > cos 60): the inner y side y_lo takes it, x_hi = 14 is kept
+    "y-faster": (60, (-3.0, 14.0, -12.0, 3.0), None, {2: lambda m, kx, ky: -(m - 14 * kx) / ky}),
+    # the same with a floor at y_lo = -4: y stops there, the rest comes off x_hi
+    "y-floored": (60, (-3.0, 14.0, -12.0, 3.0), (-1.0, 1.0, -4.0, 1.0),
+                  {1: lambda m, kx, ky: (m - 4 * ky) / kx, 2: lambda m, kx, ky: -4.0}),
+    # the other corner (w_x, w_y < 0: x_lo and y_hi inner), y faster
+    "other-corner": (-120, (-14.0, 3.0, -3.0, 12.0), None, {3: lambda m, kx, ky: (m - 14 * kx) / ky}),
+    # x_hi alone folds (18 k cos 60 > 1 - eps): y_hi, faster, goes onto the curve first (its y_lo is 0: a
+    # sliver keeps the box), then x_hi to the limit of x alone
+    "y-onto-curve": (-60, (-3.0, 18.0, 0.0, 5.0), None, {1: lambda m, kx, ky: m / kx, 3: lambda m, kx, ky: 0.0}),
+}
+
+
+@pytest.mark.parametrize("case", list(_BOTH_SIDES))
+def test_unfold_of_a_cage_folding_on_an_x_and_a_y_side_takes_the_deficit_off_the_faster_side(case):
+    """A bend about both frame axes (the arc's frames turned about n): the cage's inner corner folds through an x
+    and a y side at once. unfold cuts the side of the faster rotation first, down to the floor (or the curve),
+    then the other, until det J at the inner corner is eps; every keyframe gets the same analytic sides."""
+    theta, cage, floor, want = _BOTH_SIDES[case]
+    radius, eps = 10.0, 0.2
+    d, base, k = _turned_arc(radius, np.radians(theta), cage)
+    assert d.folds()
+    u = unfold(d, eps=eps, floor=None if floor is None else np.tile(floor, (len(d), 1)))
+    kx, ky = k * abs(np.cos(np.radians(theta))), k * abs(np.sin(np.radians(theta)))
+    expect = np.array(cage)
+    for side, f in want.items():
+        expect[side] = f(base - eps, kx, ky)
+    got = u.bounds
+    assert got[:, 1].min() > got[:, 0].max() and got[:, 3].min() > got[:, 2].max()
+    # a side on the curve keeps a sliver (1e-6 of the largest side), all others are exact
+    np.testing.assert_allclose(got, np.tile(expect, (len(u), 1)), rtol=1e-9, atol=2e-5)
+    np.testing.assert_allclose(u.jacobian_min(u.knots), eps, atol=1e-5)
+
+
+@pytest.mark.parametrize("theta, side", [(0, 1), (-90, 3)], ids=["u-inward", "v-inward"])
+def test_unfold_finds_the_inner_side_of_a_cage_beside_the_curve(theta, side):
+    """A cage wholly on the inner side of a tight arc (R = 0.5, so the rate k ~ 2 > 1): across the curve
+    direction it spans [0.3, 1.0]. The inner side is the far one, 1.0, where det J = cos(h) - 2 k < 0; its near
+    side 0.3 holds (cos(h) - 0.6 k > eps). unfold brings the far side to (cos(h) - eps) / k ~ R (1 - eps) = 0.4
+    and keeps the near side: comparing the sides scaled by the rate (x_hi w_y against x_lo w_y) tells them apart,
+    scaling one of them by 1 / w instead does not, once w > 1."""
+    radius, eps = 0.5, 0.2
+    cage = (0.3, 1.0, -0.2, 0.2) if side == 1 else (-0.2, 0.2, 0.3, 1.0)
+    d, base, k = _turned_arc(radius, np.radians(theta), cage)
+    assert k > 1 and d.folds()
+    u = unfold(d, eps=eps)
+    expect = np.array(cage)
+    expect[side] = (base - eps) / k
+    np.testing.assert_allclose(u.bounds, np.tile(expect, (len(u), 1)), rtol=1e-9, atol=1e-12)
+    assert not u.folds(threshold=eps - 1e-6)
