@@ -39,6 +39,19 @@ def check_spacing(spacing: Any, ndim: int = 3) -> tuple[float, ...]:
     return values
 
 
+def check_origin(origin: Any, ndim: int = 3) -> tuple[float, ...]:
+    """Validate an origin: ``ndim`` finite numbers (the position of voxel 0), in array axis order."""
+    try:
+        values = tuple(float(o) for o in np.broadcast_to(np.asarray(origin, dtype=float), (ndim,)))
+    except (TypeError, ValueError, OverflowError):
+        raise InvalidInputError(
+            f"origin must be {ndim} numbers in array axis order (axis0, axis1, axis2), got {origin!r}"
+        ) from None
+    if not all(np.isfinite(v) for v in values):
+        raise InvalidInputError(f"origin must be finite numbers, got {values}")
+    return values
+
+
 def _is_dask(value: Any) -> bool:
     """``isinstance(value, dask.array.Array)`` without importing dask: no dask array exists before dask is imported."""
     da = sys.modules.get("dask.array")
@@ -164,7 +177,7 @@ class Volume:
                 + " (convert colour images to grey first)"
             )
         object.__setattr__(self, "spacing", check_spacing(self.spacing))
-        object.__setattr__(self, "origin", tuple(float(o) for o in np.broadcast_to(self.origin, (3,))))
+        object.__setattr__(self, "origin", check_origin(self.origin))
         object.__setattr__(self, "unit", normalise_unit(self.unit))
         if not self.__dict__["levels"]:
             object.__setattr__(self, "levels", (data,))

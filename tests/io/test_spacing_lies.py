@@ -58,3 +58,14 @@ def test_nifti_zero_zoom_is_said(tmp_path):
     path.write_bytes(raw)
     v, said = _read(path)
     assert v.spacing[1] == 1.0 and any("lies.nii declares a voxel size of 0 along axis1" in m for m in said), said
+
+
+@pytest.mark.parametrize("ext", ["tif", "nrrd", "zarr", "nii"])
+def test_an_infinite_origin_is_refused_before_writing(tmp_path, ext):
+    """TIFF wrote an infinite origin and read it back; NRRD and NIfTI dropped it for 0 without a word."""
+    from napari_unwind.errors import InvalidInputError
+    from napari_unwind.io import write_volume
+
+    with pytest.raises(InvalidInputError, match=r"origin must be finite numbers, got \(inf, 0.0, 0.0\)"):
+        write_volume(np.zeros((4, 5, 6), np.uint8), tmp_path / f"o.{ext}", origin=(float("inf"), 0, 0))
+    assert list(tmp_path.iterdir()) == []
