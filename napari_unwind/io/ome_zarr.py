@@ -306,6 +306,11 @@ class _ZarrChunks:
 def _lazy(array: zarr.Array, store: Path, *, complete: bool, index: tuple = ()) -> LazyArray:
     """A dask array over ``array`` (one dask chunk per zarr chunk) whose reads name broken chunk files, indexed by
     ``index`` (slices, or 0 for a non-spatial axis of length 1); built, importing dask, on first use."""
+    bad = [c for c in (*array.chunks, *(array.shards or ())) if int(c) < 1]
+    if bad:
+        raise InvalidInputError(f"{store}: the array {str(array.path) or '/'} declares chunks {tuple(array.chunks)}; "
+                                "every chunk side must be at least 1: the store's metadata is damaged (rewrite it with "
+                                "unwind convert from the source, or fix its chunk_shape)")
     wrapped = _ZarrChunks(array, str(store), complete=complete)
     try:
         meta_file = os.path.join(wrapped.store, str(array.path), "zarr.json")

@@ -69,3 +69,24 @@ def test_an_infinite_origin_is_refused_before_writing(tmp_path, ext):
     with pytest.raises(InvalidInputError, match=r"origin must be finite numbers, got \(inf, 0.0, 0.0\)"):
         write_volume(np.zeros((4, 5, 6), np.uint8), tmp_path / f"o.{ext}", origin=(float("inf"), 0, 0))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_zarr_chunk_side_of_0_is_one_line_not_a_traceback(tmp_path):
+    """A store whose metadata declares a chunk side of 0: `info` reported chunks 1x5x6 and convert raised
+    ZeroDivisionError (issue 20)."""
+    import json
+
+    from conftest import run_unwind
+
+    from napari_unwind.io import write_volume
+
+    store = write_volume(np.zeros((4, 5, 6), np.uint8), tmp_path / "s.zarr")
+    meta = store / "0" / "zarr.json"
+    j = json.loads(meta.read_text())
+    j["chunk_grid"]["configuration"]["chunk_shape"] = [0, 5, 6]
+    meta.write_text(json.dumps(j))
+    for args in (("info", store), ("convert", store, tmp_path / "o.tif")):
+        code, out, err = run_unwind(*args)
+        assert code == 1 and "Traceback" not in err and err.count("\n") == 1, err
+        assert "declares chunks (0, 5, 6); every chunk side must be at least 1" in err, err
+    assert not (tmp_path / "o.tif").exists()
