@@ -223,6 +223,9 @@ def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
             "(extract one time point or channel first, e.g. with `fslroi` or nibabel)"
         )
     shape = full_shape[:3]
+    if any(s < 1 for s in full_shape):
+        raise InvalidInputError(f"{path}: the header's dimensions {full_shape} hold a size below 1; every axis has "
+                                "at least one sample: the header is damaged")
     raw = np.dtype(img.get_data_dtype())
     if raw.fields is not None or raw.kind not in "iuf":
         raise InvalidInputError(f"{path}: voxel type {raw} is not supported; convert it to grey values first")

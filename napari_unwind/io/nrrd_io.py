@@ -286,6 +286,9 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
     ndim = len(sizes)
     if ndim != int(header["dimension"]):
         raise InvalidInputError(f"{path}: 'dimension: {header['dimension']}' but {ndim} sizes {sizes}")
+    if any(s < 1 for s in sizes):
+        raise InvalidInputError(f"{path}: the header's sizes {sizes} hold a size below 1; every axis has at least one "
+                                "sample: the header is damaged (fix its 'sizes:' line)")
     encoding = str(header["encoding"]).strip().lower()
     if encoding not in ("raw", *_GZIP, *_BZIP2, *_ASCII):
         raise InvalidInputError(f"{path}: unsupported NRRD encoding {encoding!r}; re-save it as raw or gzip")

@@ -90,3 +90,21 @@ def test_a_zarr_chunk_side_of_0_is_one_line_not_a_traceback(tmp_path):
         assert code == 1 and "Traceback" not in err and err.count("\n") == 1, err
         assert "declares chunks (0, 5, 6); every chunk side must be at least 1" in err, err
     assert not (tmp_path / "o.tif").exists()
+
+
+def test_a_negative_size_in_a_header_is_one_line(tmp_path):
+    """NRRD 'sizes: 6 5 -4' opened as an array of shape (-4, 5, 6) and `info` raised IndexError; a NIfTI dim of -4
+    raised dask's ValueError (issue 20: reported as "4 x 5 x -6, -120 B")."""
+    import nibabel as nib
+    from conftest import run_unwind
+
+    nrrd_path = tmp_path / "neg.nrrd"
+    nrrd_path.write_bytes(b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 6 5 -4\nencoding: raw\n\n" + bytes(120))
+    h = nib.Nifti1Image(np.zeros((6, 5, 4), np.uint8), np.eye(4)).header.copy()
+    h["dim"][3] = -4
+    nii_path = tmp_path / "neg.nii"
+    nii_path.write_bytes(h.binaryblock + bytes(4) + bytes(120))
+    for path in (nrrd_path, nii_path):
+        code, out, err = run_unwind("info", path)
+        assert code == 1 and "Traceback" not in err and err.count("\n") == 1, err
+        assert "hold a size below 1" in err and "-4" in err, err
