@@ -38,7 +38,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ._units import UNITS, unit_label
+from ..errors import InvalidInputError
+from ._units import UNITS, axis_units, unit_label
 
 __all__ = ["Header", "read_header"]
 
@@ -490,8 +491,12 @@ def _ome_zarr(path: Path) -> Header:
                                           for a in axes))
     space = [i for i, a in enumerate(axes) if not isinstance(a, dict) or a.get("type", "space") == "space"]
     _check(len(space) == 3)
-    unit = next((a.get("unit") for a in axes if isinstance(a, dict) and a.get("type", "space") == "space"), None)
-    unit = None if unit is None else _unit(unit)
+    units = [axes[a].get("unit") if isinstance(axes[a], dict) else None for a in space]
+    _check(all(u is None or str(u).strip().lower() in UNITS for u in units))
+    try:
+        unit, factors = axis_units(units)
+    except InvalidInputError:  # lengths mixed with none: the full reader says so
+        _check(False)
     g_scale, g_offset = _transforms(ms.get("coordinateTransformations", []), len(axes))
     datasets = ms["datasets"]
     _check(isinstance(datasets, list) and datasets)
@@ -507,8 +512,8 @@ def _ome_zarr(path: Path) -> Header:
         level_shape = tuple(shape[a] for a in space)
         shapes.append(level_shape)
         chunks.append(_regular_chunks(level_shape, tuple(chunk[a] for a in space)))
-        spacings.append(tuple(scale[a] * g_scale[a] for a in space))
-        origins.append(tuple(offset[a] * g_scale[a] + g_offset[a] for a in space))
+        spacings.append(tuple(scale[a] * g_scale[a] * f for a, f in zip(space, factors, strict=True)))
+        origins.append(tuple((offset[a] * g_scale[a] + g_offset[a]) * f for a, f in zip(space, factors, strict=True)))
         dtypes.append(dtype)
     _check(all(_finite_positive(s) for s in spacings))
     return Header(source=str(path), format="ome-zarr", shape=shapes[0], dtype=dtypes[0], spacing=spacings[0],

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from ..errors import InvalidInputError
 
-__all__ = ["UNITS", "UNIT_ABBREVIATIONS", "normalise_unit", "unit_label"]
+__all__ = ["UNITS", "UNIT_ABBREVIATIONS", "axis_units", "normalise_unit", "unit_label"]
 
 # NGFF unit names (UDUNITS-2) for the spellings file formats use.
 UNITS = {
@@ -42,3 +42,28 @@ def normalise_unit(unit: str | None) -> str | None:
     raise InvalidInputError(
         f"unknown length unit {unit!r}; use one of meter, millimeter, micrometer, nanometer (or m, mm, um, nm)"
     )
+
+
+#: Each unit as a power of ten of metres, to bring axes of different units to one (exact factors: 10 ** 3).
+POWER_OF_METRE = {"meter": 0, "centimeter": -2, "millimeter": -3, "micrometer": -6, "nanometer": -9}
+
+
+def axis_units(units: list) -> tuple[str | None, list[float]]:
+    """One unit for axes that each name theirs (OME-Zarr): the finest of them, and the factor that brings each
+    axis's lengths to it (1 where it already is). Axes without a unit with axes with one are refused: their
+    voxel sizes cannot be compared.
+
+    Raises
+    ------
+    InvalidInputError
+        For an unknown unit, or a mix of axes with and without one.
+    """
+    names = [normalise_unit(u) for u in units]
+    known = {n for n in names if n is not None}
+    if not known:
+        return None, [1.0] * len(names)
+    if len(known) < len(names) and any(n is None for n in names):
+        raise InvalidInputError(f"the spatial axes' units {units} mix lengths with none; give every axis a length "
+                                "unit (or none)")
+    finest = min(known, key=lambda n: POWER_OF_METRE[n])
+    return finest, [10.0 ** (POWER_OF_METRE[n] - POWER_OF_METRE[finest]) for n in names]

@@ -46,6 +46,7 @@ from ..errors import InvalidInputError, UnknownFormatError
 from ..progress import Progress
 from ._atomic import final_name
 from ._headers import compose_transform
+from ._units import axis_units
 from ._volume import LazyArray, Volume
 
 if TYPE_CHECKING:
@@ -388,7 +389,10 @@ def _read_multiscales(path: Path, node: Any, ms: dict, version: str, level: int 
     space = [i for i, a in enumerate(axes) if not isinstance(a, dict) or a.get("type", "space") == "space"]
     if len(space) != 3:
         raise InvalidInputError(f"{path} has axes {axis_names}; napari-unwind needs exactly 3 spatial axes")
-    unit = next((a.get("unit") for a in axes if isinstance(a, dict) and a.get("type", "space") == "space"), None)
+    try:
+        unit, factors = axis_units([axes[a].get("unit") if isinstance(axes[a], dict) else None for a in space])
+    except InvalidInputError as exc:
+        raise InvalidInputError(f"{path}: {exc}") from None
     global_transforms = ms.get("coordinateTransformations", [])
     levels, spacings, origins = [], [], []
     for ds in ms["datasets"]:
@@ -418,8 +422,9 @@ def _read_multiscales(path: Path, node: Any, ms: dict, version: str, level: int 
         scale, offset = _affine(ds.get("coordinateTransformations", []), len(axes), f"{path}/{ds['path']}")
         g_scale, g_offset = _affine(global_transforms, len(axes), str(path))
         levels.append(d)
-        spacings.append(tuple(scale[a] * g_scale[a] for a in space))
-        origins.append(tuple(offset[a] * g_scale[a] + g_offset[a] for a in space))
+        # axes in different units are brought to the finest (axis 0 in mm, axes 1-2 in um: all in um)
+        spacings.append(tuple(scale[a] * g_scale[a] * f for a, f in zip(space, factors, strict=True)))
+        origins.append(tuple((offset[a] * g_scale[a] + g_offset[a]) * f for a, f in zip(space, factors, strict=True)))
     if level is not None:
         if not 0 <= level < len(levels):
             raise InvalidInputError(f"{path} has pyramid levels 0..{len(levels) - 1}, got level={level}")

@@ -108,3 +108,30 @@ def test_a_negative_size_in_a_header_is_one_line(tmp_path):
         code, out, err = run_unwind("info", path)
         assert code == 1 and "Traceback" not in err and err.count("\n") == 1, err
         assert "hold a size below 1" in err and "-4" in err, err
+
+
+def test_ome_zarr_axes_in_different_units_are_brought_to_the_finest(tmp_path):
+    """Axis 0 in millimetres, axes 1-2 in micrometres was reported as "2 x 1 x 1 mm" (issue 20): now 2000 x 1 x 1
+    micrometres, in `info` (the header reader) and in the volume alike; a unit on some axes only is one line."""
+    import json
+
+    from conftest import run_unwind
+
+    from napari_unwind.errors import InvalidInputError
+    from napari_unwind.io import write_volume
+
+    store = write_volume(np.zeros((4, 5, 6), np.uint8), tmp_path / "s.zarr", spacing=(2.0, 1.0, 1.0),
+                         origin=(3.0, 0.0, 0.0), unit="micrometer")
+    meta = store / "zarr.json"
+    j = json.loads(meta.read_text())
+    axes = j["attributes"]["ome"]["multiscales"][0]["axes"]
+    axes[0]["unit"] = "millimeter"
+    meta.write_text(json.dumps(j))
+    v = open_volume(store)
+    assert v.unit == "micrometer" and v.spacing == (2000.0, 1.0, 1.0) and v.origin == (3000.0, 0.0, 0.0)
+    code, out, err = run_unwind("info", store)
+    assert code == 0 and "2000 x 1 x 1 um" in out, out + err
+    del axes[1]["unit"]
+    meta.write_text(json.dumps(j))
+    with pytest.raises(InvalidInputError, match="mix lengths with none"):
+        open_volume(store)
