@@ -286,10 +286,10 @@ def _regularised_by_the_definition(points, window):
     return out
 
 
-def _noisy_helix(n, seed=3):
+def _noisy_helix(n, seed=3, noise=0.3):
     t = np.linspace(0.0, 4.0, n)
     helix = np.stack([5 * np.cos(t), 5 * np.sin(t), 2 * t], axis=1)
-    return helix + np.random.default_rng(seed).normal(0, 0.3, helix.shape)
+    return helix + np.random.default_rng(seed).normal(0, noise, helix.shape)
 
 
 @pytest.mark.parametrize("window", [1.5, 3.0, 100.0])
@@ -318,3 +318,24 @@ def test_regularise_ends_needs_8_points_and_4_at_each_end():
     np.testing.assert_array_equal(out[:3], pts[:3])
     assert np.abs(out[-4:] - pts[-4:]).max() > 1e-3
     np.testing.assert_array_equal(regularise_ends(pts, -1.0), pts)
+
+
+def test_regularise_ends_of_voxel_coordinates_and_a_fit_span_ending_on_a_sample():
+    # A staircase of integer voxel coordinates (steps of 1 along x, y, z in turn): the arclengths are exact integers,
+    # so with a window of 2 the fit span [0, 4] ends exactly on sample 4, which is fitted (weight 0 there). Integer
+    # input gives the float result of the same points as floats.
+    steps = np.eye(3, dtype=np.int64)[np.arange(20) % 3]
+    stair = np.concatenate([np.zeros((1, 3), np.int64), np.cumsum(steps, axis=0)])
+    np.testing.assert_array_equal(arclength(stair), np.arange(21.0))
+    out = regularise_ends(stair, 2.0)
+    assert out.dtype == float
+    np.testing.assert_allclose(out, _regularised_by_the_definition(stair.astype(float), 2.0), atol=1e-12)
+    np.testing.assert_allclose(out, regularise_ends(stair.astype(float), 2.0), atol=1e-12)
+    assert np.abs(out[1] - stair[1]).max() > 0.1
+
+
+def test_regularise_ends_with_a_window_under_one():
+    pts = _noisy_helix(400, seed=7, noise=0.01)  # points about 0.06 apart: about 20 in [0, 1.2]
+    out = regularise_ends(pts, 0.6)
+    np.testing.assert_allclose(out, _regularised_by_the_definition(pts, 0.6), atol=1e-9)
+    assert np.abs(out - pts).max() > 0.005
