@@ -206,6 +206,10 @@ def test_resample_a_straight_segment_and_the_step_rules():
     long = np.array([[0.0, 0, 0], [0, 10, 0]])
     np.testing.assert_allclose(resample_curve(long, step=0.001, max_points=11)[:, 1], np.arange(11.0), atol=1e-12)
     np.testing.assert_allclose(resample_curve(long, step=2.5, max_points=11)[:, 1], [0, 2.5, 5, 7.5, 10], atol=1e-12)
+    # the default max_points is 4000: 3999 long with a step of 0.5 comes out 1 apart
+    out = resample_curve(np.array([[0.0, 0, 0], [3999, 0, 0]]), step=0.5)
+    assert len(out) == 4000
+    np.testing.assert_allclose(out[:, 0], np.arange(4000.0), atol=1e-9)
 
 
 def test_resample_drops_repeated_points_before_taking_the_smallest_segment():
