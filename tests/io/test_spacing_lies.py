@@ -77,7 +77,6 @@ def test_a_zarr_chunk_side_of_0_is_one_line_not_a_traceback(tmp_path):
     import json
 
     from conftest import run_unwind
-
     from napari_unwind.io import write_volume
 
     store = write_volume(np.zeros((4, 5, 6), np.uint8), tmp_path / "s.zarr")
@@ -96,6 +95,7 @@ def test_a_negative_size_in_a_header_is_one_line(tmp_path):
     """NRRD 'sizes: 6 5 -4' opened as an array of shape (-4, 5, 6) and `info` raised IndexError; a NIfTI dim of -4
     raised dask's ValueError (issue 20: reported as "4 x 5 x -6, -120 B")."""
     import nibabel as nib
+
     from conftest import run_unwind
 
     nrrd_path = tmp_path / "neg.nrrd"
@@ -116,7 +116,6 @@ def test_ome_zarr_axes_in_different_units_are_brought_to_the_finest(tmp_path):
     import json
 
     from conftest import run_unwind
-
     from napari_unwind.errors import InvalidInputError
     from napari_unwind.io import write_volume
 
