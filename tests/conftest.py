@@ -29,6 +29,21 @@ def no_leftovers(folder: Path) -> list[Path]:
 UNWIND = Path(sys.executable).with_name("unwind")
 
 
+def fish_case(folder: Path):
+    """A phantom fish (seed 2, no noise, no tube) written as ``fish.zarr`` in ``folder`` with a session of its true
+    deformation (``fish.unwind.json``): returns (fish, scan, session path, deformation)."""
+    from napari_unwind.datasets import fish_phantom
+    from napari_unwind.demo import true_deformation
+    from napari_unwind.io import write_volume
+    from napari_unwind.session import Session, SourceInfo, save_session
+
+    fish = fish_phantom(seed=2, noise=0.0, tube=False)
+    scan = write_volume(fish.volume, folder / "fish.zarr", spacing=fish.spacing, unit=fish.unit)
+    d = true_deformation(fish)
+    session = save_session(Session(source=SourceInfo.from_path(scan), deformation=d), folder / "fish.unwind.json")
+    return fish, scan, session, d
+
+
 def run_unwind(*args) -> tuple[int, str, str]:
     """Run ``unwind ARGS...`` as a user would; returns (exit status, stdout, stderr)."""
     r = subprocess.run([str(UNWIND), *map(str, args)], capture_output=True, text=True)

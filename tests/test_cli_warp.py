@@ -4,22 +4,16 @@
 import numpy as np
 import pytest
 
-from conftest import no_leftovers
+from conftest import fish_case, no_leftovers
 from conftest import run_unwind as _run
-from napari_unwind.datasets import fish_phantom
-from napari_unwind.demo import true_deformation
 from napari_unwind.io import open_volume, write_volume
-from napari_unwind.session import Session, SourceInfo, save_session
+from napari_unwind.session import save_session
 
 
 @pytest.fixture(scope="module")
 def case(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("warp_cli")
-    fish = fish_phantom(seed=2, noise=0.0, tube=False)
-    scan = write_volume(fish.volume, tmp / "fish.zarr", spacing=fish.spacing, unit=fish.unit)
-    d = true_deformation(fish)
-    session = save_session(Session(source=SourceInfo.from_path(scan), deformation=d), tmp / "fish.unwind.json")
-    return tmp, fish, scan, session, d
+    return (tmp, *fish_case(tmp))
 
 
 def test_straighten_matches_the_ground_truth(case):

@@ -15,16 +15,9 @@ PTS = [[44.25, 21.5, 45.0], [81.0, 23.5, 32.0], [118.5, 21.75, 18.5]]
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
-    from napari_unwind.datasets import fish_phantom
-    from napari_unwind.demo import true_deformation
-    from napari_unwind.io import write_volume
-    from napari_unwind.session import Session, SourceInfo, save_session
+    from conftest import fish_case
 
-    tmp = tmp_path_factory.mktemp("points_cli")
-    fish = fish_phantom(seed=2, noise=0.0, tube=False)
-    scan = write_volume(fish.volume, tmp / "fish.zarr", spacing=fish.spacing, unit=fish.unit)
-    d = true_deformation(fish)
-    return save_session(Session(source=SourceInfo.from_path(scan), deformation=d), tmp / "fish.unwind.json")
+    return fish_case(tmp_path_factory.mktemp("points_cli"))[2]
 
 
 def _map(capsys, *args) -> tuple[int, np.ndarray | None, str]:
