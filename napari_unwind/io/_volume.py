@@ -113,7 +113,10 @@ class _Voxels:
 
 def _build_voxels(state: dict[str, Any]) -> None:
     data, levels = state["data"], state["levels"]
-    built = {id(a): a.build() for a in (data, *levels) if isinstance(a, LazyArray)}
+    built: dict[int, Any] = {}
+    for a in (data, *levels):  # data is levels[0]: each LazyArray is built once (a reader opens its file once)
+        if isinstance(a, LazyArray) and id(a) not in built:
+            built[id(a)] = a.build()
     state["levels"] = tuple(built.get(id(lvl), lvl) for lvl in levels)  # levels[0] stays ``data`` itself
     state["data"] = built.get(id(data), data)
 
