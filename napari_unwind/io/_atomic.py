@@ -271,12 +271,7 @@ def check_writable(path: str | os.PathLike, *, overwrite: bool = True) -> Path:
         raise OutputError(f"cannot write {path}: the folder {parent} is not writable; choose another output path")
     if path.exists() and not overwrite:
         raise OutputError(f"{path} already exists; pass overwrite=True (CLI: --overwrite) or choose another name")
-    if path.is_dir() and not path.is_symlink():
-        why = _foreign(path)
-        if why:
-            raise OutputError(f"cannot replace {path}: it is a folder that holds {why}, not an output of "
-                              "napari-unwind; overwrite replaces only a file or a store this program writes: remove it "
-                              "yourself or choose another name")
+    _refuse_foreign(path)
     return path
 
 
@@ -284,6 +279,15 @@ def check_writable(path: str | os.PathLike, *, overwrite: bool = True) -> Path:
 #: the files a run --all folder holds.
 _OUR_SUFFIXES = frozenset({".dcm", ".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg", ".csv", ".json"})
 _ZARR_MARKS = ("zarr.json", ".zgroup", ".zarray")
+
+
+def _refuse_foreign(path: Path) -> None:
+    """OutputError when ``path`` is a folder holding what this program could not have written (:func:`_foreign`)."""
+    why = _foreign(path) if path.is_dir() and not path.is_symlink() else ""
+    if why:
+        raise OutputError(f"cannot replace {path}: it is a folder that holds {why}, not an output of napari-unwind; "
+                          "overwrite replaces only a file or a store this program writes: remove it yourself or "
+                          "choose another name")
 
 
 def _foreign(folder: Path) -> str:
@@ -420,8 +424,7 @@ def atomic_output(path: str | os.PathLike, *, overwrite: bool = True) -> Iterato
                 raise OutputError(f"cannot replace {path}: it is {what} and the output is "
                                   f"{'a folder' if tmp.is_dir() else 'a file'}; remove it yourself or choose "
                                   "another name")
-            if path.is_dir() and not path.is_symlink() and _foreign(path):  # made meanwhile
-                check_writable(path, overwrite=True)
+            _refuse_foreign(path)  # again: it may have been made while this output was written
             _replace(tmp, path)
         else:
             try:
