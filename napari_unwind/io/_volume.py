@@ -26,14 +26,19 @@ SUPPORTED_DTYPES = tuple(
 )
 
 
+def _numbers(name: str, what: str, value: Any, ndim: int, errors: tuple) -> tuple[float, ...]:
+    """``value`` as ``ndim`` floats (one number broadcast), or the refusal naming ``name`` and ``what`` it must be."""
+    try:
+        return tuple(float(v) for v in np.broadcast_to(np.asarray(value, dtype=float), (ndim,)))
+    except errors:
+        raise InvalidInputError(
+            f"{name} must be {ndim} {what} in array axis order (axis0, axis1, axis2), got {value!r}"
+        ) from None
+
+
 def check_spacing(spacing: Any, ndim: int = 3) -> tuple[float, ...]:
     """Validate a voxel spacing: ``ndim`` finite positive numbers, in array axis order."""
-    try:
-        values = tuple(float(s) for s in np.broadcast_to(np.asarray(spacing, dtype=float), (ndim,)))
-    except (TypeError, ValueError):
-        raise InvalidInputError(
-            f"spacing must be {ndim} positive numbers in array axis order (axis0, axis1, axis2), got {spacing!r}"
-        ) from None
+    values = _numbers("spacing", "positive numbers", spacing, ndim, (TypeError, ValueError))
     if not all(np.isfinite(v) and v > 0 for v in values):
         raise InvalidInputError(f"spacing must be finite and positive, got {values}")
     return values
@@ -41,12 +46,7 @@ def check_spacing(spacing: Any, ndim: int = 3) -> tuple[float, ...]:
 
 def check_origin(origin: Any, ndim: int = 3) -> tuple[float, ...]:
     """Validate an origin: ``ndim`` finite numbers (the position of voxel 0), in array axis order."""
-    try:
-        values = tuple(float(o) for o in np.broadcast_to(np.asarray(origin, dtype=float), (ndim,)))
-    except (TypeError, ValueError, OverflowError):
-        raise InvalidInputError(
-            f"origin must be {ndim} numbers in array axis order (axis0, axis1, axis2), got {origin!r}"
-        ) from None
+    values = _numbers("origin", "numbers", origin, ndim, (TypeError, ValueError, OverflowError))
     if not all(np.isfinite(v) for v in values):
         raise InvalidInputError(f"origin must be finite numbers, got {values}")
     return values
