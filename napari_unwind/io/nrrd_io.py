@@ -44,6 +44,7 @@ from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import final_name, remove_path, temp_path
 from ._lazy import RawFileArray, iter_slabs, write_slab_depth
+from ._straight_record import parse_record, record_text, straightening_record
 from ._volume import UNIT_ABBREVIATIONS, LazyArray, Volume, normalise_unit, warn_bad_spacing
 
 if TYPE_CHECKING:
@@ -53,6 +54,8 @@ __all__ = ["read_nrrd", "write_nrrd", "ENCODINGS"]
 
 #: Encodings :func:`write_nrrd` can write.
 ENCODINGS = ("gzip", "raw", "bzip2")
+#: The key/value pair holding the straightening record of a straight volume (napari_unwind.io._straight_record).
+RECORD_KEY = "unwind_straightening"
 
 # NRRD type names (the spec's table) -> numpy kind and size
 _NRRD_TYPES = {
@@ -402,6 +405,8 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
         "encoding": encoding,
         "data file": str(data_path) if data_path else None,
     }
+    if parse_record(header.get(RECORD_KEY)) is not None:
+        metadata["unwind"] = {"straightening": parse_record(header[RECORD_KEY])}
     return Volume(
         data,
         spacing=tuple(spacing_file[::-1]),
@@ -443,6 +448,9 @@ def _header_text(volume: Volume, encoding: str, data_file: str | None) -> str:
     lines.append("space origin: " + nrrd.format_vector(np.array([o2, o1, o0], dtype=float)))
     if data_file is not None:
         lines.append(f"data file: {data_file}")
+    record = straightening_record(volume)
+    if record is not None:  # a key/value pair (pynrrd reads it back as a string)
+        lines.append(f"{RECORD_KEY}:={record_text(record)}")
     return "\n".join(lines) + "\n\n" if data_file is None else "\n".join(lines) + "\n"
 
 

@@ -32,6 +32,7 @@ from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import atomic_output, final_name
 from ._lazy import RawFileArray, slab_depth
+from ._straight_record import parse_record, record_text, straightening_record
 from ._volume import UNIT_ABBREVIATIONS, Volume, normalise_unit
 
 __all__ = ["read_dat_header", "read_raw", "write_raw"]
@@ -47,6 +48,8 @@ FORMATS_DAT: dict[str, str] = {
     "FLOAT": "f4", "FLOAT32": "f4",
     "DOUBLE": "f8", "FLOAT64": "f8",
 }
+#: The line holding the straightening record of a straight volume (napari_unwind.io._straight_record).
+RECORD_KEY = "UnwindStraightening"
 #: numpy dtype -> the spelling written in headers (the original program's names).
 _DTYPE_FORMAT = {"u1": "UCHAR", "i1": "CHAR", "u2": "USHORT", "i2": "SHORT", "u4": "UINT", "i4": "INT",
                  "f4": "FLOAT", "f8": "DOUBLE"}
@@ -261,7 +264,9 @@ def read_raw(path: Path, *, chunk_planes: int | None = None) -> Volume:
     return Volume(data, spacing=header["spacing"], unit=header["unit"], origin=header["origin"],
                   source=str(path), format="raw",
                   metadata={"header": str(dat), "raw": str(raw), "byteorder": "big" if dtype.byteorder == ">"
-                            else "little", "dat_fields": header["fields"]})
+                            else "little", "dat_fields": header["fields"],
+                            **({"unwind": {"straightening": parse_record(header["fields"][RECORD_KEY])}}
+                               if parse_record(header["fields"].get(RECORD_KEY)) else {})})
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -287,6 +292,9 @@ def dat_text(volume: Volume, raw_name: str, *, byteorder: str = "little") -> str
     if any(volume.origin):
         oz, oy, ox = volume.origin
         lines.append(f"Origin: {_fmt(ox)} {_fmt(oy)} {_fmt(oz)}")
+    record = straightening_record(volume)
+    if record is not None:  # a key the original program ignores, as it ignores TaggedFileName
+        lines.append(f"{RECORD_KEY}: {record_text(record)}")
     return "\n".join(lines) + "\n"
 
 

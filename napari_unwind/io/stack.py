@@ -420,7 +420,9 @@ def read_stack(path: Path, *, pattern: str | None = None) -> Volume:
                          meta=np.empty((0, 0, 0), dtype=dtype))
     return Volume(data, spacing=geometry["spacing"], unit=geometry["unit"], origin=geometry["origin"],
                   source=str(path), format="stack",
-                  metadata={"files": [str(f) for f in files], "pattern": glob, "geometry_from": geometry["from"]})
+                  metadata={"files": [str(f) for f in files], "pattern": glob, "geometry_from": geometry["from"],
+                            **({"unwind": {"straightening": geometry["straightening"]}}
+                               if geometry.get("straightening") else {})})
 
 
 # ------------------------------------------------------------------------------------------------------------------

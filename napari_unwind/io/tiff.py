@@ -46,6 +46,7 @@ from ..progress import Progress
 from ._atomic import final_name
 from ._formats import numbered_siblings, reader_for
 from ._lazy import RawFileArray, slab_depth
+from ._straight_record import parse_record, record_text, straightening_record
 from ._volume import LazyArray, Volume, normalise_unit
 
 if TYPE_CHECKING:
@@ -145,7 +146,8 @@ def _stored_geometry(value: Any) -> dict[str, Any] | None:
         return None
     if len(spacing) != 3 or len(origin) != 3:
         return None
-    return {"spacing": spacing, "unit": unit, "origin": origin, "from": "unwind"}
+    return {"spacing": spacing, "unit": unit, "origin": origin, "from": "unwind",
+            "straightening": parse_record(value.get("straightening"))}
 
 
 def _consistent(stored: dict[str, Any], other: dict[str, Any]) -> bool:
@@ -422,6 +424,8 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
                                 "is_imagej": tif.is_imagej, "is_ome": tif.is_ome, "is_bigtiff": tif.is_bigtiff}
         if tif.is_imagej:
             meta["imagej"] = {k: v for k, v in (tif.imagej_metadata or {}).items() if isinstance(v, (str, int, float))}
+        if geometry.get("straightening"):
+            meta["unwind"] = {"straightening": geometry["straightening"]}
         stat = os.stat(path)
         depth = int(chunk_planes) if chunk_planes else slab_depth((ny, nx), dtype)
         if depth < 1:
@@ -483,9 +487,14 @@ def _compression(compression: str | None) -> str | None:
 
 
 def stored_geometry_json(volume: Volume) -> str:
-    """The exact geometry as the one-line JSON stored under ``unwind`` (spacing and origin in axis order)."""
-    return json.dumps({"spacing": [float(v) for v in volume.spacing], "unit": volume.unit,
-                       "origin": [float(v) for v in volume.origin], "axes": "ZYX"})
+    """The exact geometry as the one-line JSON stored under ``unwind`` (spacing and origin in axis order), with
+    the straightening record of a straight volume (:mod:`napari_unwind.io._straight_record`)."""
+    stored: dict[str, Any] = {"spacing": [float(v) for v in volume.spacing], "unit": volume.unit,
+                              "origin": [float(v) for v in volume.origin], "axes": "ZYX"}
+    record = straightening_record(volume)
+    if record is not None:
+        stored["straightening"] = json.loads(record_text(record))
+    return json.dumps(stored)
 
 
 def imagej_options(volume: Volume) -> dict[str, Any]:
