@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import gzip
+import io
 import os
 import threading
 import zlib
@@ -42,12 +43,14 @@ import nibabel as nib
 import numpy as np
 from dask.base import tokenize
 from nibabel.imageglobals import logger as _nibabel_logger
+from nibabel.nifti1 import Nifti1Extension
 from nibabel.volumeutils import apply_read_scaling
 
 from ..errors import InvalidInputError
 from ..progress import Progress
 from ._atomic import final_name
 from ._lazy import write_slab_depth
+from ._straight_record import parse_record, record_text, straightening_record
 from ._volume import SUPPORTED_DTYPES, Volume, normalise_unit, warn_bad_spacing
 
 __all__ = ["read_nifti", "write_nifti"]
@@ -298,8 +301,36 @@ def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
             "scl_inter": inter,
             "file_dtype": str(raw),
             "nifti_version": 2 if isinstance(img, nib.Nifti2Image) else 1,
+            **({"unwind": {"straightening": _recorded(hdr)}} if _recorded(hdr) else {}),
         },
     )
+
+
+#: The start of the comment extension holding a straight volume's record (napari_unwind.io._straight_record).
+RECORD_PREFIX = "napari-unwind straightening "
+
+
+def _recorded(hdr: Any) -> dict[str, Any] | None:
+    """The straightening record of a header's comment extension written by :func:`write_nifti`, else None."""
+    for ext in getattr(hdr, "extensions", ()):
+        content = ext.get_content()
+        if isinstance(content, bytes) and content.startswith(RECORD_PREFIX.encode()):
+            return parse_record(content[len(RECORD_PREFIX):].rstrip(b"\x00"))
+    return None
+
+
+def _check_float32(path: Path, what: str, values: tuple[float, ...], unit: str, atol: float = 0.0) -> None:
+    """Refuse, before anything is written, a spacing or origin that NIfTI's 32-bit floats cannot hold to relative
+    1e-6 (or within ``atol``): an overflow, or a value below the smallest normal float32, which keeps fewer digits."""
+    with np.errstate(over="ignore"):
+        stored = np.asarray(values, dtype=np.float64).astype(np.float32).astype(np.float64)
+    for axis, (v, f) in enumerate(zip(values, stored, strict=True)):
+        if not (np.isfinite(f) and abs(f - v) <= max(1e-6 * abs(v), atol)):
+            raise InvalidInputError(
+                f"cannot write {final_name(path)}: NIfTI stores the {what} as 32-bit floats, which cannot hold "
+                f"{v!r} {'' if unit == 'unknown' else unit + ' '}(axis{axis}; float32 holds about 1.2e-38 to "
+                f"3.4e38); choose another unit or a format that keeps 64-bit numbers (OME-Zarr, NRRD, TIFF)"
+            )
 
 
 def write_nifti(volume: Volume, path: Path, *, compression_level: int = 4) -> Iterator[Progress]:
@@ -328,6 +359,8 @@ def write_nifti(volume: Volume, path: Path, *, compression_level: int = 4) -> It
     xyz_unit, factor = _WRITE_UNITS.get(volume.unit, ("unknown", 1.0))
     s0, s1, s2 = (s * factor for s in volume.spacing)
     o0, o1, o2 = (o * factor for o in volume.origin)
+    _check_float32(path, "spacing", (s0, s1, s2), xyz_unit)
+    _check_float32(path, "origin", (o0, o1, o2), xyz_unit, atol=1e-6 * min(s0, s1, s2))  # 0 and noise near it
     affine = np.array([[s2, 0, 0, o2], [0, s1, 0, o1], [0, 0, s0, o0], [0, 0, 0, 1]], dtype=float)
 
     dtype = volume.dtype.newbyteorder("<")
@@ -338,9 +371,14 @@ def write_nifti(volume: Volume, path: Path, *, compression_level: int = 4) -> It
     hdr.set_qform(affine, code=1)
     hdr.set_sform(affine, code=1)
     hdr.set_xyzt_units(xyz=xyz_unit, t="unknown")
-    hdr["vox_offset"] = 352
     hdr["descrip"] = b"napari-unwind"
-    head = hdr.binaryblock + b"\x00" * (352 - len(hdr.binaryblock))  # 4 zero bytes: no extensions
+    record = straightening_record(volume)
+    if record is not None:  # a comment extension holding the straightening record
+        hdr.extensions.append(Nifti1Extension("comment", (RECORD_PREFIX + record_text(record)).encode()))
+    hdr["vox_offset"] = 352 + hdr.extensions.get_sizeondisk()
+    buffer = io.BytesIO()
+    hdr.write_to(buffer)  # the header, then 4 zero bytes (no extension) or the extensions
+    head = buffer.getvalue()
 
     gz = final_name(path).lower().endswith(".gz")
     depth = write_slab_depth(volume)
