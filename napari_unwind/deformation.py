@@ -900,10 +900,16 @@ class Deformation:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Deformation:
         """Inverse of :meth:`to_dict`; raises :class:`InvalidInputError` on anything malformed."""
+        from . import _json
+
         if not isinstance(d, dict) or d.get("schema") not in (SCHEMA, *OLD_SCHEMAS):
             got = d.get("schema") if isinstance(d, dict) else type(d).__name__
-            raise InvalidInputError(f"not a deformation of schema {SCHEMA!r} (got {got!r})")
-        if d["schema"] != SCHEMA and any(isinstance(k, dict) and "offset" in k for k in d.get("keyframes", ())):
+            raise InvalidInputError(f"not a deformation of schema {SCHEMA!r} (got {_json.short(got)})")
+
+        # types, required fields and bounds (napari_unwind/schemas/deformation.schema.json), as plain JSON
+        d = _json.validate(d, "deformation", root="deformation", prefix="malformed deformation: ",
+                           hint="correct that value, or make the deformation again")
+        if d["schema"] != SCHEMA and any("offset" in k for k in d["keyframes"]):
             raise InvalidInputError(f"a deformation of schema {d['schema']!r} has no cage offsets, but this one has; "
                                     f"label it {SCHEMA!r}")
         try:

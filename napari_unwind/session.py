@@ -81,6 +81,7 @@ from typing import Any
 
 import numpy as np
 
+from . import _json
 from .deformation import SCHEMA as DEFORMATION_SCHEMA
 from .deformation import Deformation
 from .errors import InvalidInputError, OutputError, UnwindError, source_date_epoch
@@ -694,14 +695,18 @@ class Session:
     @classmethod
     def from_dict(cls, d: Any) -> Session:
         """Build from a dict of any known schema (older ones are migrated); raises :class:`InvalidInputError`."""
-        d = _upgrade(_object(d, "a session"))
-        software = _object(_require(d, "software", ""), "software")
+        d = _upgrade(_object(_json.plain(d), "a session"))
+        # types, required fields and bounds (napari_unwind/schemas/session.schema.json)
+        d = _json.validate(d, "session", hint="correct that value in the file, or make the session again")
+        software = d["software"]
         deformation = d.get("deformation")
         if deformation is not None:
             try:
-                deformation = Deformation.from_dict(_object(deformation, "deformation"))
+                deformation = Deformation.from_dict(deformation)
             except InvalidInputError as exc:
-                raise InvalidInputError(f"deformation: {exc}") from None
+                message = str(exc)
+                raise InvalidInputError(message if message.startswith("malformed deformation:")
+                                        else f"deformation: {message}") from None
         segmentation = d.get("segmentation")
         endpoints = d.get("endpoints")
         return cls(
@@ -758,13 +763,14 @@ def _migrate_0_to_1(old: dict) -> dict:
 
 
 def _migrate_1_to_2(old: dict) -> dict:
-    """Schema 1 -> 2: the deformation's keyframes get cage offsets ``(0, 0)`` (deformation schema 2)."""
+    """Schema 1 -> 2: the deformation's keyframes get cage offsets ``(0, 0)`` (deformation schema 2); a keyframe that
+    has one already (written by hand, or by a tool that knew schema 2) keeps it."""
     new = dict(old, schema_version=2)
     deformation = old.get("deformation")
     if isinstance(deformation, dict) and deformation.get("schema") == "napari-unwind/deformation/1":
         keyframes = deformation.get("keyframes")
-        if isinstance(keyframes, list):
-            keyframes = [dict(k, offset=[0.0, 0.0]) if isinstance(k, dict) else k for k in keyframes]
+        if isinstance(keyframes, list):  # an offset a schema-1 file carries anyway is kept, never dropped
+            keyframes = [{"offset": [0.0, 0.0], **k} if isinstance(k, dict) else k for k in keyframes]
         new["deformation"] = dict(deformation, schema=DEFORMATION_SCHEMA, keyframes=keyframes)
     return new
 
@@ -909,14 +915,6 @@ def save_session(session: Session, path: str | os.PathLike, *, overwrite: bool =
     return path.absolute()
 
 
-class _NonFinite(ValueError):
-    pass
-
-
-def _refuse_constant(token: str) -> Any:
-    raise _NonFinite(token)
-
-
 def load_session(path: str | os.PathLike) -> Session:
     """Read a session file, migrating an older schema.
 
@@ -930,32 +928,10 @@ def load_session(path: str | os.PathLike) -> Session:
         migrate.
     """
     path = Path(path).expanduser()
-    if not path.exists():
-        raise FileNotFoundError(f"the session file {path} does not exist")
-    if not path.is_file():
-        raise InvalidInputError(f"{path} is a folder, not a session file (*{SESSION_SUFFIX})")
-    size = path.stat().st_size
-    if size > _MAX_SESSION_BYTES:
-        raise InvalidInputError(f"{path} is {size} bytes, far too large for a session file; did you give the scan "
-                                f"instead of its *{SESSION_SUFFIX}?")
-    raw = path.read_bytes()
-    if not raw.strip():
-        raise InvalidInputError(f"{path} is empty, not a session (was the save or the copy interrupted?)")
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise InvalidInputError(f"{path} is not a session file: it is not UTF-8 text "
-                                f"(invalid byte at offset {exc.start})") from None
-    try:
-        data = json.loads(text, parse_constant=_refuse_constant)
-    except json.JSONDecodeError as exc:
-        raise InvalidInputError(
-            f"{path} is not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}; the file is truncated "
-            "or damaged (restore it from a backup or from version control)"
-        ) from None
-    except _NonFinite as exc:
-        raise InvalidInputError(f"{path} holds the number {exc}, which a session never stores; "
-                                "replace it with a finite value") from None
+    data = _json.load_file(path, what="a session", max_bytes=_MAX_SESSION_BYTES, suffix_hint=SESSION_SUFFIX,
+                           damaged_hint="the file is truncated or damaged (restore it from a backup or from "
+                                        "version control)",
+                           hint="correct that value in the file, or make the session again")
     if not isinstance(data, dict):
         raise InvalidInputError(f"{path} is not a session: it holds {_json_kind(data)}, not a JSON object")
     try:
