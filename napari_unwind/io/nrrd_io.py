@@ -421,6 +421,23 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
 # ------------------------------------------------------------------------------------------------------------------
 # writing
 # ------------------------------------------------------------------------------------------------------------------
+#: Voxel sizes whose square is a normal 64-bit float: NRRD readers take the size as the length of a space direction
+#: vector, the square root of its squares, which overflows above (and loses digits below) this range.
+_LENGTHS = (np.sqrt(np.finfo(np.float64).tiny), np.sqrt(np.finfo(np.float64).max))
+
+
+def _check_lengths(path: Path, spacing: tuple[float, ...]) -> None:
+    """Refuse, before anything is written, a spacing that comes back from the file as another number."""
+    for axis, size in enumerate(spacing):
+        if not _LENGTHS[0] <= size <= _LENGTHS[1]:
+            raise InvalidInputError(
+                f"cannot write {final_name(path)}: NRRD stores the voxel size as the length of a space direction "
+                f"vector, which readers compute as the square root of its squares; for {size!r} (axis{axis}) that "
+                f"overflows or loses digits (sizes {_LENGTHS[0]:.3g} to {_LENGTHS[1]:.3g} come back intact); "
+                "choose another unit or another format (OME-Zarr, TIFF, .dat)"
+            )
+
+
 def _header_text(volume: Volume, encoding: str, data_file: str | None) -> str:
     dtype = volume.dtype
     s0, s1, s2 = volume.spacing
@@ -524,6 +541,7 @@ def write_nrrd(
         raise InvalidInputError(f"compression_level must be 1..9, got {compression_level}")
     if volume.dtype.str[1:] not in _NUMPY_TO_NRRD:
         raise InvalidInputError(f"cannot write voxel type {volume.dtype} to NRRD")
+    _check_lengths(path, volume.spacing)
     final = path.with_name(final_name(path))
 
     if final.suffix.lower() != ".nhdr":

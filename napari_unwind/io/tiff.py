@@ -497,8 +497,29 @@ def stored_geometry_json(volume: Volume) -> str:
     return json.dumps(stored)
 
 
+#: The largest X/YResolution a TIFF holds: a fraction of two 32-bit whole numbers.
+_MAX_RESOLUTION = 2**32 - 1
+
+
+def _check_resolution(volume: Volume, per_unit: float, unit: str) -> None:
+    """Refuse a pixel size whose X/YResolution (``1 / (size * per_unit)`` pixels per ``unit``) is too large for the
+    TIFF's fraction of 32-bit numbers (tifffile fails with an unrelated message), before anything is written."""
+    for axis in (1, 2):
+        size = volume.spacing[axis]
+        length = size * per_unit  # 0 when the product underflows
+        if length * _MAX_RESOLUTION < 1.0:
+            resolution = f"{1.0 / length:.4g}" if length > 0 else "an infinite resolution"
+            raise InvalidInputError(
+                f"a TIFF stores the voxel size of axis{axis} ({size!r} {volume.unit or 'unit not recorded'}) as a "
+                f"resolution in pixels per {unit}, a fraction of 32-bit whole numbers, which cannot hold "
+                f"{resolution} (at most {_MAX_RESOLUTION:,}); choose a larger unit or another "
+                "format (OME-Zarr, NRRD, .dat)"
+            )
+
+
 def imagej_options(volume: Volume) -> dict[str, Any]:
     """``tifffile.imwrite`` keywords making an ImageJ file with the volume's calibration (Fiji reads it)."""
+    _check_resolution(volume, 1.0, IMAGEJ_UNITS.get(volume.unit, volume.unit) if volume.unit else "pixel")
     sz, sy, sx = volume.spacing
     metadata: dict[str, Any] = {"axes": "ZYX", "spacing": sz}
     if volume.unit:
@@ -517,8 +538,10 @@ def plain_options(volume: Volume) -> dict[str, Any]:
                                "metadata": {"axes": "ZYX", "unwind": json.loads(stored_geometry_json(volume))}}
     if volume.unit in _METERS:
         cm = _METERS[volume.unit] / _METERS["centimeter"]
+        _check_resolution(volume, cm, "centimetre")
         options.update(resolution=(1.0 / (sx * cm), 1.0 / (sy * cm)), resolutionunit="CENTIMETER")
     else:
+        _check_resolution(volume, 1.0, "pixel")
         options.update(resolution=(1.0 / sx, 1.0 / sy), resolutionunit="NONE")
     return options
 
