@@ -227,31 +227,12 @@ def cmd_submit(args: argparse.Namespace) -> int:
 
 
 def _read_batch(path: Path, register: bool) -> list:
-    """A collection CSV: columns scan, select ('all' or points 'a0 a1 a2; b0 b1 b2'), name (optional)."""
-    import csv
-
+    """A collection file (:func:`napari_unwind.batch.read_batch`: CSV with columns scan, select, name, or a JSON
+    list of such items), checked against its schema."""
+    from .batch import read_batch
     from .client import BatchItem
 
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} does not exist")
-    items = []
-    with open(path, newline="") as f:
-        for n, row in enumerate(csv.DictReader(f), start=2):
-            scan = (row.get("scan") or "").strip()
-            if not scan:
-                raise InvalidInputError(f"{path} line {n}: the scan column is empty")
-            sel = (row.get("select") or "all").strip()
-            if sel != "all":
-                try:
-                    sel = [[float(v) for v in p.replace(",", " ").split()] for p in sel.split(";") if p.strip()]
-                except ValueError:
-                    raise InvalidInputError(f"{path} line {n}: select must be 'all' or points like '10 20 30; 1 2 "
-                                            f"3', got {row.get('select')!r}") from None
-                if not sel or any(len(p) != 3 for p in sel):
-                    raise InvalidInputError(f"{path} line {n}: every select point needs 3 numbers, got {sel}")
-            items.append(BatchItem(scan=scan, select=sel, name=(row.get("name") or "").strip() or None,
-                                   register=register))
-    return items
+    return [BatchItem(**item, register=register) for item in read_batch(path)]
 
 
 # ------------------------------------------------------------------------------------------------------------------

@@ -93,8 +93,8 @@ def json_path(parts: Any, root: str = "") -> str:
         elif isinstance(p, int):
             text += f"[{p}]"
         else:
-            text += f".{p}" if text else str(p)
-    return text or "(top level)"
+            text += f".{p}" if text and not text.endswith(" ") else str(p)
+    return text.strip() or "(top level)"
 
 
 def _kind(value: Any) -> str:
@@ -276,12 +276,15 @@ def schema(name: str) -> dict:
 
 
 @cache
-def _validator(name: str) -> Any:
+def _validator(name: str, part: str = "") -> Any:
     import jsonschema
 
-    cls = jsonschema.validators.validator_for(schema(name))
-    cls.check_schema(schema(name))
-    return cls(schema(name))
+    doc = schema(name)
+    cls = jsonschema.validators.validator_for(doc)
+    cls.check_schema(doc)
+    if part:  # one of the document's $defs (a CSV row of a batch file is one item)
+        doc = {"$schema": doc["$schema"], "$defs": doc["$defs"], "$ref": f"#/$defs/{part}"}
+    return cls(doc)
 
 
 def plain(data: Any, *, max_depth: int = MAX_DEPTH, root: str = "") -> Any:
@@ -337,11 +340,13 @@ def plain(data: Any, *, max_depth: int = MAX_DEPTH, root: str = "") -> Any:
     return out
 
 
-def validate(data: Any, name: str, *, root: str = "", prefix: str = "", hint: str = "") -> Any:
+def validate(data: Any, name: str, *, part: str = "", root: str = "", prefix: str = "", hint: str = "") -> Any:
     """Check ``data`` against the schema ``name`` (see :func:`schema`); return it as plain JSON (:func:`plain`).
 
     Parameters
     ----------
+    part : str
+        Check against the schema's ``$defs/<part>`` instead of the whole document.
     root : str
         The JSON path of ``data`` in its document (``"deformation"``), put in front of every path named.
     prefix : str
@@ -358,7 +363,7 @@ def validate(data: Any, name: str, *, root: str = "", prefix: str = "", hint: st
         data = plain(data, root=root)
     except InvalidInputError as exc:
         raise InvalidInputError(f"{prefix}{exc}{f'; {hint}' if hint else ''}") from None
-    error = next(iter(_validator(name).iter_errors(data)), None)  # the first in document order
+    error = next(iter(_validator(name, part).iter_errors(data)), None)  # the first in document order
     if error is not None:
         raise InvalidInputError(f"{prefix}{_message(error, root)}{f'; {hint}' if hint else ''}")
     return data

@@ -29,7 +29,10 @@ from typing import Any
 from .pipeline import CSV_COLUMNS, CSV_NAME, BatchResult
 from .progress import Progress
 
-__all__ = ["BatchResult", "CSV_NAME", "CSV_COLUMNS", "straighten_all_iter", "straighten_all"]
+__all__ = ["BatchResult", "CSV_NAME", "CSV_COLUMNS", "straighten_all_iter", "straighten_all", "read_batch"]
+
+#: Largest collection file read (a row is a scan path and a few points: a million rows is far below this).
+MAX_BATCH_BYTES = 64 * 2**20
 
 def straighten_all_iter(
     scan: str | os.PathLike,
@@ -94,3 +97,114 @@ def straighten_all(scan: str | os.PathLike, outdir: str | os.PathLike, *, progre
     from .progress import run
 
     return run(straighten_all_iter(scan, outdir, **options), progress)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# collection files (unwind submit --batch FILE)
+# ------------------------------------------------------------------------------------------------------------------
+def read_batch(path: str | os.PathLike) -> list[dict[str, Any]]:
+    """The items of a collection file for :meth:`napari_unwind.client.Client.run_batch`.
+
+    Two layouts, both checked against ``napari_unwind/schemas/batch.schema.json`` (:mod:`napari_unwind._json`):
+
+    - ``*.json``: a list of objects ``{"scan": ..., "select": "all" or [[a0, a1, a2], ...], "name": ...}``;
+    - anything else is CSV with a header: columns ``scan``, ``select`` (``all``, or points ``10 20 30; 1 2 3``)
+      and ``name`` (optional); empty ``select`` is ``all``.
+
+    Returns
+    -------
+    list of dict
+        ``{"scan": str, "select": "all" or list of [a0, a1, a2], "name": str or None}`` per item.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    InvalidInputError
+        Anything else wrong, in one line naming the file and the line (CSV) or JSON path of the bad value.
+    """
+    from pathlib import Path
+
+    from . import _json
+    from .errors import InvalidInputError
+
+    path = Path(path).expanduser()
+    hint = "correct it in the file (see unwind submit --help)"
+    if path.name.lower().endswith(".json"):
+        items = _json.load_file(path, what="a collection", max_bytes=MAX_BATCH_BYTES, hint=hint)
+        try:
+            items = _json.validate(items, "batch", hint=hint)
+        except InvalidInputError as exc:
+            raise InvalidInputError(f"{path}: {exc}") from None
+        if not items:
+            raise InvalidInputError(f"{path} lists no scan; give at least one item {{\"scan\": ...}}")
+        return [{"scan": i["scan"].strip(), "select": i.get("select", "all"), "name": i.get("name") or None}
+                for i in items]
+    return _read_batch_csv(path, hint)
+
+
+def _read_batch_csv(path: Any, hint: str) -> list[dict[str, Any]]:
+    import csv
+    import io
+
+    from . import _json
+    from .errors import InvalidInputError
+
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    if not path.is_file():
+        raise InvalidInputError(f"{path} is a folder, not a collection file (CSV with columns scan, select, name)")
+    size = path.stat().st_size
+    if size > MAX_BATCH_BYTES:
+        raise InvalidInputError(f"{path} is {size} bytes, far too large for a collection file (at most "
+                                f"{MAX_BATCH_BYTES}); did you give a scan instead of the CSV?")
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InvalidInputError(f"{path} is not a collection file: it is not UTF-8 text (invalid byte at offset "
+                                f"{exc.start}); give a CSV with columns scan, select, name") from None
+    if "\0" in text:
+        raise InvalidInputError(f"{path} is not a collection file: it holds NUL characters (a binary file?); give a "
+                                "CSV with columns scan, select, name")
+    reader = csv.DictReader(io.StringIO(text, newline=""))
+    items = []
+    n = 1
+    try:
+        for n, row in enumerate(reader, start=2):
+            if None in row:
+                raise InvalidInputError(f"{path} line {n}: more values than the header's columns "
+                                        f"({', '.join(reader.fieldnames or [])})")
+            scan = (row.get("scan") or "").strip()
+            if not scan:
+                raise InvalidInputError(f"{path} line {n}: the scan column is empty")
+            sel: Any = (row.get("select") or "all").strip()
+            if sel != "all":
+                points = []
+                for p in sel.split(";"):
+                    if not p.strip():
+                        continue
+                    words = p.replace(",", " ").split()
+                    if any(len(w) > _json.MAX_NUMBER_CHARS for w in words):
+                        raise InvalidInputError(f"{path} line {n}: select holds a number of more than "
+                                                f"{_json.MAX_NUMBER_CHARS} characters: {_json.short(p)}; {hint}")
+                    try:
+                        points.append([float(w) for w in words])
+                    except ValueError:
+                        raise InvalidInputError(f"{path} line {n}: select must be 'all' or points like '10 20 30; 1 "
+                                                f"2 3', got {_json.short(row.get('select'))}") from None
+                if not points or any(len(p) != 3 for p in points):
+                    raise InvalidInputError(f"{path} line {n}: every select point needs 3 numbers, got "
+                                            f"{_json.short(points)}")
+                sel = points
+            item = {"scan": scan, "select": sel, "name": (row.get("name") or "").strip() or None}
+            try:
+                items.append(_json.validate(item, "batch", part="item", root=f"line {n}: ", hint=hint))
+            except InvalidInputError as exc:
+                raise InvalidInputError(f"{path} {exc}") from None
+    except csv.Error as exc:
+        raise InvalidInputError(f"{path} line {max(reader.line_num, n)}: not a CSV row ({exc}); {hint}") from None
+    if reader.fieldnames is None or "scan" not in reader.fieldnames:
+        raise InvalidInputError(f"{path} has no column 'scan' in its first line (got "
+                                f"{_json.short(reader.fieldnames or [])}); give a CSV with columns scan, select, name")
+    return items
