@@ -66,6 +66,7 @@ from pydicom.valuerep import format_number_as_ds
 from ..errors import InvalidInputError, OutputError, SeriesSelectionError
 from ..progress import Progress
 from ._atomic import final_name
+from ._straight_record import parse_record, record_text, straightening_record
 from ._volume import Volume
 
 __all__ = ["read_dicom", "write_dicom", "list_series"]
@@ -597,6 +598,9 @@ def read_dicom(path: Path, *, series: str | int | None = None) -> Volume:
         "n_files": len({im.path for im in images}),
         **notes,
     }
+    record = _recorded(first.path)
+    if record is not None:
+        metadata["unwind"] = {"straightening": record}
     return Volume(data, spacing=(spacing0, *pixel_spacing), unit="millimeter", origin=origin, source=str(path),
                   format="dicom", metadata=metadata)
 
@@ -695,7 +699,24 @@ def _template(volume: Volume, stored: np.dtype, slope: float, inter: float, spac
     ds.RescaleSlope = _ds(slope)
     if volume.source:
         ds.DerivationDescription = f"written by napari-unwind from {Path(volume.source).name}"[:1024]
+    record = straightening_record(volume)
+    if record is not None:  # a straight volume's record, in the free-text comment of each image
+        ds.ImageComments = RECORD_PREFIX + record_text(record)
     return ds
+
+
+#: The start of the ImageComments holding a straight volume's record (napari_unwind.io._straight_record).
+RECORD_PREFIX = "napari-unwind straightening "
+
+
+def _recorded(path: str | os.PathLike) -> dict[str, Any] | None:
+    """The straightening record in the ImageComments of one image written by :func:`write_dicom`, else None."""
+    try:
+        ds = pydicom.dcmread(path, stop_before_pixels=True, specific_tags=["ImageComments"])
+    except (OSError, InvalidDicomError):
+        return None
+    text = str(getattr(ds, "ImageComments", "") or "")
+    return parse_record(text[len(RECORD_PREFIX):]) if text.startswith(RECORD_PREFIX) else None
 
 
 def write_dicom(
