@@ -252,3 +252,9 @@ def test_a_zero_output_spacing_is_refused():
     # Kills _ds 10 (ds >= 0: a ZeroDivisionError later).
     with pytest.raises(InvalidInputError, match="output spacing must be finite and positive, got 0"):
         _line().output_shape(0)
+
+
+def test_sample_refuses_a_nan_arclength_by_name():
+    # Kills sample 10 (the message).
+    with pytest.raises(InvalidInputError, match="^arclengths must be finite$"):
+        _line().sample([1.0, np.nan])
