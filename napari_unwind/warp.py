@@ -1510,14 +1510,29 @@ def _bend_chunks(blocks: list, bounds: tuple, lo: tuple[int, int, int], hi: tupl
     return _bend_block(_assemble(blocks, bounds, lo, hi), lo[0], *args)
 
 
+def _recorded(straight: Any) -> dict[str, Any]:
+    """The straightening record of a straight Volume ({} when it has none): straighten's own metadata, or what a
+    reader returned from a straight file of any format (:mod:`napari_unwind.io._straight_record`)."""
+    from .io._straight_record import straightening_record
+
+    return (straightening_record(straight) or {}) if isinstance(straight, Volume) else {}
+
+
 def _recorded_pad(straight: Any) -> int:
     """The ``pad`` a straight Volume was made with, from its metadata (0 when it does not say)."""
-    if not isinstance(straight, Volume):
-        return 0
-    meta = straight.metadata or {}
-    info = meta.get("unwind", {}).get("straightening", meta) if isinstance(meta.get("unwind"), dict) else meta
-    pad = info.get("pad", 0) if isinstance(info, dict) else 0
-    return int(pad) if isinstance(pad, (int, float)) and pad >= 0 and float(pad).is_integer() else 0
+    return int(_recorded(straight).get("pad", 0))
+
+
+def _recorded_ds(straight: Volume, deformation: Deformation) -> float:
+    """``ds`` of a straight Volume in the deformation's unit: the output spacing straighten recorded (exact, where
+    a format keeps the spacing as float32) when the Volume's spacing agrees with it, else the Volume's spacing."""
+    ds = float(straight.spacing[0]) * _unit_scale(straight.unit, deformation.unit)
+    record = _recorded(straight)
+    if "output_spacing" in record:
+        exact = record["output_spacing"] * _unit_scale(record.get("unit") or straight.unit, deformation.unit)
+        if _close((exact,), (ds,)):
+            return exact
+    return ds
 
 
 def _check_shape(shape: Any) -> tuple[int, int, int]:
@@ -1566,10 +1581,12 @@ def bend(
     fill : float
         Value of voxels outside the cage.
     spacing : float, optional
-        ``ds`` of the straight volume; default the straight Volume's spacing, else the finest scan spacing.
+        ``ds`` of the straight volume; default the straight Volume's spacing (the output spacing its metadata
+        records when the two agree to 1e-6, which a float32 header rounds), else the finest scan spacing.
     pad : int, optional
         Extra straight slices at each end, as given to :func:`straighten`; default: what a straight Volume's
-        metadata records (the output of :func:`straighten`, or an OME-Zarr export read back), else 0.
+        metadata records (the output of :func:`straighten`, or a straight file of any format written by
+        :func:`~napari_unwind.io.write_volume` or :func:`export` and read back), else 0.
     chunks : int or tuple, optional
         Chunks of the output (default 64^3).
     max_output : float or None
@@ -1596,8 +1613,7 @@ def bend(
         sp = straight.spacing
         if not np.allclose(sp, sp[0], rtol=1e-6):
             raise InvalidInputError(f"a straight volume has isotropic spacing; this one has {sp}")
-        ds = float(sp[0]) * _unit_scale(straight.unit, deformation.unit) if spacing is None \
-            else deformation._ds(spacing)
+        ds = _recorded_ds(straight, deformation) if spacing is None else deformation._ds(spacing)
         data = straight.data
     else:
         ds = deformation._ds(spacing)
