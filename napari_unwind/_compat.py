@@ -5,25 +5,105 @@ pytetwild
     is a plain compiled extension taking numpy arrays. :func:`tetrahedralize` loads that extension directly,
     without running the package's ``__init__``, so napari-unwind needs neither pyvista nor VTK. The signature
     of the extension is pinned by the dependency range ``pytetwild>=0.4,<0.5`` and checked by the tests.
+
+    The first call in a process resets the C-level SIGINT handler to the default (geogram's initialisation,
+    inside fTetWild, calls ``signal(SIGINT, SIG_DFL)``), behind Python's back: ``signal.getsignal`` still names
+    Python's handler, but Ctrl-C now kills the process outright (status -2, no cleanup). :func:`tetrahedralize`
+    runs the mesher inside :func:`signals_kept`, which puts the handlers back after the call and holds the
+    signals pending during it.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import importlib.machinery
 import importlib.util
 import os
+import signal
 import sys
 import threading
+from collections.abc import Iterator
 from functools import cache
 from types import ModuleType
 
 import numpy as np
 
-__all__ = ["tetrahedralize", "tetwild_extension"]
+__all__ = ["signals_kept", "tetrahedralize", "tetwild_extension"]
 
 _TETWILD_LITTER = "__tracked_surface.stl"
 _TETWILD_LOCK = threading.Lock()  # fTetWild keeps global state; one mesh at a time
+
+
+#: The signals whose C-level handling a native call must leave as it found it: the ones the command line handles
+#: (SIGINT, SIGTERM, SIGHUP) and the ones Python itself sets at start-up (SIGPIPE and SIGXFSZ ignored).
+KEPT_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGPIPE", "SIGXFSZ")
+                     if hasattr(signal, name))
+_SIGACTION_BYTES = 512  # more than any libc's struct sigaction: it is saved and put back as it is, never read
+
+
+@cache
+def _libc() -> ctypes.CDLL | None:
+    if os.name != "posix":
+        return None
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.sigaction.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p]
+        return libc
+    except (OSError, AttributeError):
+        return None
+
+
+def c_sigaction(signum: int) -> bytes | None:
+    """The process's C-level handling of ``signum`` (libc's ``struct sigaction``, as raw bytes), or None where
+    it cannot be read. Unlike ``signal.getsignal``, this sees a change made by compiled code.
+
+    Only :func:`c_handler` of it is compared: glibc fills the unused tail of ``sa_mask`` from its stack."""
+    libc = _libc()
+    if libc is None:
+        return None
+    buf = ctypes.create_string_buffer(_SIGACTION_BYTES)
+    if libc.sigaction(int(signum), None, buf) != 0:
+        return None
+    return buf.raw
+
+
+def c_handler(signum: int) -> int | None:
+    """The address of the C-level handler of ``signum`` (0: SIG_DFL, 1: SIG_IGN; ``sa_handler`` is the first
+    field of ``struct sigaction`` in glibc, musl and macOS), or None where it cannot be read."""
+    raw = c_sigaction(signum)
+    return None if raw is None else int.from_bytes(raw[:ctypes.sizeof(ctypes.c_void_p)], sys.byteorder)
+
+
+def _set_c_sigaction(signum: int, raw: bytes) -> None:
+    libc = _libc()
+    if libc is not None:
+        libc.sigaction(int(signum), ctypes.create_string_buffer(raw, _SIGACTION_BYTES), None)
+
+
+@contextlib.contextmanager
+def signals_kept(signums: tuple[int, ...] = KEPT_SIGNALS) -> Iterator[None]:
+    """Run a native call that may change the process's signal handlers behind Python's back.
+
+    Before: the C-level handlers of ``signums`` are saved, and the signals are blocked in this thread (threads
+    the call starts inherit that). After: a handler the call changed is put back as it was, then the signals are
+    unblocked, so one that arrived meanwhile is delivered now, to Python's handler (KeyboardInterrupt, the
+    command line's SIGTERM handler) instead of killing the process. Left open: a signal the kernel hands, during
+    the call, to another thread that does not block it meets whatever handler is set at that moment (for
+    fTetWild's first call, SIG_DFL for SIGINT).
+    """
+    saved = {s: (c_sigaction(s), c_handler(s)) for s in signums}
+    mask = None
+    if hasattr(signal, "pthread_sigmask"):
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, signums)
+    try:
+        yield
+    finally:
+        for s, (raw, handler) in saved.items():
+            if raw is not None and c_handler(s) != handler:
+                _set_c_sigaction(s, raw)
+        if mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 @cache
@@ -92,7 +172,7 @@ def tetrahedralize(
     # again unless it was there before (the user's own file).
     litter = os.path.abspath(_TETWILD_LITTER)
     existed = os.path.exists(litter)
-    with _TETWILD_LOCK:
+    with _TETWILD_LOCK, signals_kept():
         try:
             V, T = ext.tetrahedralize_mesh(
                 vertices, faces, optimize, False, float(edge_length_fac), 0.0, float(epsilon), float(stop_energy),
