@@ -242,20 +242,30 @@ def cmd_straighten(args: argparse.Namespace) -> int:
 
 
 def cmd_bend(args: argparse.Namespace) -> int:
+    from types import SimpleNamespace
+
     from .io import open_volume, write_volume_iter
-    from .warp import bend
+    from .warp import _check_geometry, bend
 
     _check_output(args.output, args.overwrite)
     session = _load_session_for(args, None, [args.output], [args.input])
-    straight = open_volume(args.input, **_reader_options(args, args.input))
-    shape = tuple(session.source.shape)
     src = session.source
+    # the bent volume lies on the deformation's grid: refuse it where that grid is not the scan's, as straighten
+    # refuses that scan (the same check); without the scan at hand (moved, or it needs reader options), its
+    # spacing and unit as the session recorded
+    try:
+        scan: Any = open_volume(src.path)
+    except (OSError, UnwindError):
+        scan = SimpleNamespace(spacing=src.spacing, unit=src.unit, origin=session.deformation.origin)
+    unit = _check_geometry(scan, session.deformation)
+    straight = open_volume(args.input, **_reader_options(args, args.input))
+    shape = tuple(src.shape)
     data = bend(straight, session.deformation, shape=shape, order=args.order, chunks=args.chunks,
                 **_max_output(args))
     t0 = time.perf_counter()
     written = _run_with_bar(
         write_volume_iter(data, args.output, spacing=session.deformation.spacing,
-                          origin=session.deformation.origin, unit=src.unit, overwrite=args.overwrite),
+                          origin=session.deformation.origin, unit=unit, overwrite=args.overwrite),
         args.quiet,
     )
     if not args.quiet:
@@ -939,10 +949,85 @@ if hasattr(signal, "SIGHUP"):
     _SIGNALS[signal.SIGHUP] = "hung up (SIGHUP)"
 
 
+class _Interrupt:
+    """The interrupt of this run: the first signal raises it; later ones are ignored, so that they cannot
+    interrupt the removal of the outputs being written (the run still ends with the first one's status)."""
+
+    raised: KeyboardInterrupt | None = None  # raised and not lost (yet)
+    lost: KeyboardInterrupt | None = None  # raised where no exception can pass: to be raised again
+    signum: int | None = None
+    in_hook = False
+    timer: threading.Timer | None = None
+
+
 def _on_signal(signum: int, frame: Any) -> None:
-    for s in _SIGNALS:  # once is enough: a second signal must not interrupt the cleanup of the first
-        signal.signal(s, signal.SIG_IGN)
-    raise Terminated(signum)
+    if _Interrupt.in_hook:  # not here, where it would be lost again: a moment later
+        _raise_again_soon()
+        return
+    if _Interrupt.lost is not None:
+        exc, _Interrupt.lost = _Interrupt.lost, None
+    elif _Interrupt.raised is not None:
+        return
+    else:
+        exc = KeyboardInterrupt() if signum == signal.SIGINT else Terminated(signum)
+        _Interrupt.signum = signum
+    _Interrupt.raised = exc
+    raise exc
+
+
+def _raise_again_soon() -> None:
+    import _thread
+
+    timer = threading.Timer(0.001, _thread.interrupt_main, (_Interrupt.signum,))  # runs _on_signal again
+    timer.daemon = True
+    timer.start()
+    _Interrupt.timer = timer
+
+
+def _unraisable(args: Any, *, hook: Callable[[Any], None]) -> None:
+    """sys.unraisablehook: the interrupt raised where no exception can pass (a callback of compiled code through
+    ctypes or Cython, a ``__del__``) is raised again a moment later instead of being lost (a SIGTERM that landed
+    there once let the run go on and end with 0); :func:`main` raises it at the latest when the command returns."""
+    if args.exc_value is not None and args.exc_value is _Interrupt.raised:
+        _Interrupt.in_hook = True
+        try:
+            _Interrupt.lost, _Interrupt.raised = _Interrupt.raised, None
+            _raise_again_soon()
+        finally:
+            _Interrupt.in_hook = False
+        return
+    hook(args)
+
+
+def _install_signal_handlers() -> Callable[..., None]:
+    """Handle SIGINT, SIGTERM and SIGHUP with :func:`_on_signal` (main thread only); returns the undo.
+
+    A signal the process inherited ignored stays ignored (``nohup``; a background job of a non-interactive shell
+    ignores SIGINT). Compiled code that resets a handler behind Python's back is fenced in
+    :func:`napari_unwind._compat.signals_kept`.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return lambda ignore=False: None
+    _Interrupt.raised = _Interrupt.lost = _Interrupt.signum = None
+    previous = {}
+    for s in (signal.SIGINT, *_SIGNALS):
+        if signal.getsignal(s) is not signal.SIG_IGN:
+            previous[s] = signal.signal(s, _on_signal)
+    hook = sys.unraisablehook
+    sys.unraisablehook = lambda args: _unraisable(args, hook=hook)
+
+    def undo(ignore: bool = False) -> None:
+        """Put the handlers back; ``ignore``: ignore these signals from now on instead. That is for the command
+        itself (argv from sys.argv) once interrupted: it is exiting, and a further signal must not turn its
+        status into -2 while the interpreter shuts down (which resets Python's handlers to SIG_DFL first, then
+        can take seconds to join the threads of an abandoned computation)."""
+        if _Interrupt.timer is not None:
+            _Interrupt.timer.cancel()
+        sys.unraisablehook = hook
+        for s, handler in previous.items():
+            signal.signal(s, signal.SIG_IGN if ignore else handler)
+
+    return undo
 
 
 def _show_warning(message: Any, category: Any, filename: str, lineno: int, file: Any = None,
@@ -964,14 +1049,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version (0), a wrong option (1, one line printed)
         return exc.code if isinstance(exc.code, int) else 1
     func: Callable[[argparse.Namespace], int] = args.func
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        previous = {s: signal.signal(s, _on_signal) for s in _SIGNALS}
+    restore_signals = _install_signal_handlers()
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
             source_date_epoch()  # before any import reads it (numpy's f2py fails on a bad one with a traceback)
             status = func(args)
+            if _Interrupt.lost is not None:  # a signal that landed where it was lost, and never raised again
+                raise _Interrupt.lost
         sys.stdout.flush()  # a closed pipe shows here, not at exit
         return status
     except BrokenPipeError:
@@ -999,8 +1084,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("unwind: interrupted; no partial output was left behind", file=sys.stderr)
         return 130
     finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
+        restore_signals(ignore=argv is None and _Interrupt.signum is not None)
 
 
 if __name__ == "__main__":  # pragma: no cover
