@@ -918,30 +918,53 @@ def run_all_iter(
     yield Progress("simplify", 1, 1)
     found = candidates(feats, min_elongation=seg.min_elongation)
     source = SourceInfo.from_path(scan, volume=volume)
+    made = not outdir.is_dir()
     outdir.mkdir(exist_ok=True)
-    result = BatchResult(features=feats)
-    picked = replace(options, segment=replace(seg, isovalue=None, fill_holes=False))
-    todo = [c for c in found if c.status == "specimen"]
-    for c in found:
-        voxels = None if c.stats is None else int(c.stats.voxel_count)
-        if c.status != "specimen":
-            result.specimens.append(SpecimenResult("rejected", c.reason, ids=tuple(c.ids), voxels=voxels,
-                                                   label=getattr(c, "name", "")))
-            continue
-        i = todo.index(c)
-        name = getattr(c, "name", None) or "+".join(map(str, c.ids))
-        yield Progress("specimens", i, len(todo), f"feature {name}")
-        session_path = outdir / f"specimen-{name}.unwind.json"
-        try:
-            r = yield from run_iter(volume, features=feats, candidate=c, options=picked,
-                                    output=outdir / f"specimen-{name}.zarr", session_path=session_path,
-                                    source=source, overwrite=overwrite,
-                                    notes=f"unwind run --all: feature {name} of {feats.k}")
-        except Exception as exc:  # noqa: BLE001 - one specimen's failure must not stop the others
-            r = SpecimenResult("failed", _failure_reason(exc), ids=tuple(c.ids), voxels=voxels, label=name,
-                               session_path=session_path if session_path.exists() else None)
-        result.specimens.append(replace(r, voxels=voxels, label=name))
-    yield Progress("specimens", len(todo), len(todo))
-    result.table = _write_table([r.row() for r in result.specimens], outdir / CSV_NAME)
+    before: dict[Path, tuple[int, int] | None] = {}  # what was at each path this batch writes, before it did
+    try:
+        result = BatchResult(features=feats)
+        picked = replace(options, segment=replace(seg, isovalue=None, fill_holes=False))
+        todo = [c for c in found if c.status == "specimen"]
+        for c in found:
+            voxels = None if c.stats is None else int(c.stats.voxel_count)
+            if c.status != "specimen":
+                result.specimens.append(SpecimenResult("rejected", c.reason, ids=tuple(c.ids), voxels=voxels,
+                                                       label=getattr(c, "name", "")))
+                continue
+            i = todo.index(c)
+            name = getattr(c, "name", None) or "+".join(map(str, c.ids))
+            yield Progress("specimens", i, len(todo), f"feature {name}")
+            session_path = outdir / f"specimen-{name}.unwind.json"
+            output = outdir / f"specimen-{name}.zarr"
+            before.update({p: _identity(p) for p in (session_path, output)})
+            try:
+                r = yield from run_iter(volume, features=feats, candidate=c, options=picked,
+                                        output=output, session_path=session_path,
+                                        source=source, overwrite=overwrite,
+                                        notes=f"unwind run --all: feature {name} of {feats.k}")
+            except Exception as exc:  # noqa: BLE001 - one specimen's failure must not stop the others
+                r = SpecimenResult("failed", _failure_reason(exc), ids=tuple(c.ids), voxels=voxels, label=name,
+                                   session_path=session_path if session_path.exists() else None)
+            result.specimens.append(replace(r, voxels=voxels, label=name))
+        yield Progress("specimens", len(todo), len(todo))
+        before[outdir / CSV_NAME] = _identity(outdir / CSV_NAME)
+        result.table = _write_table([r.row() for r in result.specimens], outdir / CSV_NAME)
+    except (KeyboardInterrupt, GeneratorExit):
+        # interrupted (Ctrl-C, SIGTERM) or abandoned: no half-made batch is left; the folder goes when this batch
+        # made it, else what this batch wrote into it (an earlier batch's file it already replaced is gone too)
+        from .io._atomic import remove_path
+
+        for p in ([outdir] if made else [p for p, was in before.items() if _identity(p) not in (None, was)]):
+            remove_path(p, settle=1.0)
+        raise
     result.seconds = time.perf_counter() - t_all
     return result
+
+
+def _identity(path: Path) -> tuple[int, int] | None:
+    """(inode, modification time) of whatever is at ``path``, None when nothing is."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns
