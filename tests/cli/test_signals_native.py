@@ -1,0 +1,225 @@
+"""Signals after and inside compiled code (issue 20, item 6).
+
+fTetWild's first call in a process resets the C-level SIGINT handler to SIG_DFL behind Python's back (geogram's
+initialisation calls ``signal(SIGINT, SIG_DFL)``): a later Ctrl-C then killed the process outright (status -2, no
+message, the temporary output left). ``napari_unwind._compat.tetrahedralize`` puts the handler back
+(``signals_kept``). The command line's own skeleton uses the lattice mesher, so the runs here use a child that
+makes the pipeline's skeleton solve mesh with fTetWild (``tet_mesher="ftetwild"``, the library's option), then
+signal the run once its export has begun (its temporary output exists), i.e. after the solve.
+
+Each child is a fresh process: fTetWild resets the handler on its first call only.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+from cli_support import demo_outputs, error_lines, leftovers
+
+# the pipeline's skeleton solve with fTetWild, then the command line; prints one line when fTetWild has run
+FTETWILD_CLI = textwrap.dedent("""
+    import sys
+    from napari_unwind import _compat, pipeline
+    from napari_unwind.cli import main
+
+    kwargs = pipeline.SkeletonOptions.kwargs
+    pipeline.SkeletonOptions.kwargs = lambda self: {**kwargs(self), "tet_mesher": "ftetwild"}
+    mesh = _compat.tetrahedralize
+
+    def tetrahedralize(*args, **kw):
+        out = mesh(*args, **kw)
+        print("meshed with fTetWild", flush=True)
+        return out
+
+    _compat.tetrahedralize = tetrahedralize
+    sys.argv[0] = "unwind"
+    sys.exit(main())  # as the command does (argv from sys.argv)
+""")
+
+SAYS = {signal.SIGINT: (130, "interrupted"), signal.SIGTERM: (143, "terminated (SIGTERM)")}
+
+
+def _default_sigint() -> None:
+    # a suite started in the background of a non-interactive shell passes SIGINT on ignored (see test_signals)
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _start(code: str, *args, cwd: Path | None = None) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", code, *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=cwd, preexec_fn=_default_sigint,
+                            env={**os.environ, "PYTHONWARNINGS": ""})
+
+
+def _when(procs: dict, ready, timeout: float = 240) -> None:
+    """Wait until ``ready(name)`` holds for every process (all watched at once), then send its signals."""
+    pending = dict(procs)
+    t0 = time.monotonic()
+    while pending and time.monotonic() - t0 < timeout:
+        for name in sorted(pending):
+            proc, signals = pending[name]
+            if ready(name):
+                for s in signals:
+                    proc.send_signal(s)
+                del pending[name]
+            elif proc.poll() is not None:
+                pytest.fail(f"{name} ended before it was signalled: {proc.communicate()}")
+        time.sleep(0.01)  # polling the condition, not a wait for it
+    for proc, _ in pending.values():
+        proc.kill()
+    assert not pending, f"never ready: {sorted(pending)}"
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    return demo_outputs(tmp_path_factory)
+
+
+def test_run_signalled_after_ftetwild(demo, tmp_path):
+    """SIGINT once, SIGINT three times and SIGTERM three times, each once the export of a run whose skeleton was
+    meshed by fTetWild has begun, and SIGTERM then, once its cleanup has begun, SIGINT: the (first) signal's
+    status and one line, no temporary output, no volume.
+
+    Before the fix SIGINT killed the run (-2, no line, the temporary output left). (Two different signals sent
+    together are both pending when Python runs its handlers, which it does in signal-number order: SIGINT
+    first.)"""
+    cases = {"int": [signal.SIGINT], "int3": [signal.SIGINT] * 3, "term3": [signal.SIGTERM] * 3,
+             "term-then-int": [signal.SIGTERM]}
+    procs = {}
+    for name, signals in cases.items():
+        (tmp_path / name).mkdir()
+        procs[name] = (_start(FTETWILD_CLI, "run", demo.tank, "--select", demo.point, "-o",
+                              tmp_path / name / "fish.zarr", "--spacing", "0.2"), signals)
+    _when(procs, lambda name: bool(leftovers(tmp_path / name)))
+    # a second signal once the first was handled (its temporary output removed): ignored, whenever it lands
+    _when({"term-then-int": (procs["term-then-int"][0], [signal.SIGINT])},
+          lambda name: not leftovers(tmp_path / "term-then-int"))
+    for name, (proc, signals) in procs.items():
+        out, err = proc.communicate(timeout=120)
+        status, says = SAYS[signals[0]]
+        assert proc.returncode == status, (name, proc.returncode, err[-2000:])
+        assert "meshed with fTetWild" in out, name
+        assert error_lines(err)[-1:] == [f"unwind: {says}; no partial output was left behind"], (name, err)
+        assert "Traceback" not in err and "Exception ignored" not in err, (name, err)
+        assert leftovers(tmp_path / name) == [] and not (tmp_path / name / "fish.zarr").exists(), name
+
+
+def test_run_all_signalled_midway(demo, tmp_path):
+    """``run --all`` interrupted once its first specimen is written: 130, and no output folder at all."""
+    batch = tmp_path / "batch"
+    proc = _start(FTETWILD_CLI, "run", demo.tank, "--all", "-o", batch, "--spacing", "0.2")
+    _when({"all": (proc, [signal.SIGINT])}, lambda name: batch.is_dir() and any(
+        p.suffix == ".zarr" and "unwind-tmp" not in p.name for p in batch.iterdir()))
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-2000:]
+    assert error_lines(err)[-1:] == ["unwind: interrupted; no partial output was left behind"], err
+    assert not batch.exists(), sorted(p.name for p in batch.iterdir())
+    assert leftovers(tmp_path) == []
+
+
+# SIGTERM sent from inside a callback of compiled code (libc's qsort through ctypes), where an exception cannot pass:
+# ctypes reports it as "ignored" and goes on
+QSORT_CALLBACK = textwrap.dedent("""
+    import ctypes, os, signal, sys, time
+    from napari_unwind import cli
+
+    def job(args):
+        sent = []
+        def compare(a, b):
+            if not sent:
+                sent.append(True)
+                os.kill(os.getpid(), signal.SIGTERM)
+            return a[0] - b[0]
+        compare_c = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_int))
+        values = (ctypes.c_int * 100)(*range(100, 0, -1))
+        ctypes.CDLL(None).qsort(values, 100, ctypes.sizeof(ctypes.c_int), compare_c(compare))
+        deadline = time.monotonic() + 20  # Python's own work: the interrupt must be raised again in here
+        while time.monotonic() < deadline:
+            pass
+        print("went on for 20 s after the signal", flush=True)
+        return 0
+
+    cli.cmd_info = job
+    sys.exit(cli.main(["info", "x"]))
+""")
+
+
+def test_sigterm_inside_compiled_callback_not_swallowed():
+    """Raised again in the Python code that follows (not lost, and not only when the command returns)."""
+    proc = _start(QSORT_CALLBACK)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and out == "", (proc.returncode, out, err)
+    assert error_lines(err) == ["unwind: terminated (SIGTERM); no partial output was left behind"], err
+
+
+# SIGTERM, then SIGINT while the outputs are being removed (as atomic_output does on any interrupt)
+SECOND_DURING_CLEANUP = textwrap.dedent("""
+    import os, signal, sys
+    from napari_unwind import cli
+
+    def job(args):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)  # raises here (os.kill runs the handlers at once)
+        except KeyboardInterrupt:
+            os.kill(os.getpid(), signal.SIGINT)
+            print("cleanup finished", flush=True)
+            raise
+        return 0
+
+    cli.cmd_info = job
+    sys.exit(cli.main(["info", "x"]))
+""")
+
+
+def test_second_signal_during_cleanup_is_ignored():
+    """The cleanup runs to its end and the first signal's status stands (143, not 130)."""
+    proc = _start(SECOND_DURING_CLEANUP)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143 and out == "cleanup finished\n", (proc.returncode, out, err)
+    assert error_lines(err) == ["unwind: terminated (SIGTERM); no partial output was left behind"], err
+
+
+# the C-level SIGINT handler before and after one fTetWild call, and what a SIGINT then does
+AFTER_TETWILD = textwrap.dedent("""
+    import contextlib, os, signal, sys
+    import numpy as np
+    from napari_unwind import _compat
+
+    if sys.argv[1] == "unfenced":
+        _compat.signals_kept = contextlib.nullcontext
+    v = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    f = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    before = _compat.c_handler(signal.SIGINT)
+    _compat.tetrahedralize(v, f)
+    after = _compat.c_handler(signal.SIGINT)
+    print(before, after, signal.getsignal(signal.SIGINT) is signal.default_int_handler, flush=True)
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+    except KeyboardInterrupt:
+        print("KeyboardInterrupt", flush=True)
+""")
+
+
+@pytest.mark.skipif(os.name != "posix", reason="C-level signal handlers: POSIX")
+def test_tetrahedralize_puts_sigint_back():
+    """After tetrahedralize, SIGINT's C-level handler is Python's again and Ctrl-C raises KeyboardInterrupt.
+
+    The same call without the fence shows what fTetWild does: SIG_DFL (0) behind Python's back (getsignal still
+    says Python's handler), and SIGINT kills the process."""
+    procs = {mode: _start(AFTER_TETWILD, mode) for mode in ("fenced", "unfenced")}
+    res = {mode: p.communicate(timeout=120) + (p.returncode,) for mode, p in procs.items()}
+    out, err, code = res["fenced"]
+    lines = out.splitlines()
+    before, after, python_view = lines[0].split()
+    assert int(before) > 1 and after == before and python_view == "True", (out, err)
+    assert lines[1:] == ["KeyboardInterrupt"] and code == 0, (out, err)
+    out, err, code = res["unfenced"]
+    before, after, python_view = out.splitlines()[0].split()
+    assert int(before) > 1 and after == "0" and python_view == "True", ("fTetWild no longer resets SIGINT?", out)
+    assert code == -signal.SIGINT, (code, out, err)
