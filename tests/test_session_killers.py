@@ -1,0 +1,83 @@
+"""Tests for mutants of session.py that survived the sampled mutation pass (docs/testing-mutation.md, issue 19).
+
+Each test names the mutants it kills (numbers as in ``mutmut show napari_unwind.session.<function>__mutmut_N``).
+Every expected value is written out by hand from the documented layout and messages, never taken from a run of the
+code under test. No scan is written: the records are built directly, so each test takes milliseconds.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from napari_unwind import session as S
+from napari_unwind.errors import InvalidInputError
+from napari_unwind.session import (
+    Segmentation,
+    Session,
+    SourceInfo,
+    SourceMissingError,
+    load_session,
+    save_session,
+    verify_source,
+)
+
+
+def _source(path) -> SourceInfo:
+    return SourceInfo(path=str(path), shape=(2, 3, 4), dtype="uint8", spacing=(1.0, 1.0, 1.0))
+
+
+def test_a_null_field_is_called_null():
+    # Kills _json_kind 20 ("NULL").
+    with pytest.raises(InvalidInputError, match=r"source\.shape must be a list of sizes, got null \(None\)"):
+        SourceInfo(path="/scan.tif", shape=None, dtype="uint8", spacing=(1.0, 1.0, 1.0))
+
+
+def test_a_missing_scan_names_the_recorded_path_only_when_given_another(tmp_path):
+    # verify_source(session, path=...) of a scan that is not there: the message adds "(the session recorded ...)"
+    # only when the path given is not the recorded one.
+    # Kills verify_source 20 (str(None) compared with the recorded path: the note was always added).
+    recorded = tmp_path / "gone.nrrd"
+    session = Session(source=_source(recorded))
+    with pytest.raises(SourceMissingError) as same:
+        verify_source(session, path=recorded)
+    assert f"expected at {recorded}. If it was moved" in str(same.value)
+    assert "the session recorded" not in str(same.value)
+    elsewhere = tmp_path / "moved.nrrd"
+    with pytest.raises(SourceMissingError, match=f"expected at {elsewhere} \\(the session recorded {recorded}\\)"):
+        verify_source(session, path=elsewhere)
+
+
+def test_a_wrong_value_in_a_session_file_says_what_to_do(tmp_path):
+    # A session dict whose source.shape is text: the error ends with the hint, as written.
+    # Kills Session.from_dict 20 (the hint upper-cased).
+    d = Session(source=_source(tmp_path / "scan.nrrd")).to_dict()
+    d["source"]["shape"] = "2 x 3 x 4"
+    with pytest.raises(InvalidInputError, match=r"; correct that value in the file, or make the session again$"):
+        Session.from_dict(d)
+
+
+def test_segmentation_lists_of_the_wrong_kind_say_what_they_hold():
+    # Kills Segmentation.__post_init__ 40 (what=None) and 80 (what="XXpointsXX") in the messages.
+    with pytest.raises(InvalidInputError, match=r"^segmentation\.selected must be a list of feature ids, got a string"):
+        Segmentation(selected="2, 4")
+    with pytest.raises(InvalidInputError, match=r"^segmentation\.seeds must be a list of points, got a number \(3\)"):
+        Segmentation(seeds=3)
+
+
+def test_a_truncated_session_file_says_how_to_get_it_back(tmp_path):
+    # Kills load_session 20 (the damaged-file hint).
+    path = save_session(Session(source=_source(tmp_path / "scan.nrrd")), tmp_path / "fish.unwind.json")
+    text = path.read_text()
+    path.write_text(text[: len(text) // 2])
+    with pytest.raises(InvalidInputError, match=r"restore it from a backup or from version control\)"):
+        load_session(path)
+
+
+def test_a_migration_that_loses_the_version_is_a_bug_not_a_loop(tmp_path, monkeypatch):
+    # A migration step whose result has no integer schema_version must stop the upgrade with a RuntimeError.
+    # Kills _upgrade 40 ('and' for 'or': None <= 0 raised a TypeError; an integer that does not advance looped).
+    d = Session(source=_source(tmp_path / "scan.nrrd")).to_dict()
+    d["schema_version"] = 1
+    monkeypatch.setattr(S, "_MIGRATIONS", {1: lambda old: {k: v for k, v in old.items() if k != "schema_version"}})
+    with pytest.raises(RuntimeError, match=r"migration from schema 1 did not advance the version \(None\)"):
+        Session.from_dict(d)
