@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import UnknownFormatError
+from ..errors import InvalidInputError, UnknownFormatError
 from ..io import detect_format, open_volume
 from ..session import SESSION_SUFFIX, Session, SourceChangedError, SourceMissingError, load_session
 from ._docks import current_viewer_has_dock
@@ -48,6 +48,8 @@ def get_reader(path: str | list[str]) -> Callable[[Any], list] | None:
         detect_format(Path(path))
     except (UnknownFormatError, FileNotFoundError):
         return None
+    except InvalidInputError:
+        return read  # ours, but unreadable (a named pipe...): reading says why in one line
     return read
 
 

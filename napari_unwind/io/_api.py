@@ -14,6 +14,7 @@ import numpy as np
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress, run
 from ._atomic import atomic_output, check_not_input, check_writable, final_name
+from ._files import check_room
 from ._formats import detect_format, output_format, reader_for, writer_for
 from ._volume import Volume
 
@@ -189,6 +190,7 @@ def write_volume_iter(
     target = check_writable(path, overwrite=overwrite)
     # a volume read from a file is never written into, over or around that file (the CLI's rule, for the API too)
     check_not_input([target], [getattr(data, "source", None)] if isinstance(data, Volume) else [])
+    check_room(target, volume.nbytes, compressed=_compressed(fmt, target, options))
     try:
         with atomic_output(target, overwrite=overwrite) as tmp:  # removes the temporary output on any error
             yield from writer(volume, tmp, **options)
@@ -198,6 +200,21 @@ def write_volume_iter(
             raise
         raise full from None
     return target
+
+
+def _compressed(fmt: str, path: Path, options: dict[str, Any]) -> bool:
+    """Whether the writer of ``fmt`` compresses the voxels with these options (each writer's default)."""
+    if fmt == "ome-zarr":
+        return str(options.get("compression", "")).lower() != "none"
+    if fmt == "tiff":
+        return str(options.get("compression") or "none").lower() != "none"
+    if fmt == "nrrd":
+        return str(options.get("encoding", "gzip")).lower() != "raw"
+    if fmt == "nifti":
+        return path.name.lower().endswith(".gz")
+    if fmt == "stack":
+        return str(options.get("pattern", path.name)).lower().endswith((".png", ".jpg", ".jpeg"))
+    return False
 
 
 def write_volume(

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import InvalidInputError, UnknownFormatError
+from ._files import check_regular, open_regular
 
 __all__ = ["FORMATS", "detect_format", "reader_for", "writer_for", "output_format", "IMAGE_SLICE_SUFFIXES",
            "natural_key", "numbered_siblings"]
@@ -124,10 +125,10 @@ def _suffix(path: Path) -> str:
 
 def _is_dicom_file(path: Path) -> bool:
     try:
-        with open(path, "rb") as fh:
+        with open_regular(path) as fh:
             fh.seek(128)
             return fh.read(4) == b"DICM"
-    except OSError:
+    except (OSError, InvalidInputError):
         return False
 
 
@@ -156,6 +157,7 @@ def detect_format(path: str | Path) -> str:
         if any(p.suffix.lower() in IMAGE_SLICE_SUFFIXES for p in files):
             return "stack"
         raise UnknownFormatError(f"cannot tell what the folder {path} holds; {_HELP}")
+    check_regular(path)  # a named pipe or a device would block or stream for ever
     if suffix in _SUFFIX_FORMAT:
         return _SUFFIX_FORMAT[suffix]
     if suffix in (".bmp", ".png", ".jpg", ".jpeg"):

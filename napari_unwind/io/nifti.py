@@ -49,6 +49,7 @@ from nibabel.volumeutils import apply_read_scaling
 from ..errors import InvalidInputError
 from ..progress import Progress
 from ._atomic import final_name
+from ._files import check_regular
 from ._lazy import write_slab_depth
 from ._straight_record import parse_record, record_text, straightening_record
 from ._volume import SUPPORTED_DTYPES, Volume, normalise_unit, warn_bad_spacing
@@ -211,6 +212,7 @@ def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
         Not a NIfTI file, not 3D, or an unsupported voxel type (RGB, complex, 64-bit integers).
     """
     path = Path(path).expanduser().absolute()
+    check_regular(path)
     try:
         with _quiet_nibabel():  # nibabel logs what it repairs in a broken header: our error says enough
             img = nib.load(str(path))

@@ -43,6 +43,7 @@ import numpy as np
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import final_name, remove_path, temp_path
+from ._files import open_regular, skip_lines
 from ._lazy import RawFileArray, iter_slabs, write_slab_depth
 from ._straight_record import parse_record, record_text, straightening_record
 from ._volume import UNIT_ABBREVIATIONS, LazyArray, Volume, normalise_unit, warn_bad_spacing
@@ -170,11 +171,6 @@ def _data_source(header: dict, path: Path) -> Path | None:
     return data
 
 
-def _skip_lines(fh: Any, count: int) -> None:
-    for _ in range(count):
-        fh.readline()
-
-
 class _Short(Exception):
     """The compressed stream ended early."""
 
@@ -274,7 +270,7 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
     """
     path = Path(path).expanduser().absolute()  # workers of a cluster run in other folders
     try:
-        with open(path, "rb") as fh:
+        with open_regular(path) as fh:
             header = nrrd.read_header(fh)
             header_end = fh.tell()
     except nrrd.NRRDError as exc:
@@ -347,10 +343,10 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
     source = data_path or path
     native = file_dtype.newbyteorder("=")
 
-    with open(source, "rb") as fh:
+    with open_regular(source, "data" if data_path is not None else "") as fh:
         if data_path is None:
             fh.seek(header_end)
-        _skip_lines(fh, line_skip)
+        skip_lines(fh, line_skip, source)
         start = fh.tell()
         if encoding == "raw":
             file_size = os.fstat(fh.fileno()).st_size

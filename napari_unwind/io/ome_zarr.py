@@ -41,10 +41,12 @@ import numpy as np
 import zarr
 from numcodecs import Blosc
 from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec
+from zarr.storage import LocalStore
 
 from ..errors import InvalidInputError, UnknownFormatError
 from ..progress import Progress
 from ._atomic import final_name
+from ._files import check_regular, open_regular
 from ._headers import compose_transform
 from ._units import axis_units
 from ._volume import LazyArray, Volume
@@ -214,7 +216,7 @@ class _ZarrChunks:
         path = self.chunk_file(coords)
         part = tuple(slice(0, stop - start) for start, stop, _ in bounds)
         try:
-            with open(path, "rb") as fh:
+            with open_regular(path, "chunk") as fh:
                 buf = bytearray(os.fstat(fh.fileno()).st_size)  # writable: the result may be handed out
                 got = fh.readinto(buf)
         except FileNotFoundError:
@@ -266,6 +268,8 @@ class _ZarrChunks:
                 return self._read_direct(*whole)
         try:
             block = np.asarray(self.array[key])
+        except InvalidInputError:
+            raise  # a chunk that is no regular file (_RegularFileStore), named already
         except Exception as exc:  # noqa: BLE001 - codecs raise RuntimeError, ValueError, zstd errors...
             raise self._corrupt(key, exc) from None
         if self.complete:
@@ -302,6 +306,22 @@ class _ZarrChunks:
                 part.append(slice(-(-(lo - start) // step), -(-(hi - start) // step)))
             if isfill[tuple(part)].all() and not os.path.exists(self.chunk_file(coords)):
                 raise self._missing(coords)
+
+
+class _RegularFileStore(LocalStore):
+    """zarr's LocalStore reading only regular files: a chunk or metadata file that is a named pipe (which would
+    block the read for ever), a device or a socket is refused in one line naming it."""
+
+    async def get(self, key: str, prototype: Any = None, byte_range: Any = None) -> Any:
+        check_regular(self.root / key, "chunk" if not key.endswith((".json", ".zarray", ".zgroup", ".zattrs"))
+                      else "metadata")
+        return await super().get(key, prototype, byte_range)
+
+    async def get_partial_values(self, prototype: Any, key_ranges: Any) -> Any:
+        key_ranges = list(key_ranges)
+        for key, _ in key_ranges:
+            check_regular(self.root / key, "chunk")
+        return await super().get_partial_values(prototype, key_ranges)
 
 
 def _lazy(array: zarr.Array, store: Path, *, complete: bool, index: tuple = ()) -> LazyArray:
@@ -353,7 +373,7 @@ def read_ome_zarr(path: Path, *, level: int | None = None) -> Volume:
     """
     path = Path(path).expanduser().absolute()
     try:
-        node = zarr.open(store=str(path), mode="r")
+        node = zarr.open(store=_RegularFileStore(path, read_only=True), mode="r")
         attrs = dict(node.attrs)
     except Exception as exc:  # noqa: BLE001 - zarr raises several types for a broken store
         raise InvalidInputError(f"{path} is not a readable zarr store ({_first_line(exc)}); "

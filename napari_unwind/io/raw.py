@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import atomic_output, final_name
+from ._files import check_regular, open_regular
 from ._lazy import RawFileArray, slab_depth
 from ._straight_record import parse_record, record_text, straightening_record
 from ._volume import UNIT_ABBREVIATIONS, Volume, normalise_unit
@@ -75,6 +76,10 @@ def _numbers(dat: Path, lineno: int, key: str, value: str, kind: type, count: in
     return values
 
 
+#: The largest .dat header read (a few lines of text in practice).
+_DAT_LIMIT = 1 << 20
+
+
 def read_dat_header(dat: str | os.PathLike) -> dict[str, Any]:
     """Parse an Unwind ``.dat`` header.
 
@@ -91,9 +96,14 @@ def read_dat_header(dat: str | os.PathLike) -> dict[str, Any]:
     """
     dat = Path(dat)
     try:
-        text = dat.read_bytes().decode("utf-8", errors="replace")
+        with open_regular(dat, "header") as fh:
+            block = fh.read(_DAT_LIMIT + 1)
     except OSError as exc:
         raise InvalidInputError(f"cannot read the header {dat}: {exc.strerror or exc}") from None
+    if len(block) > _DAT_LIMIT:
+        raise InvalidInputError(f"{dat} is not a .dat header: it is larger than {_DAT_LIMIT // 1024} KiB; open the "
+                                ".dat header that describes the raw file instead")
+    text = block.decode("utf-8", errors="replace")
     if "\x00" in text[:4096]:
         raise InvalidInputError(f"{dat} is not a text .dat header (it holds binary data); "
                                 "open the .dat header that describes the raw file instead")
@@ -241,6 +251,7 @@ def read_raw(path: Path, *, chunk_planes: int | None = None) -> Volume:
     dat = path if path.suffix.lower() == ".dat" else _find_header(path)
     header = read_dat_header(dat)
     raw: Path = header["raw"]
+    check_regular(raw, "raw")
     if not raw.is_file():
         raise InvalidInputError(f"{dat} names the raw file {raw}, which does not exist; is the copy complete?")
     shape, dtype = header["shape"], header["dtype"]

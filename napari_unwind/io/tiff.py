@@ -44,6 +44,7 @@ import tifffile
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import final_name
+from ._files import check_regular
 from ._formats import numbered_siblings, reader_for
 from ._lazy import RawFileArray, slab_depth
 from ._straight_record import parse_record, record_text, straightening_record
@@ -372,6 +373,7 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
         Not a TIFF, a 2D image without numbered siblings, colour or multi-channel data, 4D data.
     """
     path = Path(path).expanduser().absolute()
+    check_regular(path)
     with _tifffile_log() as messages:
         try:
             tif = tifffile.TiffFile(path)

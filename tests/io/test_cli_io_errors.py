@@ -143,8 +143,32 @@ def test_convert_to_a_full_disk_is_one_line(tmp_path, tiny_disk, target):
         args += ["--format", "dicom"]
     code, _, err = _run(*args)
     line = _one_error_line(err)
-    assert code == 1 and str(tiny_disk / target) in line and "no space left" in line, line
+    assert code == 1 and str(tiny_disk / target) in line, line
+    if target in ("x.zarr", "x.nrrd"):  # compressed: it might fit, so it is tried and the full disk reported
+        assert "no space left" in line, line
+    else:  # 320 KiB uncompressed in 256 KiB: refused before a byte is written
+        assert "uncompressed in the" in line and "free in" in line, line
     assert os.listdir(tiny_disk) == []  # the partial output is gone
+
+
+@pytest.mark.parametrize("target", ["x.dcm", "x.dicom", "x.tif", "x.nii"])
+def test_a_disk_that_fills_while_an_uncompressed_output_is_written_is_one_line(tmp_path, tiny_disk, target,
+                                                                                  monkeypatch, capsys):
+    """The up-front room check passed (the disk filled afterwards, e.g. by another program): the writer's own
+    full-disk report, in process with the check switched off."""
+    import napari_unwind.io._api as api
+    from napari_unwind.cli import main
+
+    monkeypatch.setattr(api, "check_room", lambda *a, **k: None)
+    a = np.random.default_rng(0).integers(0, 60000, (40, 64, 64)).astype(np.uint16)
+    src = write_volume(a, tmp_path / "src.nrrd", spacing=(1, 1, 1), unit="mm", encoding="raw")
+    args = ["convert", str(src), str(tiny_disk / target), "-q"]
+    if target == "x.dcm":
+        args += ["--format", "dicom"]
+    assert main(args) == 1
+    line = _one_error_line(capsys.readouterr().err)
+    assert str(tiny_disk / target) in line and "no space left" in line, line
+    assert os.listdir(tiny_disk) == []
 
 
 # ------------------------------------------------------------------------------------------------------------------

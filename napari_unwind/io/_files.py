@@ -1,0 +1,119 @@
+"""Checks a reader makes on the files a scan names before it reads them (issue 20: metadata that lies).
+
+A path given by the user, a data file named in a header (NRRD ``data file:``, ``.dat`` ``ObjectFileName``) and a
+zarr chunk are opened only when they are regular files: a named pipe would block the reader for ever, a device or
+a socket would stream without end. :func:`open_regular` opens without blocking and checks what it opened, so
+there is no window between the check and the read. :func:`skip_lines` skips a header's ``line skip`` without
+reading past the end of the file, and :func:`check_room` refuses, before anything is written, an output that
+cannot fit on its disk.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import stat
+from pathlib import Path
+from typing import IO, Any
+
+from ..errors import InvalidInputError, OutputError
+
+__all__ = ["check_regular", "check_room", "open_regular", "skip_lines"]
+
+_KINDS = (
+    (stat.S_ISFIFO, "a named pipe"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISDIR, "a folder"),
+)
+
+
+def _kind(mode: int) -> str:
+    for test, name in _KINDS:
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def _refuse(path: Any, role: str, mode: int) -> InvalidInputError:
+    what = f"{role} " if role else ""
+    return InvalidInputError(f"{path}: the {what}file is {_kind(mode)}, not a regular file; a scan is read from "
+                             "files on disk: copy the data into a file and point at that")
+
+
+def check_regular(path: str | os.PathLike, role: str = "") -> None:
+    """Raise :class:`InvalidInputError` unless ``path`` (symlinks followed) is a regular file.
+
+    A missing path is left to the caller (it raises its own FileNotFoundError).
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return
+    if not stat.S_ISREG(mode):
+        raise _refuse(path, role, mode)
+
+
+def open_regular(path: str | os.PathLike, role: str = "") -> IO[bytes]:
+    """Open ``path`` for binary reading if it is a regular file, without ever blocking on a named pipe.
+
+    Raises
+    ------
+    FileNotFoundError, PermissionError
+        As :func:`open` does.
+    InvalidInputError
+        When ``path`` is a named pipe, a device, a socket or a folder (named in one line with ``role``).
+    """
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise _refuse(path, role, mode)
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def skip_lines(fh: IO[bytes], count: int, source: Any) -> None:
+    """Skip ``count`` lines of ``fh`` (a header's ``line skip``); refuse a count that runs past the end of the file.
+
+    A count larger than the bytes left is refused at once, without reading.
+    """
+    if count <= 0:
+        return
+    try:
+        left = os.fstat(fh.fileno()).st_size - fh.tell()
+    except (OSError, ValueError, AttributeError):
+        left = None
+    if left is not None and count > left:
+        raise InvalidInputError(f"{source}: the header's line skip {count} is more lines than the {left} bytes "
+                                "left in the file can hold; fix the header's 'line skip'")
+    for done in range(count):
+        if not fh.readline():
+            raise InvalidInputError(f"{source}: the header's line skip {count} runs past the end of the file "
+                                    f"after {done} lines; fix the header's 'line skip'")
+
+
+def check_room(target: str | os.PathLike, nbytes: int, *, compressed: bool) -> None:
+    """Refuse, before anything is written, an output of ``nbytes`` of voxels that cannot fit on its disk.
+
+    An uncompressed output must fit in the free space of its folder; a compressed one is refused only when even
+    a 1000:1 compression would not make it fit (metadata that claims far more voxels than any disk holds).
+    """
+    target = Path(target)
+    folder = target.parent
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return  # the writer reports a folder it cannot use
+    limit = free * (1000 if compressed else 1)
+    if nbytes <= limit:
+        return
+    from ._api import _size
+
+    how = "even compressed 1000:1 they would not fit" if compressed else "they are written uncompressed"
+    raise OutputError(f"cannot write {target}: its voxels take {nbytes:,} bytes ({_size(nbytes)}) and {how} in "
+                      f"the {_size(free)} free in {folder}; write fewer voxels (--level, a crop) or to another disk")
