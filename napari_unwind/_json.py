@@ -57,10 +57,11 @@ class _Repr(reprlib.Repr):
         self.maxlevel, self.maxlist, self.maxdict, self.maxstring, self.maxother = 3, 6, 6, _SHORT, _SHORT
 
     def repr_int(self, x: int, level: int) -> str:
-        if abs(x) < 10**20:
+        if abs(x) < 10**MAX_NUMBER_CHARS:
             return repr(x)
-        digits = x.bit_length() * 0.30103
-        return f"an integer of about {digits:.0f} digits"
+        if abs(x) < 10**4000:
+            return f"an integer of {len(str(abs(x)))} digits"
+        return f"an integer of about {x.bit_length() * 0.30103:.0f} digits"
 
     def repr_str(self, x: str, level: int) -> str:
         if len(x) <= self.maxstring:
@@ -184,28 +185,53 @@ def _parse_constant(token: str) -> Any:
     return _Refused(f"is the number {token}, which this file never stores; replace it with a finite value")
 
 
-_STRINGS = re.compile(r'"(?:[^"\\]|\\.)*"', re.DOTALL)
-_KEY = re.compile(r'"((?:[^"\\]|\\.){1,60})"\s*:')
+_STRINGS = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"', re.DOTALL)
+_TOKENS = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{},]', re.DOTALL)
+
+
+def _path_at(text: str, at: int) -> tuple:
+    """The JSON path of the container open at offset ``at`` of ``text`` (a light scan, no parsing, no recursion)."""
+    stack: list[list] = []  # [is_list, index or key, expecting a key]
+    for m in _TOKENS.finditer(text, 0, at + 1):
+        t = m.group()
+        if t == "[" or t == "{":
+            stack.append([t == "[", 0 if t == "[" else None, t == "{"])
+        elif t == "]" or t == "}":
+            if stack:
+                stack.pop()
+        elif t == ",":
+            if stack and stack[-1][0]:
+                stack[-1][1] += 1
+            elif stack:
+                stack[-1][2] = True
+        elif stack and not stack[-1][0] and stack[-1][2]:  # a key
+            try:
+                key = json.loads(t) if len(t) < 200 else t[1:60] + "..."
+            except ValueError:
+                key = t[1:-1][:60]
+            stack[-1][1], stack[-1][2] = key, False
+    return tuple(frame[1] for frame in stack[:-1])
 
 
 def _too_deep(text: str, max_depth: int) -> str | None:
-    """Where ``text`` nests arrays and objects deeper than ``max_depth`` (line, column and the last key before),
-    or None; without recursion and without parsing (a text of 100000 ``[`` makes the parser's recursion fail)."""
+    """Where ``text`` nests arrays and objects deeper than ``max_depth`` (its JSON path, line and column), or None;
+    without recursion and without parsing (a text of 100000 ``[`` makes the parser's recursion fail)."""
     import numpy as np
 
+    if text.count("[") + text.count("{") <= max_depth:
+        return None
     blank = _STRINGS.sub(lambda m: '"' + " " * (len(m.group()) - 2) + '"', text)  # same offsets, no brackets
-    b = np.frombuffer(blank.encode("utf-32-le"), dtype=np.uint32)
+    raw = blank.encode("utf-8")  # brackets are ASCII bytes: a multi-byte character never holds one
+    b = np.frombuffer(raw, dtype=np.uint8)
     step = (b == ord("[")).astype(np.int64) + (b == ord("{")) - (b == ord("]")) - (b == ord("}"))
     depth = np.cumsum(step)
     if not len(depth) or depth.max() <= max_depth:
         return None
-    at = int(np.argmax(depth > max_depth))
+    at = len(raw[:int(np.argmax(depth > max_depth))].decode("utf-8"))
     line = text.count("\n", 0, at) + 1
     column = at - (text.rfind("\n", 0, at) + 1) + 1
-    keys = _KEY.findall(text, 0, at)
-    where = f" (in {keys[-1]!r})" if keys else ""
-    return (f"is nested {int(depth.max())} levels deep at line {line}, column {column}{where}, deeper than the "
-            f"{max_depth} any file of this kind needs")
+    return (f"{json_path(_path_at(text, at))} is nested {int(depth.max())} levels deep (line {line}, column "
+            f"{column}), deeper than the {max_depth} any file of this kind needs")
 
 
 def loads(text: str, *, max_depth: int = MAX_DEPTH) -> Any:

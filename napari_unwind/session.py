@@ -116,6 +116,7 @@ SESSION_SUFFIX = ".unwind.json"
 SOFTWARE = "napari-unwind"
 
 _BLOCK = 8 * 2**20  # bytes read and hashed at a time
+_MAX_SCHEMA_VERSION = 1000  # the bound of session.schema.json
 _MAX_SESSION_BYTES = 64 * 2**20  # a session is a few kB; anything this large is not one
 _CHECKSUM_RE = re.compile(r"^sha256:[0-9a-f]{64}$")
 # operating-system litter that is never part of a scan
@@ -789,11 +790,14 @@ def _schema_version(d: dict) -> int:
         raise InvalidInputError(f"this is not a napari-unwind session: it has no 'schema' field "
                                 f"(a session file starts with \"schema\": \"{SCHEMA_ID}\")")
     if d.get("schema") != SCHEMA_ID:
-        raise InvalidInputError(f"this is not a napari-unwind session: its schema is {d.get('schema')!r}, "
+        raise InvalidInputError(f"this is not a napari-unwind session: its schema is {_json.short(d.get('schema'))}, "
                                 f"not {SCHEMA_ID!r}")
     version = _require(d, "schema_version", "")
     if isinstance(version, bool) or not isinstance(version, int) or version < 0:
-        raise InvalidInputError(f"schema_version must be an integer >= 0, got {version!r}")
+        raise InvalidInputError(f"schema_version must be an integer >= 0, got {_json.short(version)}")
+    if version > _MAX_SCHEMA_VERSION:  # no napari-unwind will count that far: a lie, not a newer file
+        raise InvalidInputError(f"schema_version must be an integer between 0 and {_MAX_SCHEMA_VERSION}, got "
+                                f"{_json.short(version)}")
     return version
 
 
@@ -802,8 +806,8 @@ def _upgrade(d: dict) -> dict:
     version = _schema_version(d)
     if version > SCHEMA_VERSION:
         software = d.get("software")
-        by = f" {software['version']}" if isinstance(software, dict) and isinstance(software.get("version"), str) \
-            else ""
+        by = f" {software['version'][:64]}" if isinstance(software, dict) and \
+            isinstance(software.get("version"), str) else ""
         raise InvalidInputError(
             f"this session was written by a newer napari-unwind{by} (schema {version}); this napari-unwind "
             f"({_current_version()}) reads schemas up to {SCHEMA_VERSION}: upgrade napari-unwind "
