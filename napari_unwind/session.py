@@ -9,9 +9,10 @@ A session records
 - the software name and version, ``created`` / ``modified`` timestamps (ISO 8601, UTC) and free-text notes.
 
 Files are pretty JSON (sorted keys, indent 2) so that diffs in version control stay readable, written atomically
-(:func:`save_session`), never holding NaN or infinity. :func:`load_session` refuses a damaged file with a message
-naming the file and what is wrong, refuses a file from a newer napari-unwind, and migrates an older schema through
-:data:`_MIGRATIONS`. :func:`verify_source` checks that the scan is still there and unchanged.
+(:func:`save_session`), never holding NaN or infinity. Every file read passes :mod:`napari_unwind._json` (safe
+parsing, then ``napari_unwind/schemas/session.schema.json``). :func:`load_session` refuses a damaged file with a
+message naming the file and what is wrong, refuses a file from a newer napari-unwind, and migrates an older schema
+through :data:`_MIGRATIONS`. :func:`verify_source` checks that the scan is still there and unchanged.
 
 Schema 2 (``"schema": "napari-unwind/session"``, ``"schema_version": 2``)::
 
@@ -29,8 +30,9 @@ Schema 2 (``"schema": "napari-unwind/session"``, ``"schema_version": 2``)::
     }
 
 Schema 1 is the same with a deformation of schema ``napari-unwind/deformation/1``: keyframe cages centred on the
-curve (no ``"offset"``). It migrates with zero offsets. A schema-2 file is refused by a napari-unwind that reads
-schema 1 at most (it is "written by a newer napari-unwind"), so per-side cages are never silently dropped.
+curve (no ``"offset"``). It migrates with zero offsets (an offset a keyframe carries anyway is kept). A schema-2
+file is refused by a napari-unwind that reads schema 1 at most (it is "written by a newer napari-unwind"), so
+per-side cages are never silently dropped.
 
 Schema 0 is the pre-release layout: one flat object with no ``schema`` key, recognised by its ``source_path``::
 
