@@ -7,6 +7,8 @@ code under test. No scan is written: the records are built directly, so each tes
 
 from __future__ import annotations
 
+import hashlib
+
 import pytest
 
 from napari_unwind import session as S
@@ -16,6 +18,7 @@ from napari_unwind.session import (
     Session,
     SourceInfo,
     SourceMissingError,
+    checksum,
     load_session,
     save_session,
     verify_source,
@@ -81,3 +84,14 @@ def test_a_migration_that_loses_the_version_is_a_bug_not_a_loop(tmp_path, monkey
     monkeypatch.setattr(S, "_MIGRATIONS", {1: lambda old: {k: v for k, v in old.items() if k != "schema_version"}})
     with pytest.raises(RuntimeError, match=r"migration from schema 1 did not advance the version \(None\)"):
         Session.from_dict(d)
+
+
+def test_an_nrrd_header_is_read_no_further_than_16_mib(tmp_path):
+    # A header whose 'data file' line comes after 16 MiB of comments: the reader stops at 16 MiB, so the file is
+    # hashed alone (the plain sha256 of its bytes), and the data file it names past the limit is not asked for.
+    # Kills _nrrd_data_files 20 (limit 16 * 3**20: the missing data file was required).
+    comment = b"#" + b"x" * 1022 + b"\n"  # 1 KiB a line
+    data = b"NRRD0004\n" + comment * (16 * 1024 + 1) + b"data file: missing.raw\n\n"
+    path = tmp_path / "long.nhdr"
+    path.write_bytes(data)
+    assert checksum(path) == "sha256:" + hashlib.sha256(data).hexdigest()
