@@ -89,8 +89,8 @@ def signals_kept(signums: tuple[int, ...] = KEPT_SIGNALS) -> Iterator[None]:
     the call starts inherit that). After: a handler the call changed is put back as it was, then the signals are
     unblocked, so one that arrived meanwhile is delivered now, to Python's handler (KeyboardInterrupt, the
     command line's SIGTERM handler) instead of killing the process. Left open: a signal the kernel hands, during
-    the call, to another thread that does not block it meets whatever handler is set at that moment (for
-    fTetWild's first call, SIG_DFL for SIGINT).
+    the call, to another thread that does not block it meets whatever handler is set at that moment (during
+    fTetWild's first call, SIG_DFL for SIGINT: numpy's OpenBLAS thread takes it and the process dies).
     """
     saved = {s: (c_sigaction(s), c_handler(s)) for s in signums}
     mask = None
