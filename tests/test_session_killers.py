@@ -95,3 +95,20 @@ def test_an_nrrd_header_is_read_no_further_than_16_mib(tmp_path):
     path = tmp_path / "long.nhdr"
     path.write_bytes(data)
     assert checksum(path) == "sha256:" + hashlib.sha256(data).hexdigest()
+
+
+def test_an_nrrd_pattern_of_step_0_is_refused_with_the_fix(tmp_path):
+    # Kills _nrrd_data_files 80 (the "step 0" reason) and 100 (the hint).
+    path = tmp_path / "slices.nhdr"
+    path.write_bytes(b"NRRD0004\ntype: uint8\ndata file: s%03d.raw 1 3 0\n\n")
+    with pytest.raises(InvalidInputError, match=r"cannot expand the data file pattern 's%03d\.raw 1 3 0' \(step 0\); "
+                                                r"fix the header's 'data file' field$"):
+        checksum(path)
+
+
+def test_a_session_needs_a_source_and_a_text_software_name(tmp_path):
+    # Kills Session.__post_init__ 20 (source=None accepted) and 40 (the field's name in the message).
+    with pytest.raises(InvalidInputError, match=r"^session\.source must be a SourceInfo, got NoneType$"):
+        Session(source=None)
+    with pytest.raises(InvalidInputError, match=r"^software\.name must be a string, got a number \(3\)$"):
+        Session(source=_source(tmp_path / "scan.nrrd"), software=3)
