@@ -233,3 +233,18 @@ def test_bend_takes_the_recorded_spacing_over_a_float32_header(tmp_path, suffix)
     assert back.spacing[0] != 1.7 and back.shape == straight.shape == (101, 7, 7)
     bent = bend(back, d, shape=x.shape).compute()  # refused before: "has shape (101, 7, 7) but ... (100, 7, 7)"
     np.testing.assert_array_equal(bent, bend(straight, d, shape=x.shape).compute())
+
+
+@pytest.mark.parametrize("name", ["b.zarr", "b.tif", "b.nii.gz", "b.dat", "b.dicom", "b_{:03d}.png"])
+def test_a_converted_straight_file_keeps_the_record(tmp_path, name):
+    """write_volume of a straight volume read back (unwind convert) carries the record on: bend still needs no pad."""
+    d = Deformation.from_polyline(np.array([[5.0, 10, 10], [175.0, 10, 10]]), spacing=(1.0, 1.0, 1.0),
+                                  cage_half_extent=(5.0, 5.0), unit="micrometer")
+    x = (np.arange(180 * 20 * 20) % 251).astype(np.uint8).reshape(180, 20, 20)
+    straight = straighten(x, d, spacing=1.3, pad=4, order=0)
+    first = open_volume(write_volume(straight, tmp_path / "a.nrrd"))
+    target = tmp_path / name if "{" not in name else tmp_path / "slices" / name
+    converted = open_volume(write_volume(first, target))
+    assert converted.metadata["unwind"]["straightening"]["pad"] == 4
+    np.testing.assert_array_equal(bend(converted, d, shape=x.shape, order=0).compute(),
+                                  bend(straight, d, shape=x.shape, order=0).compute())

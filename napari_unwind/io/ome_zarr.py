@@ -48,6 +48,7 @@ from ..progress import Progress
 from ._atomic import final_name
 from ._files import check_regular, open_regular
 from ._headers import compose_transform
+from ._straight_record import straightening_record
 from ._units import axis_units
 from ._volume import LazyArray, Volume
 
@@ -799,6 +800,9 @@ def write_ome_zarr(
                     "all_chunks_written": True}
     if volume.source:
         unwind_attrs["imported_from"] = {"path": volume.source, "format": volume.format}
+    record = straightening_record(volume)
+    if record is not None:  # a straight volume written (or converted) here; export gives the whole map instead
+        unwind_attrs["straightening"] = record
     unwind_attrs.update(attributes or {})
     root.attrs["unwind"] = unwind_attrs
 
