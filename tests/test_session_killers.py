@@ -112,3 +112,11 @@ def test_a_session_needs_a_source_and_a_text_software_name(tmp_path):
         Session(source=None)
     with pytest.raises(InvalidInputError, match=r"^software\.name must be a string, got a number \(3\)$"):
         Session(source=_source(tmp_path / "scan.nrrd"), software=3)
+
+
+def test_source_spacing_and_unit_of_the_wrong_kind_name_their_field():
+    # Kills SourceInfo.__post_init__ 80 (the spacing's field name) and 120 (the unit's, inside "source.unit: ...").
+    with pytest.raises(InvalidInputError, match=r"^source\.spacing must be a list of numbers, got a number \(1\.0\)$"):
+        SourceInfo(path="/scan.tif", shape=(2, 3, 4), dtype="uint8", spacing=1.0)
+    with pytest.raises(InvalidInputError, match=r"^source\.unit: source\.unit must be a string, got a number \(5\)$"):
+        SourceInfo(path="/scan.tif", shape=(2, 3, 4), dtype="uint8", spacing=(1.0, 1.0, 1.0), unit=5)
