@@ -198,6 +198,8 @@ def test_unwind_bend_refuses_a_session_whose_geometry_contradicts_its_scan(case,
     (".nhdr", (1, 1e-320, 1), (0, 0, 0), r"NRRD stores the voxel size as the length.*1e-320 \(axis1\)"),
     (".tif", (1, 1, 1e-12), (0, 0, 0), r"TIFF stores the voxel size of axis2 .*1e-12.*32-bit whole numbers"),
     ("s/x_{:02d}.tif", (1, 1e-320, 1), (0, 0, 0), r"TIFF stores the voxel size of axis1 .*1e-320"),
+    (".dicom", (1e-4, 1, 1), (0, 0, 0), r"slices 1\.0+1e-07 mm apart .* too close for a DICOM reader"),
+    (".dicom", (1, 1, 1), (1e300, 0, 0), r"slices 0\.001 mm apart at up to 1e\+297 mm .* too close"),
 ])
 def test_writers_refuse_what_their_format_cannot_hold(tmp_path, suffix, spacing, origin, match):
     target = tmp_path / ("x" + suffix if not suffix.startswith("s/") else suffix)

@@ -613,6 +613,18 @@ def _ds(value: float) -> str:
     return format_number_as_ds(float(value)) if value != 0 else "0"
 
 
+def _check_geometry_holds(path: Path, spacing_mm: tuple[float, ...], origin_mm: tuple[float, ...], n0: int) -> None:
+    """Refuse, before anything is written, slices closer than :func:`read_dicom` tells apart (1e-6 of the farthest
+    position, at least 1e-6 mm): the series would read back as several volumes at the same positions."""
+    far = max(abs(origin_mm[0]), abs(origin_mm[0] + (n0 - 1) * spacing_mm[0]))
+    if n0 > 1 and spacing_mm[0] <= 1e-6 * max(1.0, far):
+        raise InvalidInputError(
+            f"cannot write {final_name(path)}: slices {spacing_mm[0]!r} mm apart at up to {far:g} mm from the origin "
+            "are too close for a DICOM reader to tell apart (at most 1e-6 of that distance); choose another format "
+            "(OME-Zarr, NRRD, TIFF, .dat)"
+        )
+
+
 def _storage_plan(volume: Volume) -> tuple[np.dtype, float, float, bool]:
     """(stored dtype, slope, intercept, exact) for writing ``volume`` as 8/16-bit DICOM pixels."""
     dtype = volume.dtype
@@ -768,6 +780,7 @@ def write_dicom(
         factor = _UNIT_TO_MM[volume.unit]
     spacing_mm = tuple(s * factor for s in volume.spacing)
     origin_mm = tuple(o * factor for o in volume.origin)
+    _check_geometry_holds(path, spacing_mm, origin_mm, n0)
 
     yield Progress("write dicom", 0, n0, "checking the value range")
     stored, slope, inter, exact = _storage_plan(volume)
