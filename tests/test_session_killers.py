@@ -19,6 +19,7 @@ from napari_unwind.session import (
     SourceInfo,
     SourceMissingError,
     checksum,
+    checksum_iter,
     load_session,
     save_session,
     verify_source,
@@ -120,3 +121,23 @@ def test_source_spacing_and_unit_of_the_wrong_kind_name_their_field():
         SourceInfo(path="/scan.tif", shape=(2, 3, 4), dtype="uint8", spacing=1.0)
     with pytest.raises(InvalidInputError, match=r"^source\.unit: source\.unit must be a string, got a number \(5\)$"):
         SourceInfo(path="/scan.tif", shape=(2, 3, 4), dtype="uint8", spacing=(1.0, 1.0, 1.0), unit=5)
+
+
+def test_a_file_that_grows_while_it_is_hashed_is_refused_with_the_advice(tmp_path):
+    # 10 bytes when listed, 15 when read: the checksum is refused. Kills _digest_iter 60 (the advice upper-cased).
+    f = tmp_path / "growing.bin"
+    f.write_bytes(b"0123456789")
+    gen = checksum_iter(f)
+    next(gen)  # listed (10 bytes), nothing read yet
+    with open(f, "ab") as fh:
+        fh.write(b"abcde")
+    with pytest.raises(InvalidInputError, match=r"changed while it was being checksummed \(10 bytes, then 15\); is it "
+                                                r"still being copied or written\? Try again once it is complete$"):
+        for _ in gen:
+            pass
+
+
+def test_a_negative_source_size_names_its_field():
+    # Kills SourceInfo.__post_init__ 140 (the field name).
+    with pytest.raises(InvalidInputError, match=r"^source\.size must be an integer >= 0, got -1$"):
+        SourceInfo(path="/scan.tif", shape=(2, 3, 4), dtype="uint8", spacing=(1.0, 1.0, 1.0), size=-1)
