@@ -8,7 +8,8 @@
 #   scripts/mutation.sh 'napari_unwind.session.*__mutmut_*0'   # ... or a sample (here one mutant in ten)
 #
 # Named sets (issue 19): MUTATION_SET=NAME mutates only that set's modules against only its tests
-# ([tool.mutmut.sets.NAME] in pyproject.toml: atomic, editing, foldfree, services), e.g.
+# ([tool.mutmut.sets.NAME] in pyproject.toml: atomic, editing, foldfree, services, volume, deformation,
+# session), e.g.
 #
 #   MUTATION_SET=atomic scripts/mutation.sh 'napari_unwind.io._atomic.*__mutmut_*[05]'   # one mutant in five
 #   MUTATION_SET=services scripts/mutation.sh 'unwind_services.*'

@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import hashlib
 
+import numpy as np
 import pytest
 
 from napari_unwind import session as S
 from napari_unwind.errors import InvalidInputError
+from napari_unwind.io import open_volume, write_volume
 from napari_unwind.session import (
     Segmentation,
     Session,
+    SourceChangedError,
     SourceInfo,
     SourceMissingError,
     checksum,
@@ -141,3 +144,15 @@ def test_a_negative_source_size_names_its_field():
     # Kills SourceInfo.__post_init__ 140 (the field name).
     with pytest.raises(InvalidInputError, match=r"^source\.size must be an integer >= 0, got -1$"):
         SourceInfo(path="/scan.tif", shape=(2, 3, 4), dtype="uint8", spacing=(1.0, 1.0, 1.0), size=-1)
+
+
+def test_a_spacing_given_by_hand_two_millionths_off_is_a_change(tmp_path):
+    # A scan opened with a spacing 2e-6 (relative) off the session's, passed as volume=: the spacing must match to
+    # a relative 1e-6, so this is a change. Kills verify_source 60 (rtol dropped: numpy's 1e-5 accepted it).
+    path = write_volume(np.arange(24, dtype=np.uint8).reshape(2, 3, 4), tmp_path / "s.nrrd", spacing=(1.0, 1.0, 1.0))
+    session = Session(SourceInfo.from_path(path))
+    volume = open_volume(path)
+    off = volume.with_data(volume.data, spacing=(1.000002, 1.0, 1.0))
+    with pytest.raises(SourceChangedError, match=r"its spacing is \(1\.000002, 1\.0, 1\.0\), the session's"):
+        verify_source(session, volume=off)
+    assert verify_source(session, volume=volume).spacing == (1.0, 1.0, 1.0)
