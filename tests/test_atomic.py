@@ -39,8 +39,8 @@ def test_crash_leaves_nothing_and_keeps_old_output(tmp_path):
 def test_folder_outputs_replace_existing_folder(tmp_path):
     target = tmp_path / "store.zarr"
     target.mkdir()
-    (target / ".zgroup").write_text('{"zarr_format": 2}')  # a store (a folder of other files is never replaced)
-    (target / "old").write_text("x")
+    (target / ".zgroup").write_text('{"zarr_format": 2}')  # a store: metadata, a chunk key
+    (target / "0.0.0").write_text("x")
     with atomic_output(target, overwrite=True) as tmp:
         tmp.mkdir()
         (tmp / "new").write_text("y")
@@ -436,7 +436,7 @@ def test_a_target_that_vanishes_during_the_swap_still_gets_the_output(tmp_path, 
     target = tmp_path / "out.zarr"
     target.mkdir()
     (target / ".zgroup").write_text("{}")  # a store of ours: replaceable
-    (target / "old").write_text("x")
+    (target / "0.0.0").write_text("x")
     real = _atomic._renameat2
 
     def vanish(src, dst, flags):
@@ -457,7 +457,7 @@ def test_a_failed_portable_swap_puts_the_old_output_back(tmp_path, monkeypatch):
     target = tmp_path / "out.zarr"
     target.mkdir()
     (target / ".zgroup").write_text("{}")  # a store of ours: replaceable
-    (target / "old").write_text("keep me")
+    (target / "0.0.0").write_text("keep me")
     real = os.replace
 
     def failing(src, dst):
@@ -471,7 +471,7 @@ def test_a_failed_portable_swap_puts_the_old_output_back(tmp_path, monkeypatch):
             tmp.mkdir()
             (tmp / "new").write_text("y")
     monkeypatch.undo()
-    assert (target / "old").read_text() == "keep me" and no_leftovers(tmp_path) == []
+    assert (target / "0.0.0").read_text() == "keep me" and no_leftovers(tmp_path) == []
 
 
 def test_remove_path_of_nothing_is_quiet_and_check_writable_says_what_to_do(tmp_path, monkeypatch):

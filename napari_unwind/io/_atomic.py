@@ -279,6 +279,11 @@ def check_writable(path: str | os.PathLike, *, overwrite: bool = True) -> Path:
 #: the files a run --all folder holds.
 _OUR_SUFFIXES = frozenset({".dcm", ".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg", ".csv", ".json"})
 _ZARR_MARKS = ("zarr.json", ".zgroup", ".zarray")
+#: Files a desktop leaves in any folder it shows (not someone's work): ignored when deciding whose a folder is.
+_OS_LITTER = frozenset({".DS_Store", "Thumbs.db", "desktop.ini", ".directory"})
+#: Output names of formats written as one file (or one zarr store): a folder under such a name is not ours.
+_FILE_OUTPUT_SUFFIXES = (".zarr", ".tif", ".tiff", ".btf", ".tf8", ".nrrd", ".nhdr", ".nii", ".nii.gz", ".dat",
+                         ".raw", ".json", ".csv", ".parquet", ".png")
 
 
 def _refuse_foreign(path: Path) -> None:
@@ -295,7 +300,8 @@ def _foreign(folder: Path) -> str:
     replaceable when it is empty, a zarr store, or holds only the files of a DICOM series, a slice stack or
     ``run --all``'s table and sessions (and the stores of its specimens)."""
     if any((folder / m).is_file() for m in _ZARR_MARKS):
-        return ""
+        return _foreign_in_store(folder)
+    ours = _suffixes_of(folder)
     try:
         entries = sorted(os.scandir(folder), key=lambda e: e.name)
     except OSError as exc:
@@ -310,10 +316,44 @@ def _foreign(folder: Path) -> str:
             return f"the folder {name!r}"
         if not e.is_file(follow_symlinks=False):
             return f"{name!r}, which is not a regular file"
-        if TMP_MARK in name or name.startswith("."):
+        if TMP_MARK in name or name in _OS_LITTER or name.startswith("._"):
             continue
-        if Path(name).suffix.lower() not in _OUR_SUFFIXES:
+        if Path(name).suffix.lower() not in ours:
             return f"the file {name!r}"
+    return ""
+
+
+def _suffixes_of(folder: Path) -> frozenset[str]:
+    """Suffixes of the files an output named ``folder`` could hold: a DICOM series (``x.dicom``, ``x.dcm``) only
+    ``.dcm`` slices; an output named as a file (``x.tif``, ``x.nrrd``, ``x.zarr``...) nothing (a folder there is
+    someone else's, or an empty one); a folder without a suffix (a slice stack, ``run --all``) any of ours."""
+    name = folder.name.lower()
+    if name.endswith((".dicom", ".dcm")):
+        return frozenset({".dcm"})
+    if name.endswith(_FILE_OUTPUT_SUFFIXES):
+        return frozenset()
+    return _OUR_SUFFIXES
+
+
+_ZARR_FILE = re.compile(r"(zarr\.json|\.zgroup|\.zarray|\.zattrs|\.zmetadata|[0-9]+([.][0-9]+)*)")
+
+
+def _foreign_in_store(store: Path) -> str:
+    """What in a zarr store no zarr writer puts there ("" when nothing): files other than zarr metadata and chunk
+    keys (``0``, ``0.0.0``), anything that is not a regular file or folder (a symlink, a pipe). A thesis saved into
+    a store is not replaced with it."""
+    for top, dirs, files in os.walk(store, onerror=None):
+        for name in dirs:
+            if os.path.islink(os.path.join(top, name)):
+                return f"{os.path.relpath(os.path.join(top, name), store)!r}, a link inside the zarr store"
+        for name in files:
+            full = os.path.join(top, name)
+            if TMP_MARK in name:
+                continue
+            if os.path.islink(full) or not os.path.isfile(full):
+                return f"{os.path.relpath(full, store)!r}, which is not a regular file, inside the zarr store"
+            if not _ZARR_FILE.fullmatch(name):
+                return f"the file {os.path.relpath(full, store)!r} inside the zarr store"
     return ""
 
 

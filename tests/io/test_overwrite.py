@@ -122,3 +122,60 @@ def test_the_api_refuses_to_write_into_its_own_input(small, tmp_path):
             write_volume(open_volume(scan), target, overwrite=True)
     assert _tree(scan) == before
     _no_temps(tmp_path)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# seeded: folders of other files, stores with a stranger inside, and our own outputs (issue 20, item 7)
+# ------------------------------------------------------------------------------------------------------------------
+_STRANGERS = ["thesis.docx", "notes.txt", "fig 1.svg", "data.xlsx", "README", "raw_scan.tif", "session.json",
+              "Ærø.csv", ".hidden.pdf", "0.0.0.bak"]
+
+
+def _stranger_tree(folder: Path, rng) -> None:
+    """Random files (some with our suffixes), maybe nested, maybe with a link."""
+    folder.mkdir(exist_ok=True)
+    for _ in range(int(rng.integers(1, 5))):
+        sub = folder
+        for _ in range(int(rng.integers(0, 3))):
+            sub = sub / str(rng.choice(["figures", "c", "0", "old"]))
+        sub.mkdir(parents=True, exist_ok=True)
+        (sub / str(rng.choice(_STRANGERS))).write_bytes(rng.bytes(int(rng.integers(1, 300))))
+    if rng.random() < 0.2:
+        (folder / "link").symlink_to(folder.parent)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_seeded_folders_not_ours_are_never_replaced(small, tmp_path, seed):
+    rng = np.random.default_rng(seed)
+    data, src = small
+    name = "out" + str(rng.choice([".zarr", ".tif", ".nrrd", ".nii.gz", ".dcm"]))
+    target = tmp_path / name
+    if rng.random() < 0.5:
+        _stranger_tree(target, rng)  # a folder of someone's files under the output's name
+        if rng.random() < 0.5 and not any(target.glob("*.docx")):
+            (target / "thesis.docx").write_bytes(b"PK years of work")
+    else:  # a store of ours into which someone saved a file (at random depth)
+        write_volume(data, target, spacing=(1.0, 2.0, 3.0), format="ome-zarr", chunks=2, max_side=2)
+        deep = target / "0" / "c" if rng.random() < 0.5 else target
+        (deep / str(rng.choice(["thesis.docx", "notes.txt", "fig 1.svg", ".hidden.pdf", "0.0.0.bak"]))).write_bytes(
+            b"years of work")
+    before = _tree(target)
+    with pytest.raises(OutputError, match=r"cannot replace .* (holds|is a folder)"):
+        write_volume(data, target, overwrite=True, format="ome-zarr" if name.endswith(".zarr") else None)
+    assert _tree(target) == before
+    _no_temps(tmp_path)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_seeded_stores_of_ours_are_replaced(small, tmp_path, seed):
+    rng = np.random.default_rng(seed)
+    data, _ = small
+    target = tmp_path / "out.zarr"
+    old = rng.integers(0, 9, (int(rng.integers(2, 9)),) * 3).astype(np.uint8)
+    write_volume(old, target, chunks=int(rng.integers(1, 4)), max_side=int(rng.integers(1, 4)),
+                 labels=bool(rng.random() < 0.5))
+    write_volume(data, target, overwrite=True)
+    from napari_unwind.io import open_volume
+
+    np.testing.assert_array_equal(open_volume(target).data.compute(), data)
+    _no_temps(tmp_path)
