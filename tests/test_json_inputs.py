@@ -344,6 +344,24 @@ def test_schema1_offsets_survive_migration(tmp_path, session_doc):
 
 
 # ------------------------------------------------------------------------------------------------------------------
+# through the napari reader (its module needs neither Qt nor napari: napari calls the function it returns)
+# ------------------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("seed,family", _cases("session", 10, 5))
+def test_hostile_session_through_the_napari_reader(tmp_path, session_doc, seed, family):
+    from napari_unwind._napari._reader import get_session_reader
+
+    text, path = _lie("session", session_doc, family, random.Random(seed))
+    bad = tmp_path / "bad.unwind.json"
+    bad.write_text(text)
+    reader = get_session_reader(str(bad))
+    assert reader is not None
+    with pytest.raises(InvalidInputError) as info:
+        reader(str(bad))
+    message = _one_line(info.value)
+    assert str(bad) in message and _field_named(message, path), (family, path, message[:300])
+
+
+# ------------------------------------------------------------------------------------------------------------------
 # through the command line
 # ------------------------------------------------------------------------------------------------------------------
 def _run_cli(argv: list[str]) -> tuple[int, str]:
@@ -378,3 +396,22 @@ def test_hostile_session_through_the_unwind_command(tmp_path, session_doc, famil
                        capture_output=True, text=True, timeout=120)
     lines = r.stderr.splitlines()
     assert r.returncode == 1 and len(lines) == 1 and lines[0].startswith("unwind: error:"), r.stderr[-2000:]
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_hostile_batch_through_unwind_submit(tmp_path, seed):
+    """``unwind submit --batch FILE``: the file is read before any call to the server (none listens here)."""
+    rng = random.Random(SEED + 200 + seed)
+    if seed % 2:
+        data, lie = _csv_lie(rng)
+        bad = tmp_path / "collection.csv"
+        bad.write_bytes(data)
+    else:
+        lie = FAMILIES[seed // 2 % len(FAMILIES)]
+        text, _ = _lie("batch", BATCH, lie, rng)
+        bad = tmp_path / "collection.json"
+        bad.write_text(text)
+    code, err = _run_cli(["submit", "--batch", str(bad), "--server", "127.0.0.1:1", "-q"])
+    lines = err.splitlines()
+    assert code == 1 and len(lines) == 1 and lines[0].startswith("unwind: error:"), (lie, err[:500])
+    assert str(bad) in lines[0], (lie, err[:500])
