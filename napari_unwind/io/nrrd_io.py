@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import bz2
 import gzip
+import math
 import os
 import warnings
 import zlib
@@ -315,7 +316,7 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
     spacings = header.get("spacings")
     for k, i in enumerate(spatial):
         if vectors[i] is not None:
-            s = float(np.linalg.norm(vectors[i]))
+            s = math.hypot(*(float(c) for c in vectors[i]))  # no overflow of the squares (1e200 stays 1e200)
         elif spacings is not None and i < len(spacings):
             s = abs(float(spacings[i]))
         else:

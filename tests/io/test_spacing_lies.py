@@ -134,3 +134,13 @@ def test_ome_zarr_axes_in_different_units_are_brought_to_the_finest(tmp_path):
     meta.write_text(json.dumps(j))
     with pytest.raises(InvalidInputError, match="mix lengths with none"):
         open_volume(store)
+
+
+def test_an_nrrd_space_direction_far_from_1_is_read_as_its_length(tmp_path):
+    """The voxel size is the length of a space direction vector: 1e200 and 1e-170 (whose squares overflow and
+    underflow a 64-bit float) are read as themselves, not as inf (then 1, with a warning) and 0."""
+    path = tmp_path / "far.nrrd"
+    path.write_bytes(b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nspace dimension: 3\n"
+                     b"space directions: (1e200,0,0) (0,3e-170,4e-170) (0,0,1)\nencoding: raw\n\n" + bytes(8))
+    v, said = _read(path)
+    assert v.spacing == (1.0, 5e-170, 1e200) and said == []
