@@ -1556,6 +1556,7 @@ def bend(
     deformation: Deformation,
     *,
     shape: Sequence[int] | None = None,
+    scan: Any = None,
     order: int = 1,
     fill: float = 0,
     spacing: float | None = None,
@@ -1574,8 +1575,13 @@ def bend(
         both are known length units.
     deformation : Deformation
         The pose to bend into.
-    shape : tuple of 3 int
-        Shape of the bent output (the scan's grid: the deformation's spacing and origin). Required.
+    shape : tuple of 3 int, optional
+        Shape of the bent output (the scan's grid: the deformation's spacing and origin). Required unless ``scan``
+        is given.
+    scan : Volume or path, optional
+        The scan the deformation belongs to: its shape is the output's, and its spacing and origin are checked
+        against the deformation's as :func:`straighten` checks them (a deformation of another scan or pyramid level
+        would give a volume that does not overlay it).
     order : {0, 1, 3}
         Interpolation order in the straight volume.
     fill : float
@@ -1620,9 +1626,19 @@ def bend(
         data = _as_dask(straight, keep_int64=True)
     if data.ndim != 3:
         raise InvalidInputError(f"the straight volume must be 3D (s, y, x), got shape {data.shape}")
+    if scan is not None:
+        if isinstance(scan, (str, os.PathLike)):
+            scan = open_volume(scan)
+        if not isinstance(scan, Volume):
+            raise InvalidInputError(f"scan must be a napari_unwind Volume or a path, got {type(scan).__name__}")
+        _check_geometry(scan, deformation)
+        if shape is not None and tuple(_check_shape(shape)) != tuple(scan.shape):
+            raise InvalidInputError(f"shape={tuple(shape)} differs from the scan's shape {tuple(scan.shape)}; give "
+                                    "one of them")
+        shape = tuple(scan.shape)
     if shape is None:
-        raise InvalidInputError("bend needs the bent output's shape=(N0, N1, N2): the shape of the scan the "
-                                "deformation belongs to (a session's source.shape)")
+        raise InvalidInputError("bend needs the bent output's shape=(N0, N1, N2) or the scan=: the shape of the "
+                                "scan the deformation belongs to (a session's source.shape)")
     shape = _check_shape(shape)
     dtype = np.dtype(data.dtype)
     if not (np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating) or dtype == np.bool_):

@@ -250,3 +250,18 @@ def test_a_converted_straight_file_keeps_the_record(tmp_path, name):
     assert converted.metadata["unwind"]["straightening"]["pad"] == 4
     np.testing.assert_array_equal(bend(converted, d, shape=x.shape, order=0).compute(),
                                   bend(straight, d, shape=x.shape, order=0).compute())
+
+
+def test_the_api_bend_with_scan_checks_its_geometry_and_takes_its_shape(case, reference):
+    """bend(scan=...) refuses a deformation of another grid, as straighten does, and bends onto the scan's shape."""
+    tmp, x, scan, _, d = case
+    d2, deep, tol = reference
+    straight = straighten(open_volume(scan), d, spacing=DS, pad=PAD)
+    bent = bend(straight, d, scan=scan).compute()  # the shape from the scan
+    _check(bent, x, deep, tol)
+    for change, value in (("spacing", [1.5, 1.0, 1.0]), ("origin", [4.0, 0.0, 0.0])):
+        other = Deformation.from_dict({**d.to_dict(), change: value})
+        with pytest.raises(InvalidInputError, match=r"the volume's geometry .* differs from the deformation's"):
+            bend(straight, other, scan=scan)
+    with pytest.raises(InvalidInputError, match=r"shape=\(1, 2, 3\) differs from the scan's shape"):
+        bend(straight, d, scan=scan, shape=(1, 2, 3))
