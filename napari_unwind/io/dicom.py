@@ -188,7 +188,18 @@ def _read_header(path: Path) -> Dataset | None:
 
 
 def _images_of(path: Path, ds: Dataset) -> list[_Image]:
-    """One :class:`_Image` per slice (per frame of a multi-frame file), or [] when ``ds`` holds no image."""
+    """One :class:`_Image` per slice (per frame of a multi-frame file), or [] when ``ds`` holds no image.
+
+    Raises ``_Unreadable`` for a header whose values are not what their tags hold (a damaged file: several values
+    in a single-valued tag, text in a number).
+    """
+    try:
+        return _images_of_header(path, ds)
+    except (TypeError, ValueError, OverflowError, AttributeError) as exc:
+        raise _Unreadable(f"{path.name} (a damaged header: {type(exc).__name__}: {exc})") from None
+
+
+def _images_of_header(path: Path, ds: Dataset) -> list[_Image]:
     if "Rows" not in ds or "Columns" not in ds or "SeriesInstanceUID" not in ds:
         return []
     ts = str(getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", ExplicitVRLittleEndian))
@@ -266,12 +277,11 @@ def _scan_folder(folder: Path, *, strict: bool = True) -> dict[str, list[_Image]
     for f in files:
         try:
             ds = _read_header(f)
+            images = [] if ds is None else _images_of(f, ds)
         except _Unreadable as exc:
             unreadable.append(str(exc))
             continue
-        if ds is None:
-            continue
-        for image in _images_of(f, ds):
+        for image in images:
             by_uid.setdefault(image.uid, []).append(image)
     if unreadable:
         shown = "; ".join(unreadable[:5]) + (f"; and {len(unreadable) - 5} more" if len(unreadable) > 5 else "")
@@ -554,8 +564,13 @@ def read_dicom(path: Path, *, series: str | int | None = None) -> Volume:
         folder = path
     else:
         folder = path.parent
-        ds = _read_header(path)
-        if ds is None or not _images_of(path, ds):
+        try:
+            ds = _read_header(path)
+            images = [] if ds is None else _images_of(path, ds)
+        except _Unreadable as exc:
+            raise InvalidInputError(f"{path} cannot be read as DICOM: {' '.join(str(exc).split())}; copy the file "
+                                    "again") from None
+        if not images:
             raise InvalidInputError(f"{path} is not a DICOM image file; point at a DICOM series folder or slice")
         if series is None:
             series = str(ds.SeriesInstanceUID)
