@@ -337,7 +337,9 @@ def run_remote(args: argparse.Namespace) -> int:
         for w in job.result.warnings:
             print(f"unwind: warning: {w}", file=sys.stderr)
         written = client.download(job.result.volume_id, args.output, overwrite=args.overwrite)
-    remote = Session.from_dict(json.loads(job.result.session_json))
+    from .client import _server_json
+
+    remote = Session.from_dict(_server_json(job.result.session_json, "the session"))
     # the session describes the local scan (its checksum), so unwind straighten INPUT --session verifies
     session = Session(source=SourceInfo.from_path(args.input, volume=volume), deformation=remote.deformation,
                       segmentation=remote.segmentation, endpoints=remote.endpoints,

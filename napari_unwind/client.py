@@ -18,7 +18,6 @@ Needs the ``server`` extra (grpcio); the core does not import this module.
 from __future__ import annotations
 
 import csv
-import json
 import os
 import random
 import shutil
@@ -45,6 +44,32 @@ DEFAULT_ADDRESS = "127.0.0.1:50051"
 _CHUNK = 2 * 1024 * 1024
 _SLAB_BYTES = 32 * 1024 * 1024  # voxels read from the source per step (ahead of the messages being sent)
 
+
+
+def _batch_item(item: Any, k: int) -> BatchItem:
+    """A :class:`BatchItem` from itself or a dict of its fields; one line naming the item otherwise."""
+    if isinstance(item, BatchItem):
+        return item
+    if not isinstance(item, dict):
+        raise InvalidInputError(f"batch item {k} must be a BatchItem or a dict of its fields, got "
+                                f"{type(item).__name__}")
+    try:
+        return BatchItem(**item)
+    except TypeError as exc:
+        raise InvalidInputError(f"batch item {k}: {exc}; its fields are scan, select, name, features, register, "
+                                "options") from None
+
+
+def _server_json(text: str, what: str) -> Any:
+    """JSON the server sent (a session, the features) read under the rules of every JSON input
+    (:mod:`napari_unwind._json`): a damaged or hostile answer is one line, never a RecursionError."""
+    from ._json import loads
+
+    try:
+        return loads(text)
+    except InvalidInputError as exc:
+        raise InvalidInputError(f"{what} the server sent {exc}; is the server a napari-unwind server of this "
+                                "version?") from None
 
 class _Held:
     """An ndarray dask sees without the full copy (and hash) ``dask.array.from_array`` makes of arrays."""
@@ -491,7 +516,7 @@ class Client:
 
         if not job.result.session_json:
             raise InvalidInputError(f"job {job.id} produced no session")
-        return Session.from_dict(json.loads(job.result.session_json))
+        return Session.from_dict(_server_json(job.result.session_json, "the session"))
 
     @staticmethod
     def specimen(job: Any, **fields_: Any):
@@ -548,7 +573,7 @@ class Client:
 
         info = self.segmentation(segmentation_id) if k is None else self.simplify(segmentation_id, k)
         labels = self.open(info.labels_volume_id, timeout=timeout)
-        return Features.from_labels(np.asarray(labels.data), json.loads(info.features_json))
+        return Features.from_labels(np.asarray(labels.data), _server_json(info.features_json, "the features"))
 
     def select(self, segmentation_id: str, *, seeds: Any = None, ids: Sequence[int] | None = None,
                fill_holes: bool = False, isovalue: float | None = None, output_name: str = "",
@@ -721,7 +746,7 @@ class Client:
         """
         from unwind_services._proto.unwind.v1 import common_pb2 as pb
 
-        items = [i if isinstance(i, BatchItem) else BatchItem(**i) for i in items]
+        items = [_batch_item(i, k) for k, i in enumerate(items)]
         out = Path(out_dir) if out_dir is not None else None
         if out is not None:
             out.mkdir(parents=True, exist_ok=True)

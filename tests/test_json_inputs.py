@@ -415,3 +415,31 @@ def test_hostile_batch_through_unwind_submit(tmp_path, seed):
     lines = err.splitlines()
     assert code == 1 and len(lines) == 1 and lines[0].startswith("unwind: error:"), (lie, err[:500])
     assert str(bad) in lines[0], (lie, err[:500])
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# JSON the server sends and JSON embedded in files we read (a hostile server, a crafted TIFF description)
+# ------------------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("text", ["[" * 100000, "1" * 5000, '{"a": 1e400}', "[NaN]", "{"])
+def test_json_from_a_server_is_read_under_the_same_rules(text):
+    from napari_unwind.client import _server_json
+
+    with pytest.raises(InvalidInputError, match=r"^the session the server sent .*is the server a napari-unwind") as e:
+        _server_json(text, "the session")
+    assert "\n" not in str(e.value)
+
+
+def test_a_straightening_record_nested_too_deep_is_ignored_not_a_recursion_error():
+    from napari_unwind.io._straight_record import parse_record
+
+    assert parse_record("[" * 100000) is None
+    assert parse_record('{"pad": ' + "9" * 5000 + "}") is None
+
+
+@pytest.mark.parametrize("item, match", [({"scan": "a", "bogus": 1}, r"batch item 0: .*'bogus'"),
+                                         (["a"], r"batch item 0 must be a BatchItem or a dict")])
+def test_a_batch_item_of_the_api_is_checked_in_one_line(item, match):
+    from napari_unwind.client import _batch_item
+
+    with pytest.raises(InvalidInputError, match=match):
+        _batch_item(item, 0)

@@ -14,6 +14,8 @@ import json
 import math
 from typing import Any
 
+from .._json import loads as safe_loads
+
 __all__ = ["straightening_record", "record_text", "parse_record", "in_metadata"]
 
 #: The keys of the record: the straight grid's geometry as straighten made it.
@@ -65,7 +67,7 @@ def parse_record(value: Any) -> dict[str, Any] | None:
         value = value.decode("utf-8", errors="replace")
     if isinstance(value, str):
         try:
-            value = json.loads(value)
+            value = safe_loads(value)
         except ValueError:
             return None
     return _clean(value, None)

@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import tifffile
 
+from .._json import loads as safe_loads
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import final_name
@@ -134,7 +135,7 @@ def _stored_geometry(value: Any) -> dict[str, Any] | None:
     """The exact geometry this module writes under the key ``unwind``."""
     if isinstance(value, str):
         try:
-            value = json.loads(value)
+            value = safe_loads(value)
         except ValueError:
             return None
     if not isinstance(value, dict) or "spacing" not in value:
