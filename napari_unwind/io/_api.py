@@ -14,7 +14,7 @@ import numpy as np
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress, run
 from ._atomic import atomic_output, check_not_input, check_writable, final_name
-from ._files import check_room
+from ._files import _size, check_room
 from ._formats import detect_format, output_format, reader_for, writer_for
 from ._volume import Volume
 
@@ -22,14 +22,6 @@ __all__ = ["open_volume", "write_volume", "write_volume_iter", "import_volume", 
            "import_slabs_iter", "disk_full_error"]
 
 _FULL = {errno.ENOSPC: "no space left on device", getattr(errno, "EDQUOT", -1): "disk quota exceeded"}
-
-
-def _size(n: float) -> str:
-    for unit in ("bytes", "KiB", "MiB", "GiB"):
-        if n < 1024:
-            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n:.1f} TiB"
 
 
 def disk_full_error(exc: BaseException, path: str | os.PathLike,

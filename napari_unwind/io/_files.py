@@ -28,6 +28,15 @@ _KINDS = (
 )
 
 
+def _size(n: float) -> str:
+    """A byte count for people: ``"12 bytes"``, ``"3.4 MiB"``, ``"909.5 TiB"``."""
+    for unit in ("bytes", "KiB", "MiB", "GiB"):
+        if n < 1024:
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"
+
+
 def _kind(mode: int) -> str:
     for test, name in _KINDS:
         if test(mode):
@@ -112,8 +121,6 @@ def check_room(target: str | os.PathLike, nbytes: int, *, compressed: bool) -> N
     limit = free * (1000 if compressed else 1)
     if nbytes <= limit:
         return
-    from ._api import _size
-
     how = "even compressed 1000:1 they would not fit" if compressed else "they are written uncompressed"
     raise OutputError(f"cannot write {target}: its voxels take {nbytes:,} bytes ({_size(nbytes)}) and {how} in "
                       f"the {_size(free)} free in {folder}; write fewer voxels (--level, a crop) or to another disk")
