@@ -6,104 +6,31 @@ pytetwild
     without running the package's ``__init__``, so napari-unwind needs neither pyvista nor VTK. The signature
     of the extension is pinned by the dependency range ``pytetwild>=0.4,<0.5`` and checked by the tests.
 
-    The first call in a process resets the C-level SIGINT handler to the default (geogram's initialisation,
-    inside fTetWild, calls ``signal(SIGINT, SIG_DFL)``), behind Python's back: ``signal.getsignal`` still names
-    Python's handler, but Ctrl-C now kills the process outright (status -2, no cleanup). :func:`tetrahedralize`
-    runs the mesher inside :func:`signals_kept`, which puts the handlers back after the call and holds the
-    signals pending during it.
+    fTetWild runs in a process of its own (:mod:`napari_unwind._tetwild_child`): its first call in a process
+    resets the C-level SIGINT handler to the default (geogram's initialisation calls ``signal(SIGINT, SIG_DFL)``)
+    behind Python's back, after which Ctrl-C killed the process outright (status -2, no cleanup), and during that
+    call a SIGINT taken by any other thread (numpy's OpenBLAS threads) did the same; Python cannot block signals
+    in threads it did not start. In a child, the caller's handlers are never touched, an interrupt stops the
+    child, a crash of the mesher is an error instead of the end of the caller, and the debug file fTetWild writes
+    into the current folder lands in the child's own temporary folder.
 """
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import importlib.machinery
 import importlib.util
+import json
 import os
 import signal
+import subprocess
 import sys
-import threading
-from collections.abc import Iterator
+import tempfile
 from functools import cache
 from types import ModuleType
 
 import numpy as np
 
-__all__ = ["signals_kept", "tetrahedralize", "tetwild_extension"]
-
-_TETWILD_LITTER = "__tracked_surface.stl"
-_TETWILD_LOCK = threading.Lock()  # fTetWild keeps global state; one mesh at a time
-
-
-#: The signals whose C-level handling a native call must leave as it found it: the ones the command line handles
-#: (SIGINT, SIGTERM, SIGHUP) and the ones Python itself sets at start-up (SIGPIPE and SIGXFSZ ignored).
-KEPT_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGPIPE", "SIGXFSZ")
-                     if hasattr(signal, name))
-_SIGACTION_BYTES = 512  # more than any libc's struct sigaction: it is saved and put back as it is, never read
-
-
-@cache
-def _libc() -> ctypes.CDLL | None:
-    if os.name != "posix":
-        return None
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.sigaction.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p]
-        return libc
-    except (OSError, AttributeError):
-        return None
-
-
-def c_sigaction(signum: int) -> bytes | None:
-    """The process's C-level handling of ``signum`` (libc's ``struct sigaction``, as raw bytes), or None where
-    it cannot be read. Unlike ``signal.getsignal``, this sees a change made by compiled code.
-
-    Only :func:`c_handler` of it is compared: glibc fills the unused tail of ``sa_mask`` from its stack."""
-    libc = _libc()
-    if libc is None:
-        return None
-    buf = ctypes.create_string_buffer(_SIGACTION_BYTES)
-    if libc.sigaction(int(signum), None, buf) != 0:
-        return None
-    return buf.raw
-
-
-def c_handler(signum: int) -> int | None:
-    """The address of the C-level handler of ``signum`` (0: SIG_DFL, 1: SIG_IGN; ``sa_handler`` is the first
-    field of ``struct sigaction`` in glibc, musl and macOS), or None where it cannot be read."""
-    raw = c_sigaction(signum)
-    return None if raw is None else int.from_bytes(raw[:ctypes.sizeof(ctypes.c_void_p)], sys.byteorder)
-
-
-def _set_c_sigaction(signum: int, raw: bytes) -> None:
-    libc = _libc()
-    if libc is not None:
-        libc.sigaction(int(signum), ctypes.create_string_buffer(raw, _SIGACTION_BYTES), None)
-
-
-@contextlib.contextmanager
-def signals_kept(signums: tuple[int, ...] = KEPT_SIGNALS) -> Iterator[None]:
-    """Run a native call that may change the process's signal handlers behind Python's back.
-
-    Before: the C-level handlers of ``signums`` are saved, and the signals are blocked in this thread (threads
-    the call starts inherit that). After: a handler the call changed is put back as it was, then the signals are
-    unblocked, so one that arrived meanwhile is delivered now, to Python's handler (KeyboardInterrupt, the
-    command line's SIGTERM handler) instead of killing the process. Left open: a signal the kernel hands, during
-    the call, to another thread that does not block it meets whatever handler is set at that moment (during
-    fTetWild's first call, SIG_DFL for SIGINT: numpy's OpenBLAS thread takes it and the process dies).
-    """
-    saved = {s: (c_sigaction(s), c_handler(s)) for s in signums}
-    mask = None
-    if hasattr(signal, "pthread_sigmask"):
-        mask = signal.pthread_sigmask(signal.SIG_BLOCK, signums)
-    try:
-        yield
-    finally:
-        for s, (raw, handler) in saved.items():
-            if raw is not None and c_handler(s) != handler:
-                _set_c_sigaction(s, raw)
-        if mask is not None:
-            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+__all__ = ["tetrahedralize", "tetwild_extension"]
 
 
 @cache
@@ -160,6 +87,11 @@ def tetrahedralize(
         Tet mesh vertices.
     T : (Q, 4) int32 array
         Tetrahedra, positively oriented (VTK ordering: every tet has positive signed volume).
+
+    Notes
+    -----
+    The mesher runs in a child process (see the module's notes); an interrupt while it runs stops the child and
+    propagates. A mesher that fails or crashes raises RuntimeError with one line.
     """
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
     faces = np.ascontiguousarray(faces, dtype=np.uint32)
@@ -167,20 +99,40 @@ def tetrahedralize(
         raise ValueError(f"vertices must have shape (N>=4, 3), got {vertices.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) < 4:
         raise ValueError(f"faces must have shape (M>=4, 3), got {faces.shape}")
-    ext = tetwild_extension()
-    # fTetWild writes a debug copy of the surface, __tracked_surface.stl, into the current folder: remove it
-    # again unless it was there before (the user's own file).
-    litter = os.path.abspath(_TETWILD_LITTER)
-    existed = os.path.exists(litter)
-    with _TETWILD_LOCK, signals_kept():
+    options = {"edge_length_fac": float(edge_length_fac), "epsilon": float(epsilon), "optimize": bool(optimize),
+               "coarsen": bool(coarsen), "stop_energy": float(stop_energy), "num_threads": int(num_threads),
+               "max_iterations": int(max_iterations)}
+    with tempfile.TemporaryDirectory(prefix="unwind-tetwild-") as folder:
+        np.savez(os.path.join(folder, "surface.npz"), vertices=vertices, faces=faces,
+                 options=np.array(json.dumps(options)))
+        code = _run_child(folder)
+        result = os.path.join(folder, "tets.npz")
+        if code == 0 and os.path.exists(result):
+            with np.load(result, allow_pickle=False) as z:
+                return np.asarray(z["V"], dtype=np.float64), np.asarray(z["T"], dtype=np.int32)
+        error = os.path.join(folder, "error.txt")
+        if os.path.exists(error):
+            with open(error, encoding="utf-8") as f:
+                raise RuntimeError(f"fTetWild failed on a surface of {len(faces)} triangles: {f.read().strip()}")
+        how = f"status {code}"
+        if code < 0 and -code in signal.valid_signals():
+            how = f"signal {signal.Signals(-code).name}"
+        raise RuntimeError(f"fTetWild ended with {how} on a surface of {len(faces)} triangles; "
+                           "tet_mesher='lattice' meshes without it")
+
+
+def _run_child(folder: str) -> int:
+    """Run :mod:`napari_unwind._tetwild_child` on ``folder`` and return its status; an interrupt (or any
+    exception) while waiting stops the child before it propagates."""
+    package_parent = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_parent, env.get("PYTHONPATH")) if p)
+    with open(os.path.join(folder, "output.txt"), "wb") as output:
+        proc = subprocess.Popen([sys.executable, "-m", "napari_unwind._tetwild_child", folder], cwd=folder,
+                                stdin=subprocess.DEVNULL, stdout=output, stderr=output, env=env)
         try:
-            V, T = ext.tetrahedralize_mesh(
-                vertices, faces, optimize, False, float(edge_length_fac), 0.0, float(epsilon), float(stop_energy),
-                coarsen, int(num_threads), int(max_iterations), 6, True, True, False,
-                np.empty((0, 3), dtype=np.float64), np.empty((0, 4), dtype=np.int32), np.empty(0, dtype=np.float64),
-            )
+            return proc.wait()
         finally:
-            if not existed:
-                with contextlib.suppress(OSError):
-                    os.remove(litter)
-    return np.asarray(V, dtype=np.float64), np.asarray(T, dtype=np.int32)
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()

@@ -1003,8 +1003,8 @@ def _install_signal_handlers() -> Callable[..., None]:
     """Handle SIGINT, SIGTERM and SIGHUP with :func:`_on_signal` (main thread only); returns the undo.
 
     A signal the process inherited ignored stays ignored (``nohup``; a background job of a non-interactive shell
-    ignores SIGINT). Compiled code that resets a handler behind Python's back is fenced in
-    :func:`napari_unwind._compat.signals_kept`.
+    ignores SIGINT). fTetWild, which resets SIGINT's handler behind Python's back, runs in a child process
+    (:func:`napari_unwind._compat.tetrahedralize`).
     """
     if threading.current_thread() is not threading.main_thread():
         return lambda ignore=False: None

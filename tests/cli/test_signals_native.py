@@ -2,9 +2,10 @@
 
 fTetWild's first call in a process resets the C-level SIGINT handler to SIG_DFL behind Python's back (geogram's
 initialisation calls ``signal(SIGINT, SIG_DFL)``): a later Ctrl-C then killed the process outright (status -2, no
-message, the temporary output left). ``napari_unwind._compat.tetrahedralize`` puts the handler back
-(``signals_kept``). The command line's own skeleton uses the lattice mesher, so the runs here use a child that
-makes the pipeline's skeleton solve mesh with fTetWild (``tet_mesher="ftetwild"``, the library's option), then
+message, the temporary output left), and during that first call any thread Python did not start took a SIGINT into
+SIG_DFL. ``napari_unwind._compat.tetrahedralize`` now runs the mesher in a child process. The command line's own
+skeleton uses the lattice mesher, so the runs here use a child that makes the pipeline's skeleton solve mesh with
+fTetWild (``tet_mesher="ftetwild"``, the library's option), then
 signal the run once its export has begun (its temporary output exists), i.e. after the solve.
 
 Each child is a fresh process: fTetWild resets the handler on its first call only.
@@ -185,19 +186,37 @@ def test_second_signal_during_cleanup_is_ignored():
     assert error_lines(err) == ["unwind: terminated (SIGTERM); no partial output was left behind"], err
 
 
-# the C-level SIGINT handler before and after one fTetWild call, and what a SIGINT then does
-AFTER_TETWILD = textwrap.dedent("""
-    import contextlib, os, signal, sys
+# the C-level SIGINT handler before and after one fTetWild call, and what a SIGINT then does; "in-process" calls the
+# compiled mesher in this process, as tetrahedralize once did
+C_HANDLER = textwrap.dedent("""
+    import ctypes, sys
+
+    def c_handler(signum):  # sa_handler, the first field of libc's struct sigaction (glibc, musl, macOS)
+        buf = ctypes.create_string_buffer(512)
+        assert ctypes.CDLL(None).sigaction(signum, None, buf) == 0
+        return int.from_bytes(buf.raw[:ctypes.sizeof(ctypes.c_void_p)], sys.byteorder)
+""")
+IN_PROCESS = textwrap.dedent("""
+    def in_process(v, f, **kw):
+        import numpy as np
+        o = {"edge_length_fac": 0.05, "epsilon": 1e-3, **kw}
+        V, T = _compat.tetwild_extension().tetrahedralize_mesh(
+            np.ascontiguousarray(v, float), np.ascontiguousarray(f, np.uint32), True, False, o["edge_length_fac"],
+            0.0, o["epsilon"], 10.0, False, 0, 80, 6, True, True, False, np.empty((0, 3)),
+            np.empty((0, 4), np.int32), np.empty(0))
+        return V, T
+""")
+AFTER_TETWILD = C_HANDLER + textwrap.dedent("""
+    import os, signal
     import numpy as np
     from napari_unwind import _compat
-
-    if sys.argv[1] == "unfenced":
-        _compat.signals_kept = contextlib.nullcontext
+""") + IN_PROCESS + textwrap.dedent("""
+    mesh = in_process if sys.argv[1] == "in-process" else _compat.tetrahedralize
     v = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
     f = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
-    before = _compat.c_handler(signal.SIGINT)
-    _compat.tetrahedralize(v, f)
-    after = _compat.c_handler(signal.SIGINT)
+    before = c_handler(signal.SIGINT)
+    mesh(v, f)
+    after = c_handler(signal.SIGINT)
     print(before, after, signal.getsignal(signal.SIGINT) is signal.default_int_handler, flush=True)
     try:
         os.kill(os.getpid(), signal.SIGINT)
@@ -207,19 +226,93 @@ AFTER_TETWILD = textwrap.dedent("""
 
 
 @pytest.mark.skipif(os.name != "posix", reason="C-level signal handlers: POSIX")
-def test_tetrahedralize_puts_sigint_back():
-    """After tetrahedralize, SIGINT's C-level handler is Python's again and Ctrl-C raises KeyboardInterrupt.
+def test_tetrahedralize_leaves_sigint_alone():
+    """After tetrahedralize, SIGINT's C-level handler is Python's still and Ctrl-C raises KeyboardInterrupt.
 
-    The same call without the fence shows what fTetWild does: SIG_DFL (0) behind Python's back (getsignal still
-    says Python's handler), and SIGINT kills the process."""
-    procs = {mode: _start(AFTER_TETWILD, mode) for mode in ("fenced", "unfenced")}
+    The compiled mesher called in the process shows why it runs in a child: SIG_DFL (0) behind Python's back
+    (getsignal still says Python's handler), and SIGINT kills the process."""
+    procs = {mode: _start(AFTER_TETWILD, mode) for mode in ("child", "in-process")}
     res = {mode: p.communicate(timeout=120) + (p.returncode,) for mode, p in procs.items()}
-    out, err, code = res["fenced"]
+    out, err, code = res["child"]
     lines = out.splitlines()
     before, after, python_view = lines[0].split()
     assert int(before) > 1 and after == before and python_view == "True", (out, err)
     assert lines[1:] == ["KeyboardInterrupt"] and code == 0, (out, err)
-    out, err, code = res["unfenced"]
+    out, err, code = res["in-process"]
     before, after, python_view = out.splitlines()[0].split()
     assert int(before) > 1 and after == "0" and python_view == "True", ("fTetWild no longer resets SIGINT?", out)
     assert code == -signal.SIGINT, (code, out, err)
+
+
+# a library caller meshing a sphere of ~20k triangles (seconds of fTetWild), its first call in the process; numpy's
+# OpenBLAS threads are running (a matrix product first)
+DURING_TETWILD = textwrap.dedent("""
+    import sys, time
+    import numpy as np
+    from skimage.measure import marching_cubes
+    from napari_unwind import _compat
+""") + IN_PROCESS + textwrap.dedent("""
+    a = np.random.default_rng(0).random((400, 400))
+    a @ a  # OpenBLAS starts its threads
+    z, y, x = np.mgrid[:72, :72, :72] - 35.5
+    v, f, _, _ = marching_cubes(np.sqrt(z * z + y * y + x * x), 32.0)
+    mesh = in_process if sys.argv[1] == "in-process" else _compat.tetrahedralize
+    print("meshing", flush=True)
+    t0 = time.monotonic()
+    try:
+        mesh(v, f, edge_length_fac=0.02, epsilon=5e-4)
+    except KeyboardInterrupt:
+        print("KeyboardInterrupt", flush=True)
+        sys.exit(7)
+    print(f"finished in {time.monotonic() - t0:.1f} s", flush=True)
+""")
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[-1][0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not Path(f"/proc/{os.getpid()}/task/{os.getpid()}/children").exists(),
+                    reason="needs Linux's /proc/PID/task/PID/children")
+@pytest.mark.parametrize("to", ["process", "group"])
+def test_sigint_during_first_tetwild_call(tmp_path, to):
+    """SIGINT while fTetWild runs for the first time in a library process, sent to the process alone or to its
+    process group (a terminal's Ctrl-C): KeyboardInterrupt in the caller, the mesher's process gone, its
+    temporary folder removed. The mesher called in the process instead dies with SIGINT (-2) both ways: numpy's
+    OpenBLAS threads take the signal and meet geogram's SIG_DFL."""
+    for mode in ("child", "in-process"):
+        tmp = tmp_path / mode
+        tmp.mkdir()
+        proc = subprocess.Popen([sys.executable, "-c", DURING_TETWILD, mode], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint,
+                                start_new_session=True, env={**os.environ, "TMPDIR": str(tmp)})
+        try:
+            assert proc.stdout.readline() == "meshing\n", proc.communicate()
+            time.sleep(1.5)  # fTetWild loaded and running (the child's start takes about 0.5 s)
+            meshers = _children(proc.pid)
+            assert (len(meshers) == 1) == (mode == "child"), (mode, meshers)
+            assert proc.poll() is None, (mode, proc.communicate())
+            if to == "group":
+                os.killpg(proc.pid, signal.SIGINT)
+            else:
+                proc.send_signal(signal.SIGINT)
+            out, err = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+        if mode == "in-process":
+            assert proc.returncode == -signal.SIGINT, (to, proc.returncode, out, err[-1000:])
+            continue
+        assert proc.returncode == 7 and out == "KeyboardInterrupt\n", (to, proc.returncode, out, err[-2000:])
+        assert not any(_alive(pid) for pid in meshers), meshers
+        assert list(tmp.iterdir()) == [], list(tmp.iterdir())
