@@ -99,6 +99,11 @@ def tetrahedralize(
         raise ValueError(f"vertices must have shape (N>=4, 3), got {vertices.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) < 4:
         raise ValueError(f"faces must have shape (M>=4, 3), got {faces.shape}")
+    if not np.isfinite(vertices).all():
+        raise ValueError(f"vertices must be finite, got {int((~np.isfinite(vertices)).any(axis=1).sum())} with NaN "
+                         "or infinity")
+    if faces.max() >= len(vertices):
+        raise ValueError(f"faces must index the {len(vertices)} vertices, got index {int(faces.max())}")
     options = {"edge_length_fac": float(edge_length_fac), "epsilon": float(epsilon), "optimize": bool(optimize),
                "coarsen": bool(coarsen), "stop_energy": float(stop_energy), "num_threads": int(num_threads),
                "max_iterations": int(max_iterations)}

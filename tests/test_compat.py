@@ -41,3 +41,40 @@ def test_bad_surface_is_rejected():
 
     with pytest.raises(ValueError, match="vertices"):
         tetrahedralize(np.zeros((3, 2)), np.zeros((4, 3), int))
+
+
+OCTAHEDRON = (np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float),
+              np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]))
+
+
+@pytest.mark.parametrize("damage, match", [("nan", "vertices must be finite, got 1 with NaN"),
+                                           ("index", "faces must index the 6 vertices, got index 6")])
+def test_bad_surface_values_are_rejected_before_the_mesher(damage, match):
+    from napari_unwind._compat import tetrahedralize
+
+    v, f = OCTAHEDRON[0].copy(), OCTAHEDRON[1].copy()
+    if damage == "nan":
+        v[2, 1] = np.nan
+    else:
+        f[3, 2] = 6
+    with pytest.raises(ValueError, match=match):
+        tetrahedralize(v, f)
+
+
+def test_a_mesher_crash_is_an_error_not_the_end_of_the_caller():
+    """All vertices at one point: fTetWild segfaults. The caller gets one RuntimeError and goes on (the mesher runs
+    in a child; in the caller's own process the crash would end it, a napari session or a server with it)."""
+    code = textwrap.dedent("""
+        import numpy as np
+        from napari_unwind._compat import tetrahedralize
+        f = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+        try:
+            tetrahedralize(np.zeros((6, 3)), f)
+        except RuntimeError as e:
+            print("RuntimeError:", e)
+        print("still here")
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, (r.returncode, r.stderr[-1000:])
+    assert r.stdout.splitlines() == ["RuntimeError: fTetWild ended with signal SIGSEGV on a surface of 8 triangles; "
+                                     "tet_mesher='lattice' meshes without it", "still here"], r.stdout
