@@ -257,23 +257,16 @@ def loads(text: str, *, max_depth: int = MAX_DEPTH) -> Any:
 
 def load_file(path: str | os.PathLike, *, what: str, max_bytes: int, suffix_hint: str = "",
               damaged_hint: str = "", hint: str = "correct that value in the file") -> Any:
-    """Read and parse a JSON file: exists, is a file, at most ``max_bytes``, not empty, UTF-8, then :func:`loads`.
+    """Read and parse a JSON file: :func:`napari_unwind.io._files.read_small`, not empty, UTF-8, then :func:`loads`.
 
     ``what`` names the kind of file in messages ("a session"); ``suffix_hint`` is said of a file too large (did you
     give the scan?), ``damaged_hint`` of a file that is not JSON, ``hint`` of a refused value or nesting. Every
     refusal is one line naming ``path``.
     """
+    from .io._files import read_small
+
     path = Path(path).expanduser()
-    if not path.exists():
-        raise FileNotFoundError(f"the {what.split(' ', 1)[-1]} file {path} does not exist")
-    if not path.is_file():
-        raise InvalidInputError(f"{path} is a folder, not {what} file{suffix_hint and f' (*{suffix_hint})'}")
-    size = path.stat().st_size
-    if size > max_bytes:
-        raise InvalidInputError(f"{path} is {size} bytes, far too large for {what} file (at most {max_bytes}); "
-                                f"did you give another file instead of {what}"
-                                f"{suffix_hint and f' (*{suffix_hint})'}?")
-    raw = path.read_bytes()
+    raw = read_small(path, what=what, max_bytes=max_bytes, hint=suffix_hint and f" (*{suffix_hint})")
     if not raw.strip():
         raise InvalidInputError(f"{path} is empty, not {what} (was the save or the copy interrupted?)")
     try:

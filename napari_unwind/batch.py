@@ -149,16 +149,10 @@ def _read_batch_csv(path: Any, hint: str) -> list[dict[str, Any]]:
 
     from . import _json
     from .errors import InvalidInputError
+    from .io._files import read_small
 
-    if not path.exists():
-        raise FileNotFoundError(f"{path} does not exist")
-    if not path.is_file():
-        raise InvalidInputError(f"{path} is a folder, not a collection file (CSV with columns scan, select, name)")
-    size = path.stat().st_size
-    if size > MAX_BATCH_BYTES:
-        raise InvalidInputError(f"{path} is {size} bytes, far too large for a collection file (at most "
-                                f"{MAX_BATCH_BYTES}); did you give a scan instead of the CSV?")
-    raw = path.read_bytes()
+    raw = read_small(path, what="a collection", max_bytes=MAX_BATCH_BYTES,
+                     hint=" (CSV with columns scan, select, name)")
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:

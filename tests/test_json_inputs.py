@@ -12,10 +12,12 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
 import random
 import re
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -443,3 +445,43 @@ def test_a_batch_item_of_the_api_is_checked_in_one_line(item, match):
 
     with pytest.raises(InvalidInputError, match=match):
         _batch_item(item, 0)
+
+
+SPECIAL_FILES = textwrap.dedent("""
+    import os, sys
+    from napari_unwind.batch import read_batch
+    from napari_unwind.errors import InvalidInputError
+    from napari_unwind.session import load_session
+
+    for name in sys.argv[1:]:
+        for read in (load_session, read_batch):
+            try:
+                read(name)
+                print("read", name)
+            except InvalidInputError as e:
+                print(str(e).replace(os.path.dirname(name) + os.sep, ""))
+""")
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes: POSIX")
+def test_a_pipe_or_a_folder_given_as_session_or_collection_is_named_and_never_waited_on(tmp_path):
+    """Before, both readers called a named pipe "a folder" (exists, is not a file) and one that passed the check
+    would have waited for a writer for ever; now one bounded reader names what it found without opening it for a
+    blocking read."""
+    os.mkfifo(tmp_path / "s.unwind.json")
+    os.mkfifo(tmp_path / "items.csv")
+    (tmp_path / "folder.json").mkdir()
+    r = subprocess.run([sys.executable, "-c", SPECIAL_FILES, *(str(tmp_path / n) for n in
+                        ("s.unwind.json", "items.csv", "folder.json", "/dev/zero"))],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.splitlines() == [
+        "s.unwind.json is a named pipe, not a session file (*.unwind.json)",
+        "s.unwind.json is a named pipe, not a collection file",
+        "items.csv is a named pipe, not a session file (*.unwind.json)",
+        "items.csv is a named pipe, not a collection file (CSV with columns scan, select, name)",
+        "folder.json is a folder, not a session file (*.unwind.json)",
+        "folder.json is a folder, not a collection file",
+        "zero is a character device, not a session file (*.unwind.json)",
+        "zero is a character device, not a collection file (CSV with columns scan, select, name)",
+    ], r.stdout

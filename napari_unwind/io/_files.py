@@ -17,7 +17,7 @@ from typing import IO, Any
 
 from ..errors import InvalidInputError, OutputError
 
-__all__ = ["check_regular", "check_room", "open_regular", "skip_lines"]
+__all__ = ["check_regular", "check_room", "open_regular", "read_small", "skip_lines"]
 
 _KINDS = (
     (stat.S_ISFIFO, "a named pipe"),
@@ -84,6 +84,38 @@ def open_regular(path: str | os.PathLike, role: str = "") -> IO[bytes]:
     except BaseException:
         os.close(fd)
         raise
+
+
+def read_small(path: str | os.PathLike, *, what: str, max_bytes: int, hint: str = "") -> bytes:
+    """The bytes of a small file the user names (a session, a collection): at most ``max_bytes``, never blocking.
+
+    ``what`` names the kind of file ("a session"); ``hint`` follows it in a refusal (" (*.unwind.json)"). Opened
+    as :func:`open_regular` does and read to at most ``max_bytes`` + 1 bytes, whatever the file's size says.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    InvalidInputError
+        ``path`` is a folder, a named pipe, a device or a socket, or holds more than ``max_bytes``.
+    """
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    except FileNotFoundError:
+        raise FileNotFoundError(f"the {what.split(' ', 1)[-1]} file {path} does not exist") from None
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):
+        os.close(fd)
+        raise InvalidInputError(f"{path} is {_kind(mode)}, not {what} file{hint}")
+    with os.fdopen(fd, "rb") as fh:
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        raw = fh.read(max_bytes + 1)
+    if len(raw) > max_bytes:
+        size = max(len(raw), os.stat(path).st_size)
+        raise InvalidInputError(f"{path} is {size} bytes, far too large for {what} file (at most {max_bytes}); "
+                                f"did you give another file instead of {what}{hint}?")
+    return raw
 
 
 def skip_lines(fh: IO[bytes], count: int, source: Any) -> None:
