@@ -250,18 +250,23 @@ def cmd_bend(args: argparse.Namespace) -> int:
     _check_output(args.output, args.overwrite)
     session = _load_session_for(args, None, [args.output], [args.input])
     src = session.source
-    # the bent volume lies on the deformation's grid: refuse it where that grid is not the scan's, as straighten
-    # refuses that scan (the same check); without the scan at hand (moved, or it needs reader options), its
-    # spacing and unit as the session recorded
+    # the bent volume lies on the deformation's grid: bend(scan=...) refuses a scan whose grid is not the
+    # deformation's, as straighten does; without the scan at hand (moved, or it needs reader options), the spacing
+    # and unit the session recorded are checked the same way, and the session's shape is the output's
+    straight = open_volume(args.input, **_reader_options(args, args.input))
+    shape = tuple(src.shape)
+    options = dict(order=args.order, chunks=args.chunks, **_max_output(args))
     try:
         scan: Any = open_volume(src.path)
     except (OSError, UnwindError):
-        scan = SimpleNamespace(spacing=src.spacing, unit=src.unit, origin=session.deformation.origin)
-    unit = _check_geometry(scan, session.deformation)
-    straight = open_volume(args.input, **_reader_options(args, args.input))
-    shape = tuple(src.shape)
-    data = bend(straight, session.deformation, shape=shape, order=args.order, chunks=args.chunks,
-                **_max_output(args))
+        scan = None
+    if scan is not None:
+        data = bend(straight, session.deformation, scan=scan, shape=shape, **options)
+        unit = session.deformation.unit or scan.unit
+    else:
+        recorded = SimpleNamespace(spacing=src.spacing, unit=src.unit, origin=session.deformation.origin)
+        unit = _check_geometry(recorded, session.deformation)
+        data = bend(straight, session.deformation, shape=shape, **options)
     t0 = time.perf_counter()
     written = _run_with_bar(
         write_volume_iter(data, args.output, spacing=session.deformation.spacing,
