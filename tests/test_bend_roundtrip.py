@@ -209,11 +209,13 @@ def test_writers_refuse_what_their_format_cannot_hold(tmp_path, suffix, spacing,
     assert list(tmp_path.iterdir()) == []  # nothing written, not even a temporary file
 
 
-@pytest.mark.parametrize("suffix", [".nii", ".nrrd", ".tif"])
+@pytest.mark.parametrize("suffix", [".nii", ".nrrd", ".tif", ".tiff"])
 def test_writers_keep_what_their_format_can_hold(tmp_path, suffix):
     """The refusals' edges: a float32-normal NIfTI spacing, the NRRD and TIFF range limits' safe sides, an origin
     at float noise (written as 0 by float32, within 1e-6 of a voxel)."""
-    spacing = {".nii": (2e-38, 1e38, 1.0), ".nrrd": (1e-150, 1e150, 1.0), ".tif": (1.0, 3e-10, 1e300)}[suffix]
+    # ".tiff": a resolution between 0 and the fraction's smallest step (5e9 was read back as 4294967295)
+    spacing = {".nii": (2e-38, 1e38, 1.0), ".nrrd": (1e-150, 1e150, 1.0), ".tif": (1.0, 3e-10, 1e300),
+               ".tiff": (1.0, 5e9, 1.7e-9)}[suffix]
     origin = (1e-45, 0.0, -7.7)
     written = write_volume(np.zeros((3, 4, 5), np.float32), tmp_path / ("x" + suffix), spacing=spacing,
                            origin=origin, unit="micrometer")

@@ -504,6 +504,12 @@ def stored_geometry_json(volume: Volume) -> str:
 _MAX_RESOLUTION = 2**32 - 1
 
 
+def _per(length: float) -> float:
+    """A resolution of ``1 / length`` pixels per unit, or 0 (no resolution) below the fraction's smallest step
+    (tifffile would write 1/4294967295, read back as another size); the exact size is in the JSON geometry."""
+    return 1.0 / length if length <= _MAX_RESOLUTION else 0.0
+
+
 def _check_resolution(volume: Volume, per_unit: float, unit: str) -> None:
     """Refuse a pixel size whose X/YResolution (``1 / (size * per_unit)`` pixels per ``unit``) is too large for the
     TIFF's fraction of 32-bit numbers (tifffile fails with an unrelated message), before anything is written."""
@@ -531,7 +537,7 @@ def imagej_options(volume: Volume) -> dict[str, Any]:
         if o:
             metadata[f"{a}origin"] = -o / s  # ImageJ: the origin's position in pixels
     metadata["unwind"] = stored_geometry_json(volume)
-    return {"imagej": True, "resolution": (1.0 / sx, 1.0 / sy), "metadata": metadata}
+    return {"imagej": True, "resolution": (_per(sx), _per(sy)), "metadata": metadata}
 
 
 def plain_options(volume: Volume) -> dict[str, Any]:
@@ -542,10 +548,10 @@ def plain_options(volume: Volume) -> dict[str, Any]:
     if volume.unit in _METERS:
         cm = _METERS[volume.unit] / _METERS["centimeter"]
         _check_resolution(volume, cm, "centimetre")
-        options.update(resolution=(1.0 / (sx * cm), 1.0 / (sy * cm)), resolutionunit="CENTIMETER")
+        options.update(resolution=(_per(sx * cm), _per(sy * cm)), resolutionunit="CENTIMETER")
     else:
         _check_resolution(volume, 1.0, "pixel")
-        options.update(resolution=(1.0 / sx, 1.0 / sy), resolutionunit="NONE")
+        options.update(resolution=(_per(sx), _per(sy)), resolutionunit="NONE")
     return options
 
 
