@@ -81,6 +81,7 @@ from ..io._volume import normalise_unit, unit_label
 from ..pipeline import ExportOptions, PipelineOptions
 from ..progress import Progress
 from . import _docks
+from ._messages import for_dock
 from ._workers import Job, JobCancelled, prewarm, start_job, start_process_job
 
 __all__ = ["UnwindWidget", "volume_from_layer"]
@@ -434,9 +435,8 @@ class UnwindWidget(QWidget):
         self.pad_box.setToolTip("Extra slices at each end beyond the deformation's own padding")
         form.addRow("padding (slices)", self.pad_box)
         self.allow_folds_box = QCheckBox("allow folds")
-        self.allow_folds_box.setToolTip("Export even where the deformation folds over the specimen (as unwind "
-                                        "--allow-folds); a fold over empty cage corners only is exported anyway, "
-                                        "with a warning")
+        self.allow_folds_box.setToolTip("Export even where the deformation folds over the specimen; a fold over "
+                                        "empty cage corners only is exported anyway, with a warning")
         form.addRow("", self.allow_folds_box)
         self._show_export_options(self.options.export)
         row = QHBoxLayout()
@@ -539,7 +539,7 @@ class UnwindWidget(QWidget):
 
     def _say(self, text: str) -> None:
         self.status.setStyleSheet("")
-        self.status.setText(text)
+        self.status.setText(for_dock(text))
 
     def _fail(self, exc: BaseException) -> None:
         if isinstance(exc, JobCancelled):
@@ -547,7 +547,7 @@ class UnwindWidget(QWidget):
             return
         text = str(exc) if isinstance(exc, (UnwindError, FileNotFoundError)) else f"{type(exc).__name__}: {exc}"
         self.status.setStyleSheet("color: #ff5050")
-        self.status.setText(f"error: {text}")
+        self.status.setText(f"error: {for_dock(text)}")
 
     # ==============================================================================================================
     # scan
@@ -1021,7 +1021,7 @@ class UnwindWidget(QWidget):
             lines.append(folds)
         lines += [f"warning: {w}" for w in result.warnings]
         lines.insert(0, _status_line(specimen))
-        self.skeleton_report.setPlainText("\n".join(lines))
+        self.skeleton_report.setPlainText(for_dock("\n".join(lines)))
         if result.endpoints is not None and self._ends_layer is None:
             self._show_session_ends(result.endpoints)
         self.model.set_deformation(d)
@@ -1141,7 +1141,8 @@ class UnwindWidget(QWidget):
             written, warned = value
             self.exported = Path(written)
             self._add_layer(image_layer(open_volume(written), name=f"straight {self.exported.name}"))
-            self.export_info.setText("\n".join([f"written: {self.exported}"] + [f"warning: {w}" for w in warned]))
+            self.export_info.setText(for_dock("\n".join([f"written: {self.exported}"]
+                                                         + [f"warning: {w}" for w in warned])))
             self._say(f"exported to {self.exported}" + (f" (warning: {warned[0]})" if warned else ""))
 
         return self._start(make, "exporting", done, (self.export_cancel,))
@@ -1257,7 +1258,7 @@ class UnwindWidget(QWidget):
             if folds:
                 lines.append(folds)
             lines += [f"warning: {w}" for w in warnings]
-            self.skeleton_report.setPlainText("\n".join(lines))
+            self.skeleton_report.setPlainText(for_dock("\n".join(lines)))
             if session.endpoints is not None and self._ends_layer is None:
                 self._show_session_ends(session.endpoints)
             self.model.set_deformation(d)

@@ -1,0 +1,55 @@
+"""The core's messages in the dock's words (issue 21, item 7).
+
+The pipeline's warnings, reasons and errors end with what to do, said for the command line and the Python API
+(``--cage RX,RY``, ``Deformation.set_cage``). :func:`for_dock` swaps that advice for the dock's own controls, so a
+user of the dock is never told to pass an option they have no way to give. ``tests/_napari/test_messages.py``
+reads every message of the core's sources that gives such advice and checks none reaches the dock untranslated.
+"""
+
+from __future__ import annotations
+
+import re
+
+__all__ = ["for_dock"]
+
+_CAGE_SMALLER = "Refine: drag the cage's sides inward in the cross-section, at those s"
+_CAGE_LARGER = "Refine: drag the cage's sides outward in the cross-section, at those s"
+
+#: (pattern, the dock's words), applied in order; each pattern is the advice of one core message.
+_ADVICE: tuple[tuple[str, str], ...] = (
+    # skeleton/_api.py: the deformation folds
+    (r"give a smaller cage \(--cage RX,RY, or half_extent=\) or shrink the cages of the keyframes there in the "
+     r"session \(Deformation\.set_cage\)", "shrink the cage there (" + _CAGE_SMALLER + ")"),
+    # skeleton/_api.py: the cage leaves part of the mask out
+    (r"give a larger cage \(--cage RX,RY or --cage-margin\), or edit the keyframes there in the session "
+     r"\(Deformation\.set_cage\)", "give a larger cage there (" + _CAGE_LARGER + ")"),
+    # pipeline.fold_rule
+    (r"shrink the cage there \(unwind skeleton/run --cage RX,RY or --cage-margin M, or Deformation\.set_cage in "
+     r"the session\)", "shrink the cage there (" + _CAGE_SMALLER + ")"),
+    (r", or allow folds \(--allow-folds\) to export anyway", ", or tick \"allow folds\" (Export) to export anyway"),
+    (r"; exported anyway \(allow_folds\)", "; exported anyway (\"allow folds\" is ticked)"),
+    # pipeline: a partial specimen
+    (r" \(a larger or fitted cage: --cage RX,RY, --cage-margin M\)", " (" + _CAGE_LARGER + ")"),
+    # skeleton/_api.py: an end far from the mask
+    (r"click inside the specimen, or raise the tolerance \(snap_tolerance, --snap-tolerance\)",
+     "drag the end onto the specimen in the \"ends\" layer"),
+    # skeleton/_api.py: a specimen in pieces
+    (r"give endpoints for every part, in order from head to tail \(Endpoints\.chain, or --chain START END per part "
+     r"on the command line\)", "add the start and end of every part to the \"ends\" layer, in order from head to "
+     "tail (Ends)"),
+    # pipeline.run_job: a fold refused after the session was saved
+    (r": edit it, or export it as it is with unwind straighten --session \.\.\. --allow-folds",
+     ": edit the keyframes there (Refine), or tick \"allow folds\" (Export)"),
+    # warp: the output size limit
+    (r"the limit max_output=(\S+) bytes", r"the size limit of \1 bytes"),
+    (r", or pass max_output=\.\.\. \(CLI: --max-output\) to raise the limit \(max_output=None: no limit\)",
+     ", or choose a coarser spacing (Export)"),
+)
+_COMPILED = tuple((re.compile(p), r) for p, r in _ADVICE)
+
+
+def for_dock(message: str) -> str:
+    """``message`` with the command line's and the API's advice replaced by the dock's controls."""
+    for pattern, words in _COMPILED:
+        message = pattern.sub(words.replace("\\", "\\\\"), message)
+    return message
