@@ -1334,37 +1334,61 @@ class UnwindWidget(QWidget):
             self.load_session(path)
 
     def save_session(self, path: str | os.PathLike) -> Job | None:
-        """Save the current state as a session (the scan's checksum is computed once, in a worker)."""
-        from ..session import SourceInfo, save_session
+        """Save the current state as a session (the scan's checksum is computed once, in a worker).
+
+        A session records the scan's file. A scan that has none (File > Open Sample, a layer made in napari) is
+        written first, beside the session, as ``<name>.scan.ome.zarr``, and the session records that file: it
+        opens again from the dock and from File > Open. The dock then works on that file.
+        """
+        from ..session import SESSION_SUFFIX, SourceInfo, save_session
 
         volume = self.volume
+        path = Path(path).expanduser()
         try:
             if volume is None:
                 raise InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)")
-            if not volume.source or not Path(volume.source).exists():
-                raise InvalidInputError(f"the scan {self.scan_layer.name!r} was not opened from a file, and a session "
-                                        "records the scan's file: save the layer (File > Save Selected Layers), "
-                                        "then open that file here")
-            self._session(SourceInfo(path=volume.source, shape=volume.shape, dtype=volume.dtype.name,
+            self._session(SourceInfo(path=volume.source or "scan", shape=volume.shape, dtype=volume.dtype.name,
                                      spacing=volume.spacing))  # checks selection and ends before hashing
+            scan_file = None
+            if not volume.source or not Path(volume.source).exists():
+                stem = path.name[:-len(SESSION_SUFFIX)] if path.name.endswith(SESSION_SUFFIX) else path.stem
+                scan_file = path.with_name(f"{stem}.scan.ome.zarr")
+                if scan_file.exists():
+                    raise InvalidInputError(
+                        f"the scan {self.scan_layer.name!r} has no file, and the session would write it to "
+                        f"{scan_file}, which exists: choose another session name, or move that file away")
         except UnwindError as exc:
             self._fail(exc)
             return None
-        known = self._source_info
+        known = self._source_info if scan_file is None else None
 
         def make() -> Generator[Progress, None, Any]:
             if known is not None:
-                return known
-            yield Progress("checksum", 0, 1, volume.source)
-            info = SourceInfo.from_path(volume.source, volume=volume)  # reads every byte once
-            yield Progress("checksum", 1, 1)
-            return info
+                return known, volume
+            scan = volume
+            if scan_file is not None:
+                from ..io import write_volume_iter
 
-        def done(source: Any) -> None:
+                written = yield from write_volume_iter(volume, scan_file)
+                scan = _with_geometry(open_volume(written), volume.spacing, volume.origin)
+            yield Progress("checksum", 0, 1, scan.source)
+            info = SourceInfo.from_path(scan.source, volume=scan)  # reads every byte once
+            yield Progress("checksum", 1, 1)
+            return info, scan
+
+        def done(result: Any) -> None:
+            source, scan = result
             self._source_info = source
+            if scan is not volume:
+                self.volume = scan  # the dock now works on the file the session records
+                meta = dict(self.scan_layer.metadata or {})
+                meta["napari_unwind"] = {**meta.get("napari_unwind", {}), "source": scan.source,
+                                         "format": scan.format}
+                self.scan_layer.metadata = meta
             written = save_session(self._session(source), path)
-            self.session_info.setText(f"saved: {written}")
-            self._say(f"session saved to {written}")
+            saved_scan = f" with its scan {scan.source}" if scan is not volume else ""
+            self.session_info.setText(f"saved: {written}{saved_scan}")
+            self._say(f"session saved to {written}{saved_scan}")
 
         return self._start(make, "saving the session", done)
 
