@@ -191,6 +191,8 @@ class UnwindWidget(QWidget):
         self.features: Any = None  # Features
         self.selected: list[int] = []
         self.seeds: dict[int, tuple[float, float, float]] = {}  # feature id -> the full-resolution voxel clicked
+        #: the selection taken from a Labels layer instead of the features: (layer, label; None: every label)
+        self.mask_choice: tuple[Any, int | None] | None = None
         self.result: Any = None  # SkeletonResult
         self.specimen: Any = None  # the pipeline's SpecimenResult of the last skeleton (status ok / partial, reason)
         #: The pipeline's options (napari_unwind.pipeline: every default once); the export page's fields and the
@@ -624,14 +626,14 @@ class UnwindWidget(QWidget):
         if changed:
             self._remote = {}
             self.tree = self.features = self.result = None
-            self.selected, self.seeds = [], {}
+            self.selected, self.seeds, self.mask_choice = [], {}, None
             self._source_info = None
         self._refresh_layer_combo()
         unit = unit_label(volume.unit)
         levels = f", {len(volume.levels)} pyramid levels" if len(volume.levels) > 1 else ""
         self.scan_info.setText(f"{layer.name}: {_fmt(volume.shape, 6)} voxels of {volume.dtype}{levels}\n"
                                f"spacing {_fmt(volume.spacing)} {unit}, unit {volume.unit or 'not recorded'}\n"
-                               f"source {volume.source or '(not from a file: saving a session needs one)'}")
+                               f"source {volume.source or '(not from a file: a saved session writes it beside it)'}")
         if _spacing_missing(volume):
             self.scan_warning.setText("Spacing missing: the scan records no voxel size, 1 x 1 x 1 is assumed and "
                                       "every length is in voxels. Open a format that stores it (OME-Zarr, NRRD, "
@@ -878,6 +880,8 @@ class UnwindWidget(QWidget):
         if seeds is None:
             seeds = {i: tuple(float(c) for c in f.stat(i).max_position_full) for i in ids}
         self.selected = ids
+        if ids:
+            self.mask_choice = None
         self.seeds = {i: seeds.get(i, tuple(float(c) for c in f.stat(i).max_position_full)) for i in ids}
         labels = np.where(np.isin(f.labels, ids), f.labels, 0).astype(f.labels.dtype)
         self._put_layer("_selection_layer", self._labels_tuple(labels, "selection", opacity=0.8, blending="additive"))
@@ -904,13 +908,109 @@ class UnwindWidget(QWidget):
         ids = [self.table.item(r, 0).data(Qt.ItemDataRole.UserRole) for r in rows]
         self.select_features(ids, seeds={i: s for i, s in self.seeds.items() if i in ids})
 
+    def use_labels(self, layer: Any, *, label: int | None = None, at: Any = None) -> int:
+        """Make a Labels layer the selection (an expert's mask, a mask file): every labelled voxel (``label``
+        None), one ``label``, or the label under the world position ``at``. Returns the selected voxel count.
+
+        The layer must lie on the scan's voxel grid (same shape). The features' selection is cleared; a click on
+        the layer afterwards (while it is the active layer) picks the label under it.
+        """
+        from napari.layers import Labels
+
+        try:
+            if self.volume is None:
+                raise InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)")
+            if not isinstance(layer, Labels) or layer.ndim != 3:
+                raise InvalidInputError(f"the layer {getattr(layer, 'name', layer)!r} is not a 3D Labels layer; "
+                                        "pick a mask (Labels) layer")
+            if tuple(layer.data.shape) != tuple(self.volume.shape):
+                raise InvalidInputError(
+                    f"the mask {layer.name!r} has {_fmt(layer.data.shape, 6)} voxels, the scan "
+                    f"{_fmt(self.volume.shape, 6)}: a mask must lie on the scan's voxel grid")
+            if at is not None:  # the voxel under the world position (napari's get_value needs the slice shown)
+                idx = np.round(np.asarray(layer.world_to_data(np.asarray(at, dtype=float)[-3:]))).astype(int)
+                inside = bool(np.all((idx >= 0) & (idx < np.asarray(layer.data.shape))))
+                label = int(np.asarray(layer.data[tuple(idx)])) if inside else 0
+                if label == 0:
+                    raise InvalidInputError(f"no label there in {layer.name!r} (background): click inside the mask")
+            if label is not None:
+                label = int(label)
+            data = np.asarray(layer.data)
+            count = int(np.count_nonzero(data == label if label else data))
+            if count == 0:
+                what = f"label {label}" if label else "any label"
+                raise InvalidInputError(f"the mask {layer.name!r} holds no voxel of {what}: pick another label")
+        except UnwindError as exc:
+            self._fail(exc)
+            return 0
+        self.mask_choice = (layer, label or None)
+        self.selected, self.seeds = [], {}
+        if self._selection_layer is not None and self._selection_layer in self.viewer.layers:
+            self.viewer.layers.remove(self._selection_layer)
+        self._selection_layer = None
+        if self._on_mask_click not in layer.mouse_drag_callbacks:
+            layer.mouse_drag_callbacks.append(self._on_mask_click)
+        share = 100 * count / max(1, int(np.prod(self.volume.shape)))
+        what = f"label {label}" if label else "every label"
+        self.selection_label.setText(f"selected: {what} of the mask {layer.name!r}, {count:,} voxels "
+                                     f"({share:.3g} % of the scan)")
+        self._say(f"the selection is {what} of {layer.name!r}: suggest the ends next (step 3)")
+        prewarm(_SKELETON)
+        self._update_needs()
+        return count
+
+    def _on_mask_click(self, layer: Any, event: Any) -> Generator[None, None, None]:
+        """Mouse callback of a mask chosen with :meth:`use_labels`: a click (no drag) picks the label under it."""
+        if event.type != "mouse_press":
+            return
+        yield
+        dragged = False
+        while event.type == "mouse_move":
+            dragged = True
+            yield
+        if not dragged and self.mask_choice is not None and self.mask_choice[0] is layer:
+            self.use_labels(layer, at=event.position)
+
+    def open_mask(self, path: str | os.PathLike) -> Job | None:
+        """Open a mask file (any scan format; non-zero voxels are the mask) as a Labels layer over the scan and
+        make it the selection."""
+        volume = self.volume
+        if volume is None:
+            self._fail(InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)"))
+            return None
+
+        def make() -> Generator[Progress, None, np.ndarray]:
+            yield Progress("open", 0, 1, str(path))
+            mask = open_volume(path)
+            if tuple(mask.shape) != tuple(volume.shape):
+                raise InvalidInputError(f"the mask {path} has {_fmt(mask.shape, 6)} voxels, the scan "
+                                        f"{_fmt(volume.shape, 6)}: a mask must lie on the scan's voxel grid")
+            data = np.asarray(mask.data)
+            if not (np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_):
+                data = data != 0
+            yield Progress("open", 1, 1)
+            return data.astype(np.uint8) if data.dtype == np.bool_ else data
+
+        def done(data: np.ndarray) -> None:
+            from ._layers import labels_layer
+
+            layer = self._add_layer(labels_layer(data, spacing=volume.spacing, unit=volume.unit,
+                                                 name=Path(path).name, translate=tuple(volume.origin)))
+            self.use_labels(layer)
+
+        return self._start(make, "opening the mask", done)
+
     def mask(self) -> Any:
-        """The selected features at full resolution (lazy dask bool array): the pipeline's select_step with the
-        dock's segmentation options (nothing is computed here)."""
+        """The selection at full resolution (lazy dask bool array): the chosen mask's label(s), or the selected
+        features through the pipeline's select_step with the dock's segmentation options (nothing is computed)."""
         from ..pipeline import select_step
         from ..progress import run
 
         self._check_selection()
+        if self.mask_choice is not None:
+            layer, label = self.mask_choice
+            data = da.asarray(layer.data)
+            return data == label if label else data != 0
         return run(select_step(self.volume, self.features, ids=list(self.selected),
                                options=self.options.segment)).mask
 
@@ -1189,6 +1289,12 @@ class UnwindWidget(QWidget):
         return self._start(self._with_scan_uploaded(then), "segmenting (server)", done, (self.segment_cancel,))
 
     def _check_selection(self) -> None:
+        if self.mask_choice is not None:
+            if self.mask_choice[0] not in self.viewer.layers:
+                self.mask_choice = None
+                raise InvalidInputError("the mask layer chosen as the selection was removed: choose another mask "
+                                        "or click a feature (step 2)")
+            return
         if self.features is None or not self.selected:
             raise InvalidInputError("no feature is selected: segment the scan and click the specimen (step 2)")
 
@@ -1203,7 +1309,12 @@ class UnwindWidget(QWidget):
 
         self._check_selection()
         server, volume, f, seg = self.server, self.volume, self.features, self._remote.get("segmentation")
-        key = (seg, f.k, tuple(self.selected)) if seg is not None else (id(f), tuple(self.selected))
+        if self.mask_choice is not None:  # a mask layer: uploaded as it is now
+            seg = None
+            layer, label = self.mask_choice
+            key = ("mask", id(layer), label, hash(np.asarray(layer.data).tobytes()))
+        else:
+            key = (seg, f.k, tuple(self.selected)) if seg is not None else (id(f), tuple(self.selected))
         known = self._remote.get("mask")
         local = self.mask() if seg is None and (known is None or known[0] != key) else None
 
@@ -1387,6 +1498,9 @@ class UnwindWidget(QWidget):
                 self.scan_layer.metadata = meta
             written = save_session(self._session(source), path)
             saved_scan = f" with its scan {scan.source}" if scan is not volume else ""
+            if self.mask_choice is not None:
+                saved_scan += (" (a session records a selection of features, not a mask layer: after reopening, "
+                               "choose the mask again in step 2)")
             self.session_info.setText(f"saved: {written}{saved_scan}")
             self._say(f"session saved to {written}{saved_scan}")
 
@@ -1444,7 +1558,7 @@ class UnwindWidget(QWidget):
         scan = self.volume is not None
         self.segment_need.setText("" if scan else "Needs a scan (step 1).")
         self.segment_button.setEnabled(scan)
-        sel = bool(self.selected)
+        sel = bool(self.selected) or (self.mask_choice is not None and self.mask_choice[0] in self.viewer.layers)
         self.ends_need.setText("" if sel else "Needs a selected feature (step 2).")
         self.suggest_button.setEnabled(sel)
         ends = self._ends_layer is not None and self._ends_layer in self.viewer.layers

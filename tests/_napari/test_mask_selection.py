@@ -1,0 +1,82 @@
+"""A mask as the selection (issue 21, item 5): a Labels layer (every label, one label, or the label under a click)
+or a mask file, instead of the join tree's features.
+
+References independent of the dock: the mask files read with pynrrd, the sample tank's true labels, and the
+spinal cord's manual centreline (its length).
+"""
+
+import nrrd
+import numpy as np
+import pytest
+
+pytest.importorskip("napari")
+
+from test_workflow import click, wait  # noqa: E402
+
+from napari_unwind._napari._widget import UnwindWidget  # noqa: E402
+
+pytestmark = pytest.mark.gui
+
+
+def test_a_mask_file_is_the_selection_and_the_cord_is_straightened(make_napari_viewer, qtbot, shared_data):
+    """The spine MRI with its manual cord mask: the mask opened from its file is the selection voxel for voxel, and
+    the skeleton of it is as long as the manual centreline (within 15 %)."""
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    wait(qtbot, w, w.open_scan(shared_data / "spine_t2.nrrd"))
+    wait(qtbot, w, w.open_mask(shared_data / "spine_t2_cord_mask.nrrd"))
+    truth, _ = nrrd.read(str(shared_data / "spine_t2_cord_mask.nrrd"), index_order="C")
+    layer = viewer.layers["spine_t2_cord_mask.nrrd"]
+    assert w.mask_choice == (layer, None)
+    np.testing.assert_array_equal(np.asarray(w.mask()), truth != 0)
+    assert f"{int((truth != 0).sum()):,} voxels" in w.selection_label.text()
+    assert w.suggest_button.isEnabled() and w.skeleton_button.isEnabled()
+    wait(qtbot, w, w.suggest_ends())
+    wait(qtbot, w, w.run_skeleton(), timeout=180_000)
+    d = w.model.deformation
+    manual = np.loadtxt(shared_data / "spine_t2_centerline_manual.csv", delimiter=",", skiprows=1)
+    length = np.linalg.norm(np.diff(manual, axis=0) * np.asarray(w.volume.spacing), axis=1).sum()
+    assert abs(d.length - length) < 0.15 * length, (d.length, length)
+
+
+def test_a_labels_layer_whole_one_label_or_the_label_clicked(make_napari_viewer, qtbot):
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    layers = viewer.open_sample("napari-unwind", "tank")
+    image = next(lyr for lyr in layers if lyr.name == "tank")
+    labels = next(lyr for lyr in layers if lyr.name == "tank true fish")
+    truth = np.asarray(labels.data)
+    w.use_layer(image)
+
+    assert w.use_labels(labels) == int((truth > 0).sum())
+    np.testing.assert_array_equal(np.asarray(w.mask()), truth > 0)
+    assert w.use_labels(labels, label=3) == int((truth == 3).sum())
+    np.testing.assert_array_equal(np.asarray(w.mask()), truth == 3)
+
+    # a click on the mask layer (active) picks the label under it
+    inside = np.argwhere(truth == 2)[len(np.argwhere(truth == 2)) // 2]
+    world = inside * np.asarray(labels.scale) + np.asarray(labels.translate)
+    viewer.layers.selection.active = labels
+    click(labels, world, viewer=viewer)
+    assert w.mask_choice == (labels, 2)
+    np.testing.assert_array_equal(np.asarray(w.mask()), truth == 2)
+    assert "label 2 of the mask 'tank true fish'" in w.selection_label.text()
+
+    # refusals, each one line; the selection stays as it was
+    assert w.use_labels(labels, label=9) == 0
+    assert w.status.text() == "error: the mask 'tank true fish' holds no voxel of label 9: pick another label"
+    outside = np.argwhere(truth == 0)[0] * np.asarray(labels.scale) + np.asarray(labels.translate)
+    assert w.use_labels(labels, at=outside) == 0
+    assert "no label there" in w.status.text()
+    small = viewer.add_labels(truth[:, :10].copy(), name="cut")
+    assert w.use_labels(small) == 0
+    assert "must lie on the scan's voxel grid" in w.status.text()
+    assert w.use_labels(image) == 0
+    assert "is not a 3D Labels layer" in w.status.text()
+    assert w.mask_choice == (labels, 2)
+
+    # the mask layer removed: the steps that need a selection say so
+    viewer.layers.remove(labels)
+    assert not w.suggest_button.isEnabled()
+    assert w.suggest_ends() is None
+    assert "was removed" in w.status.text()
