@@ -164,6 +164,13 @@ def _with_geometry(volume: Volume, spacing: Any, origin: Any) -> Volume:
                    level_spacings=level_spacings, level_origins=level_origins)
 
 
+def ends_size(shape: Any, spacing: Any) -> float:
+    """The ends' marker size (world units): 3 % of the scan's largest extent, at least 6 voxels (was 4 voxels:
+    a dot on a scan of hundreds)."""
+    extent = max(n * s for n, s in zip(shape, spacing, strict=True))
+    return float(max(0.03 * extent, 6 * max(spacing)))
+
+
 def _spacing_missing(volume: Volume) -> bool:
     return volume.unit is None and all(s == 1.0 for s in volume.spacing)
 
@@ -1050,7 +1057,7 @@ class UnwindWidget(QWidget):
         world = pts * np.asarray(self.volume.spacing) + np.asarray(self.volume.origin)
         if roles is None:
             roles = ["head" if i == 0 else "tail" if i == len(pts) - 1 else f"point {i + 1}" for i in range(len(pts))]
-        size = float(4 * max(self.volume.spacing))
+        size = ends_size(self.volume.shape, self.volume.spacing)
         if self._ends_layer is not None and self._ends_layer in self.viewer.layers:
             self._ends_layer.data = world
             self._ends_layer.features = {"end": roles}
@@ -1058,12 +1065,24 @@ class UnwindWidget(QWidget):
             from ._layers import scan_units
 
             self._ends_layer = self._add_layer((world, {"name": "ends", "features": {"end": roles}, "size": size,
-                                                        "face_color": "yellow", "text": {"string": "{end}"},
+                                                        "face_color": "yellow", "border_color": "black",
+                                                        "text": {"string": "{end}", "size": 12, "color": "yellow",
+                                                                 "anchor": "upper_left"},
                                                         **scan_units(self.viewer)}, "points"))
         self._ends_layer.mode = "select"
         self.viewer.layers.selection.active = self._ends_layer
+        if len(world):
+            self._go_to(world[0])
         self._update_needs()
         return self._ends_layer
+
+    def _go_to(self, world: Any) -> None:
+        """Show the slice through a world point (2D) with the point at the centre of the view."""
+        world = [float(v) for v in np.asarray(world, dtype=float)[-3:]]
+        if self.viewer.dims.ndisplay == 2:
+            for axis in self.viewer.dims.not_displayed:
+                self.viewer.dims.set_point(axis, world[axis])
+        self.viewer.scene.camera.center = tuple(world)  # napari uses the displayed axes' values
 
     def endpoints(self) -> Any:
         """The ends layer's points as an :class:`~napari_unwind.session.Endpoints` (None: no ends layer).

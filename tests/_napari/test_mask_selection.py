@@ -32,6 +32,18 @@ def test_a_mask_file_is_the_selection_and_the_cord_is_straightened(make_napari_v
     assert f"{int((truth != 0).sum()):,} voxels" in w.selection_label.text()
     assert w.suggest_button.isEnabled() and w.skeleton_button.isEnabled()
     wait(qtbot, w, w.suggest_ends())
+    # the ends: large enough to see, and the view moved to the head (its slice, centred)
+    ends = viewer.layers["ends"]
+    head = np.asarray(ends.data)[0]
+    assert np.all(ends.size >= 6 * max(w.volume.spacing))
+    assert viewer.dims.point[0] == pytest.approx(head[0], abs=max(w.volume.spacing))
+    np.testing.assert_allclose(viewer.scene.camera.center[-2:], head[-2:], atol=1e-6)
+    viewer.window._qt_window.show()
+    shot = viewer.screenshot(canvas_only=True, flash=False)
+    h, wd = shot.shape[:2]
+    middle = shot[h // 2 - 40:h // 2 + 40, wd // 2 - 40:wd // 2 + 40, :3].astype(int)
+    yellow = (middle[..., 0] > 200) & (middle[..., 1] > 200) & (middle[..., 2] < 80)
+    assert yellow.sum() > 30, "the head's marker is not drawn at the centre of the view"
     wait(qtbot, w, w.run_skeleton(), timeout=180_000)
     d = w.model.deformation
     manual = np.loadtxt(shared_data / "spine_t2_centerline_manual.csv", delimiter=",", skiprows=1)
