@@ -8,9 +8,9 @@ Scan
     "backend" row above it: "this computer", or "server" (address, token or token file, CA file for TLS; Connect
     checks health and the token; "path on server" names a scan the server already holds, which is then registered
     there instead of uploaded). On a server the segmentation, the ends, the skeleton and the export run through
-    :class:`napari_unwind.client.Client` (:mod:`._remote`): the scan is uploaded once, the features' label volume
-    comes back to draw and pick, the selection's mask is made there (a Select job), the export is downloaded to
-    the chosen path; same progress bar and Cancel (which cancels the server's job).
+    :class:`napari_unwind.client.Client` (:mod:`napari_unwind._remote`): the scan is uploaded once, the features'
+    label volume comes back to draw and pick, the selection's mask is made there (a Select job), the export is
+    downloaded to the chosen path; same progress bar and Cancel (which cancels the server's job).
 Segment
     The join tree is built once in a worker (Cancel stops it); the feature-count slider re-simplifies it live (no
     rebuild; on a server the server simplifies its cached tree and sends the label volume). The features are a
@@ -36,9 +36,10 @@ Export
 Session
     Save and load (:mod:`napari_unwind.session`) at any step.
 
-The dock's steps call the one pipeline (:mod:`napari_unwind.pipeline`, through the Qt-free :mod:`._steps`) with
-its option objects (no default is restated here), the core and the :class:`~napari_unwind.editing.EditModel`;
-every long job runs in a ``thread_worker`` (:mod:`._workers`), so the UI never waits on one.
+The dock's steps call the one pipeline (:mod:`napari_unwind.pipeline`, through the Qt-free
+:mod:`napari_unwind._steps`) with its option objects (no default is restated here), the core and the
+:class:`~napari_unwind.editing.EditModel`; every long job runs in a ``thread_worker`` (:mod:`._workers`), so the UI
+never waits on one.
 """
 
 from __future__ import annotations
@@ -97,7 +98,7 @@ DOCK_SHORTCUTS = (
 )
 #: The skeleton step (the pipeline's skeleton_step, judged), run in a child process by name (the UI process need not
 #: import the mesher; the spare child imports the pipeline and the solver while idle).
-_SKELETON = "napari_unwind._napari._steps:skeleton"
+_SKELETON = "napari_unwind._steps:skeleton"
 _TABLE_COLUMNS = ("id", "voxels", "elongation", "persistence", "threshold", "border", "container")
 
 
@@ -327,7 +328,7 @@ class UnwindWidget(QWidget):
 
     def connect_server(self) -> Job | None:
         """Check the server's health and the token (with a deadline); on success the dock's jobs run there."""
-        from ._remote import check_server, parse_server
+        from .._remote import check_server, parse_server
 
         self.server = None
         self._remote = {}
@@ -766,7 +767,7 @@ class UnwindWidget(QWidget):
         if self.tree is not None:
             fn = source.simplify
         else:
-            from ._remote import simplify
+            from .._remote import simplify
 
             server = self.server
 
@@ -1250,7 +1251,7 @@ class UnwindWidget(QWidget):
         session = self._session_or_none()
 
         def make() -> Generator[Progress, None, Any]:
-            from ._steps import export  # the pipeline's export_step: the one fold rule, then the writer
+            from .._steps import export  # the pipeline's export_step: the one fold rule, then the writer
 
             return export(volume, d, target, options=options, folded=folded, session=session, overwrite=overwrite)
 
@@ -1273,7 +1274,7 @@ class UnwindWidget(QWidget):
                             ) -> Callable[[], Generator[Progress, None, Any]]:
         """``then(volume_id)`` after uploading the scan once (its id is kept for this scan and server), or
         registering it when "path on server" names it under the server's data root."""
-        from ._remote import register_iter, upload_iter
+        from .._remote import register_iter, upload_iter
 
         server, volume, remote = self.server, self.volume, self._remote
         name = self.scan_layer.name if self.scan_layer is not None else "scan"
@@ -1288,7 +1289,7 @@ class UnwindWidget(QWidget):
         return make
 
     def _remote_segment(self, level: int | None) -> Job | None:
-        from ._remote import segment_iter
+        from .._remote import segment_iter
 
         server = self.server
         pending = self._pending_segmentation
@@ -1324,7 +1325,7 @@ class UnwindWidget(QWidget):
         :meth:`mask` here). Features made on this computer (segmented before connecting): :meth:`mask` uploaded.
         The mask is made once per selection and reused by the ends and the skeleton.
         """
-        from ._remote import mask_volume, select_iter, upload_iter
+        from .._remote import mask_volume, select_iter, upload_iter
 
         self._check_selection()
         server, volume, f, seg = self.server, self.volume, self.features, self._remote.get("segmentation")
@@ -1347,7 +1348,7 @@ class UnwindWidget(QWidget):
         return key, make
 
     def _remote_suggest_ends(self) -> Job | None:
-        from ._remote import suggest_ends_iter
+        from .._remote import suggest_ends_iter
 
         server = self.server
         key, mask = self._remote_mask()
@@ -1366,7 +1367,7 @@ class UnwindWidget(QWidget):
         return self._start(self._with_scan_uploaded(then), "suggesting the ends", done)
 
     def _remote_skeleton(self, ends: Any) -> Job | None:
-        from ._remote import skeleton_iter
+        from .._remote import skeleton_iter
 
         server, options = self.server, self.options.skeleton
         key, mask = self._remote_mask()
@@ -1402,7 +1403,7 @@ class UnwindWidget(QWidget):
 
     def _remote_export(self, target: Path, *, options: ExportOptions, folded: float | None,
                        overwrite: bool) -> Job | None:
-        from ._remote import export_iter
+        from .._remote import export_iter
 
         server = self.server
         known = self._remote.get("session")
@@ -1415,7 +1416,7 @@ class UnwindWidget(QWidget):
         d = self.model.deformation
 
         def then(volume_id: str) -> Generator[Progress, None, Any]:
-            from ._steps import check_folds
+            from .._steps import check_folds
 
             check_folds(d, folded=folded, options=options)  # the one fold rule, before any upload or job
             return (yield from export_iter(server, volume_id, session_id, target, options=options,

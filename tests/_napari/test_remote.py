@@ -143,7 +143,7 @@ def test_dock_on_a_server_exports_the_voxels_of_the_local_dock(make_napari_viewe
 
     # Cancel of a server job that already started: the job is cancelled on the server (one worker, kept busy by a
     # skeleton job, so the export waits queued: the first record is its queued state, then the dock's Cancel)
-    from napari_unwind._napari._remote import _follow
+    from napari_unwind._remote import _follow
 
     server_, ids = w.server, dict(w._remote)
     with server_.client() as c:

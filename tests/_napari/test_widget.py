@@ -135,12 +135,15 @@ def test_cancel_stops_the_skeleton(rod_dock, qtbot):
     assert w.model.deformation is None and not w.skeleton_cancel.isEnabled()
 
 
-def test_saving_a_session_needs_the_scan_file(make_napari_viewer):
+def test_saving_a_session_of_a_scan_in_memory_writes_the_scan_beside_it(make_napari_viewer, qtbot, tmp_path):
+    """Before, refused ("not opened from a file"); now the scan is written as <name>.scan.ome.zarr and recorded
+    (test_session_sample.py follows the whole round trip)."""
     viewer = make_napari_viewer()
     w = UnwindWidget(viewer)
     w.use_layer(viewer.add_image(rod(), name="in memory"))
-    assert w.save_session("x.unwind.json") is None
-    assert w.status.text().startswith("error: the scan 'in memory' was not opened from a file")
+    wait(qtbot, w.save_session(tmp_path / "x.unwind.json"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.scan.ome.zarr", "x.unwind.json"]
+    assert w.volume.source == str(tmp_path / "x.scan.ome.zarr")
 
 
 def test_a_session_opened_by_napari_gives_the_dock_its_deformation(make_napari_viewer, qtbot, tmp_path,

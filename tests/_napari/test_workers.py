@@ -43,7 +43,8 @@ def test_the_dock_names_the_skeleton_step_that_exists():
     import importlib
 
     pytest.importorskip("qtpy")
-    from napari_unwind._napari import _steps, _widget
+    from napari_unwind import _steps
+    from napari_unwind._napari import _widget
 
     assert _widget._SKELETON == _steps.SKELETON
     module, _, name = _widget._SKELETON.partition(":")

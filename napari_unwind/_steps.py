@@ -2,7 +2,7 @@
 
 The dock takes its options from the pipeline's option objects and runs these in its workers:
 
-- :func:`skeleton` runs in the dock's child process, by name (``"napari_unwind._napari._steps:skeleton"``): the
+- :func:`skeleton` runs in the dock's child process, by name (``"napari_unwind._steps:skeleton"``): the
   pipeline's :func:`~napari_unwind.pipeline.skeleton_step`, judged by :func:`~napari_unwind.pipeline.judge`
   (a :class:`~napari_unwind.pipeline.SpecimenResult`: ``ok``, or ``partial`` with its reason). The spare child
   imports this module while idle (:func:`napari_unwind._napari._workers.prewarm`), so the solver's imports
@@ -22,10 +22,10 @@ from collections.abc import Generator
 from pathlib import Path
 from typing import Any
 
-from .. import pipeline
-from .. import skeleton as _skeleton  # noqa: F401 - imported while the spare child waits (see the docstring)
-from ..errors import FoldError
-from ..progress import Progress
+from . import pipeline
+from . import skeleton as _skeleton  # noqa: F401 - imported while the spare child waits (see the docstring)
+from .errors import FoldError
+from .progress import Progress
 
 __all__ = ["SKELETON", "check_folds", "export", "skeleton"]
 

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InvalidInputError
-from ..progress import Progress
+from .errors import InvalidInputError
+from .progress import Progress
 
 __all__ = ["Server", "check_server", "upload_iter", "register_iter", "segment_iter", "simplify", "select_iter",
            "mask_volume", "suggest_ends_iter", "skeleton_iter", "export_iter"]
@@ -33,7 +33,7 @@ class Server:
 
     def client(self, *, timeout: float = 60.0, retry_seconds: float = 10.0) -> Any:
         try:
-            from ..client import Client
+            from .client import Client
         except ImportError as exc:
             raise InvalidInputError(f"the server backend needs the 'server' extra (grpcio): {exc}; install "
                                     "napari-unwind[server] or use 'this computer'") from None
@@ -62,7 +62,7 @@ def check_server(server: Server, *, deadline: float = 5.0) -> Generator[Progress
 
     Raises :class:`~napari_unwind.client.RemoteError` (code UNAVAILABLE, UNAUTHENTICATED, ...) with one line.
     """
-    from ..client import RemoteError
+    from .client import RemoteError
 
     yield Progress("connect", 0, 1, server.address)
     with server.client(timeout=deadline, retry_seconds=0.0) as c:
@@ -86,7 +86,7 @@ def _follow(client: Any, job: Any, *, poll: float = 0.25) -> Generator[Progress,
 
     from unwind_services._proto.unwind.v1 import common_pb2 as pb
 
-    from ..client import RemoteError, _progress
+    from .client import RemoteError, _progress
 
     _FINAL = (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED, pb.JOB_STATE_CANCELLED)
     events: queue.Queue = queue.Queue()
@@ -196,7 +196,7 @@ def select_iter(server: Server, segmentation_id: str, ids: Any, k: int) -> Gener
 
 def mask_volume(mask: Any, volume: Any) -> Any:
     """A mask computed on this computer as a Volume with the scan's geometry (to upload it)."""
-    from ..io import as_volume
+    from .io import as_volume
 
     return as_volume(mask.astype(np.uint8), spacing=volume.spacing, unit=volume.unit, origin=volume.origin)
 
@@ -216,7 +216,7 @@ def skeleton_iter(server: Server, volume_id: str, mask_id: str, ends: Any, *, op
     its defaults); returns (its Session, the stored session's id, the pipeline's verdict: a
     :class:`~napari_unwind.pipeline.SpecimenResult` with the status, reason, figures and warnings the server's
     pipeline judged)."""
-    from ..client import Client
+    from .client import Client
 
     kw: dict[str, Any] = {}
     if ends is not None:
@@ -232,8 +232,8 @@ def export_iter(server: Server, volume_id: str, session_id: str, target: Path, *
                 overwrite: bool = False) -> Generator[Progress, None, Path]:
     """Straighten on the server (a job) with ``options`` (a :class:`~napari_unwind.pipeline.ExportOptions`; None:
     its defaults), then download the result to ``target`` (atomically); returns ``target``."""
-    from ..io._atomic import check_writable
-    from ..io._formats import output_format
+    from .io._atomic import check_writable
+    from .io._formats import output_format
 
     output_format(target)
     check_writable(target, overwrite=overwrite)

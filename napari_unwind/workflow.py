@@ -1,0 +1,527 @@
+"""The interactive workflow as a Qt-free model: its state, its steps, and one backend interface.
+
+The Unwind dock (:mod:`napari_unwind._napari._widget`) is a view over :class:`Workflow`, as the 2D editor is over
+:class:`~napari_unwind.editing.EditModel` and as napari-animation keeps its ``Animation`` apart from its widget.
+It imports neither napari nor Qt: tests and scripts drive it the same way (``tests/test_workflow.py``).
+
+State
+    ``volume`` (the scan), ``tree`` and ``features`` (the join tree and its simplification), the selection
+    (``selected`` feature ids with their ``seeds``, or a chosen ``mask``), ``ends``, ``specimen`` (the last
+    skeleton's :class:`~napari_unwind.pipeline.SpecimenResult`), the deformation (``edit``, an EditModel, so the
+    Refine step's edits and undo act on it), ``options`` (:class:`~napari_unwind.pipeline.PipelineOptions`: the
+    export settings among them) and the session (:meth:`Workflow.session`).
+Steps
+    Each long step returns a :class:`Task`: ``make()`` builds a progress generator (run it off the UI thread) and
+    ``apply(result)`` puts its result into the state (run it on the UI thread, which the events then reach).
+    :func:`napari_unwind.progress.run` runs a task in a script: ``wf.apply(task, run(task.make()))``.
+Backends
+    Where the work runs is the :class:`Backend`'s business: :class:`LocalBackend` (the core's pipeline on this
+    computer) or :class:`ServerBackend` (the same steps as jobs of an ``unwind serve``, through the client). Every
+    step is written once against the interface; no step asks which backend it has.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Generator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from psygnal import Signal
+
+from .editing import EditModel
+from .errors import InvalidInputError
+from .pipeline import ExportOptions, PipelineOptions, SkeletonOptions
+from .progress import Progress
+
+__all__ = ["Backend", "LocalBackend", "ServerBackend", "Selection", "Task", "Workflow"]
+
+#: The skeleton step run by name in a child process (its module imports the solver while the child waits).
+SKELETON = "napari_unwind._steps:skeleton"
+
+Runner = Callable[[str, tuple, dict], Generator[Progress, None, Any]]
+
+
+@dataclass(frozen=True)
+class Task:
+    """A long step: ``make()`` gives its progress generator (off the UI thread), ``apply(result)`` takes the
+    result into the workflow (on the UI thread)."""
+
+    label: str
+    make: Callable[[], Generator[Progress, None, Any]]
+    apply: Callable[[Any], Any]
+
+
+@dataclass(frozen=True)
+class Selection:
+    """What the specimen is: features of a segmentation (``ids``, with the clicked ``seeds``), or a chosen
+    ``mask`` (a boolean array on the scan's grid; ``key`` tells two masks apart without comparing voxels)."""
+
+    features: Any = None
+    ids: tuple[int, ...] = ()
+    seeds: dict[int, tuple[float, float, float]] = field(default_factory=dict)
+    mask: Any = None
+    key: Any = None
+    options: Any = None  # SegmentOptions
+
+    def full_mask(self, volume: Any) -> Any:
+        """The selection at full resolution (a lazy dask bool array): the chosen mask, or the features refined by
+        the pipeline's select_step with the segmentation options."""
+        import dask.array as da
+
+        if self.mask is not None:
+            return da.asarray(self.mask).astype(bool)
+        from .pipeline import SegmentOptions, select_step
+        from .progress import run
+
+        return run(select_step(volume, self.features, ids=list(self.ids),
+                               options=self.options or SegmentOptions())).mask
+
+
+@dataclass(frozen=True)
+class Skeletonized:
+    """A skeleton step's outcome, from either backend."""
+
+    specimen: Any  # SpecimenResult (status, reason, figures, warnings)
+    deformation: Any
+    endpoints: Any = None
+    where: str = ""  # "" on this computer, " (server host:port, session ...)" on a server
+
+
+class Backend(Protocol):
+    """Where the steps run. Each method returns a progress generator; ``label`` names the place in messages."""
+
+    label: str
+
+    def forget(self) -> None:
+        """Drop what the backend keeps of the current scan (a new scan was chosen)."""
+
+    def segment(self, volume: Any, *, name: str, level: int | None, smooth: float, k: int
+                ) -> Generator[Progress, None, tuple[Any, Any]]:
+        """The join tree: returns ``(tree, features)``: ``tree.simplify(k)`` gives Features, ``tree.n_maxima``
+        its maxima (0: unknown); ``features`` the ``k`` features when the backend made them already, else None."""
+
+    def suggest_ends(self, volume: Any, selection: Selection, *, name: str
+                     ) -> Generator[Progress, None, list]:
+        """Head and tail of the selection (full-resolution voxels)."""
+
+    def skeleton(self, volume: Any, selection: Selection, ends: Any, *, name: str, options: SkeletonOptions
+                 ) -> Generator[Progress, None, Skeletonized]:
+        """The pipeline's skeleton step, judged."""
+
+    def export(self, volume: Any, deformation: Any, target: Path, *, name: str, options: ExportOptions,
+               folded: float | None, session: Any, overwrite: bool
+               ) -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
+        """Straighten and write ``target``; returns (the written path, the warnings the fold rule let through)."""
+
+
+def _in_this_process(fn: str, args: tuple, kwargs: dict) -> Generator[Progress, None, Any]:
+    import importlib
+
+    module, name = fn.split(":")
+    return (yield from getattr(importlib.import_module(module), name)(*args, **kwargs))
+
+
+class LocalBackend:
+    """The core's pipeline on this computer. ``runner(fn, args, kwargs)`` runs the skeleton step (a
+    ``"module:function"`` progress generator): in this process by default; the dock gives a child process (the
+    solver holds the GIL for seconds)."""
+
+    label = "this computer"
+
+    def __init__(self, runner: Runner | None = None) -> None:
+        self.runner = runner or _in_this_process
+
+    def forget(self) -> None:
+        pass
+
+    def segment(self, volume: Any, *, name: str, level: int | None, smooth: float, k: int
+                ) -> Generator[Progress, None, tuple[Any, Any]]:
+        from .segmentation import join_tree_iter
+
+        tree = yield from join_tree_iter(volume, level=level, smooth=smooth)
+        return tree, None
+
+    def suggest_ends(self, volume: Any, selection: Selection, *, name: str) -> Generator[Progress, None, list]:
+        from .skeleton import suggest_endpoints
+
+        mask = selection.full_mask(volume)
+        yield Progress("mask", 0, 1, "full resolution")
+        full = np.asarray(mask.compute())
+        yield Progress("ends", 0, 1, "longest geodesic")
+        ends = suggest_endpoints(full, spacing=volume.spacing, volume=volume.data)
+        yield Progress("ends", 1, 1)
+        return list(ends)
+
+    def skeleton(self, volume: Any, selection: Selection, ends: Any, *, name: str, options: SkeletonOptions
+                 ) -> Generator[Progress, None, Skeletonized]:
+        mask = selection.full_mask(volume)
+        specimen = yield from self.runner(SKELETON, (mask, ends), dict(
+            spacing=volume.spacing, origin=volume.origin, unit=volume.unit, volume=volume.data, options=options))
+        result = specimen.skeleton
+        return Skeletonized(specimen, result.deformation, result.endpoints)
+
+    def export(self, volume: Any, deformation: Any, target: Path, *, name: str, options: ExportOptions,
+               folded: float | None, session: Any, overwrite: bool
+               ) -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
+        from ._steps import export
+
+        return (yield from export(volume, deformation, target, options=options, folded=folded, session=session,
+                                  overwrite=overwrite))
+
+
+class _ServerTree:
+    """The server's segmentation, simplified there (the features' label volume downloaded)."""
+
+    def __init__(self, server: Any, segmentation_id: str, n_maxima: int) -> None:
+        self.server, self.segmentation_id, self.n_maxima = server, segmentation_id, n_maxima
+
+    def simplify(self, k: int) -> Any:
+        from ._remote import simplify
+
+        return simplify(self.server, self.segmentation_id, int(k))
+
+
+class ServerBackend:
+    """The same steps as jobs of a server (``unwind serve``), through :class:`napari_unwind.client.Client`.
+
+    The scan is uploaded once (or registered, when ``server_path`` names it under the server's data root), the
+    selection's mask made there once per selection (a Select job of the server's segmentation, or the mask made
+    here uploaded), and the skeleton's session kept there: an export straightens that session on the server, so
+    a deformation edited here (another object) is refused with what to do.
+    """
+
+    def __init__(self, server: Any, *, server_path: str = "") -> None:
+        self.server = server
+        self.server_path = server_path
+        self.label = f"server {server.address}"
+        self._ids: dict[str, Any] = {}
+
+    def forget(self) -> None:
+        self._ids = {}
+
+    def _volume_id(self, volume: Any, name: str) -> Generator[Progress, None, str]:
+        from ._remote import register_iter, upload_iter
+
+        if "volume_id" not in self._ids:
+            path = self.server_path.strip()
+            self._ids["volume_id"] = yield from (register_iter(self.server, path, volume, name=name) if path
+                                                 else upload_iter(self.server, volume, name=name))
+        return self._ids["volume_id"]
+
+    def _mask_id(self, volume: Any, selection: Selection, volume_id: str) -> Generator[Progress, None, str]:
+        from ._remote import mask_volume, select_iter, upload_iter
+
+        seg = self._ids.get("segmentation")  # the features are the server's (forget() drops it otherwise)
+        f = selection.features
+        if selection.mask is not None:
+            seg, key = None, ("mask", selection.key)
+        elif seg is not None:
+            key = (seg, f.k, tuple(selection.ids))
+        else:
+            key = (id(f), tuple(selection.ids))
+        known = self._ids.get("mask")
+        if known is not None and known[0] == key:
+            return known[1]
+        if seg is not None:
+            mask_id = yield from select_iter(self.server, seg, key[2], key[1])
+        else:
+            local = selection.full_mask(volume)
+            mask_id = yield from upload_iter(self.server, mask_volume(local, volume), labels=True, name="selection")
+        self._ids["mask"] = (key, mask_id)
+        return mask_id
+
+    def segment(self, volume: Any, *, name: str, level: int | None, smooth: float, k: int
+                ) -> Generator[Progress, None, tuple[Any, Any]]:
+        from ._remote import segment_iter
+
+        volume_id = yield from self._volume_id(volume, name)
+        seg, maxima, features = yield from segment_iter(self.server, volume_id, features=k, level=level)
+        self._ids["segmentation"] = seg
+        self._ids.pop("mask", None)
+        return _ServerTree(self.server, seg, maxima), features
+
+    def suggest_ends(self, volume: Any, selection: Selection, *, name: str) -> Generator[Progress, None, list]:
+        from ._remote import suggest_ends_iter
+
+        volume_id = yield from self._volume_id(volume, name)
+        mask_id = yield from self._mask_id(volume, selection, volume_id)
+        return list((yield from suggest_ends_iter(self.server, volume_id, mask_id)))
+
+    def skeleton(self, volume: Any, selection: Selection, ends: Any, *, name: str, options: SkeletonOptions
+                 ) -> Generator[Progress, None, Skeletonized]:
+        from ._remote import skeleton_iter
+
+        volume_id = yield from self._volume_id(volume, name)
+        mask_id = yield from self._mask_id(volume, selection, volume_id)
+        session, session_id, specimen = yield from skeleton_iter(self.server, volume_id, mask_id, ends,
+                                                                 options=options)
+        self._ids["session"] = (session_id, session.deformation)
+        return Skeletonized(specimen, session.deformation, session.endpoints,
+                            f" (server {self.server.address}, session {session_id})")
+
+    def export(self, volume: Any, deformation: Any, target: Path, *, name: str, options: ExportOptions,
+               folded: float | None, session: Any, overwrite: bool
+               ) -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
+        from ._remote import export_iter
+        from ._steps import check_folds
+
+        known = self._ids.get("session")
+        if known is None or known[1].to_dict() != deformation.to_dict():
+            raise InvalidInputError("the server holds no session of this deformation (it was edited, or opened "
+                                    "here): compute the skeleton on the server, or export on 'this computer'")
+        warned = check_folds(deformation, folded=folded, options=options)  # the one fold rule, before any job
+        volume_id = yield from self._volume_id(volume, name)
+        written = yield from export_iter(self.server, volume_id, known[0], target, options=options,
+                                         overwrite=overwrite)
+        return Path(written), (warned,) if warned else ()
+
+
+class Workflow:
+    """The state of one straightening and its steps (see the module's docstring).
+
+    Parameters
+    ----------
+    backend : Backend, optional
+        Where the steps run (default :class:`LocalBackend`).
+    options : PipelineOptions, optional
+        The pipeline's options (its defaults in one place).
+
+    Signals
+    -------
+    scan_changed(volume), features_changed(features), selection_changed(selection), ends_changed(ends),
+    skeleton_changed(Skeletonized), exported(path, warnings), backend_changed(backend)
+    """
+
+    scan_changed = Signal(object)
+    features_changed = Signal(object)
+    selection_changed = Signal(object)
+    ends_changed = Signal(object)
+    skeleton_changed = Signal(object)
+    exported = Signal(object, object)
+    backend_changed = Signal(object)
+
+    def __init__(self, backend: Backend | None = None, *, options: PipelineOptions | None = None) -> None:
+        self.backend: Backend = backend or LocalBackend()
+        self.options = options or PipelineOptions()
+        self.edit = EditModel()
+        self.volume: Any = None
+        self.name = "scan"
+        self.tree: Any = None
+        self.features: Any = None
+        self.selection = Selection()
+        self.ends: Any = None  # session.Endpoints
+        self.skeleton: Skeletonized | None = None
+        self.source_info: Any = None  # SourceInfo of the scan, once its checksum is known
+
+    # ---- backend and scan ---------------------------------------------------------------------------------------
+    def set_backend(self, backend: Backend) -> None:
+        """Run the next steps with ``backend``; what the old one held (a server's ids) is dropped."""
+        self.backend.forget()
+        self.backend = backend
+        self.backend_changed.emit(backend)
+
+    def set_scan(self, volume: Any, *, name: str = "scan") -> None:
+        """A new scan: the segmentation, selection, ends and skeleton of another scan are dropped."""
+        changed = (self.volume is None or volume.source != self.volume.source
+                   or tuple(volume.shape) != tuple(self.volume.shape))
+        self.volume, self.name = volume, name
+        if changed:
+            self.backend.forget()
+            self.tree = self.features = self.skeleton = self.ends = self.source_info = None
+            self.selection = Selection(options=self.options.segment)
+        self.scan_changed.emit(volume)
+
+    def _need_scan(self) -> Any:
+        if self.volume is None:
+            raise InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)")
+        return self.volume
+
+    # ---- segmentation and selection ------------------------------------------------------------------------------
+    def segment_task(self, *, level: int | None = None, k: int | None = None) -> Task:
+        """Build the join tree (at pyramid ``level``, default the options' level) and simplify it to ``k``."""
+        volume, seg = self._need_scan(), self.options.segment
+        level = seg.level if level is None else level
+        k = int(k or seg.k)
+        backend, name = self.backend, self.name
+
+        def make() -> Generator[Progress, None, tuple[Any, Any]]:
+            tree, features = yield from backend.segment(volume, name=name, level=level, smooth=seg.smooth, k=k)
+            return tree, features if features is not None else tree.simplify(k)
+
+        def apply(value: tuple[Any, Any]) -> None:
+            tree, features = value
+            self.tree = tree
+            self.set_features(features)
+
+        return Task("building the join tree" + ("" if isinstance(backend, LocalBackend) else f" ({backend.label})"),
+                    make, apply)
+
+    def set_features(self, features: Any) -> None:
+        """New features (a simplification of the tree): the clicked seeds choose again among them."""
+        self.features = features
+        seeds = dict(self.selection.seeds)
+        self.features_changed.emit(features)
+        if self.selection.mask is None:
+            ids, new_seeds = [], {}
+            for p in seeds.values():
+                i = int(features.ids_at([p])[0])
+                if i:
+                    ids.append(i)
+                    new_seeds[i] = p
+            self.select(ids, seeds=new_seeds)
+
+    def select(self, ids: list[int], *, seeds: dict[int, tuple] | None = None) -> Selection:
+        """Select features of the current segmentation by id (``seeds``: the voxels clicked, default each
+        feature's maximum); an empty list clears the selection."""
+        f = self.features
+        if f is None:
+            raise InvalidInputError("segment the scan first (step 2)")
+        ids = sorted({int(i) for i in ids if int(i) != 0})
+        for i in ids:
+            f.stat(i)  # raises for an unknown id
+        seeds = seeds or {}
+        full = {i: tuple(float(c) for c in seeds.get(i, f.stat(i).max_position_full)) for i in ids}
+        self.selection = Selection(features=f, ids=tuple(ids), seeds=full, options=self.options.segment)
+        self.selection_changed.emit(self.selection)
+        return self.selection
+
+    def pick(self, voxel: Any, *, add: bool = False) -> int:
+        """Select the feature at a full-resolution voxel (``add``: to the selection); returns its id (0: none)."""
+        f = self.features
+        if f is None:
+            raise InvalidInputError("segment the scan first (step 2)")
+        seed = tuple(float(c) for c in np.asarray(voxel, dtype=float)[-3:])
+        fid = int(f.ids_at([seed])[0])
+        if fid == 0:
+            return 0
+        ids = list(self.selection.ids) if add else []
+        seeds = {i: self.selection.seeds[i] for i in ids if i in self.selection.seeds}
+        if fid not in ids:
+            ids.append(fid)
+        seeds[fid] = seed
+        self.select(ids, seeds=seeds)
+        return fid
+
+    def use_mask(self, mask: Any, *, label: int | None = None, key: Any = None) -> int:
+        """Make a mask the selection: an integer or boolean array on the scan's voxel grid, every non-zero voxel
+        (``label`` None) or those equal to ``label``. Returns the selected voxel count."""
+        volume = self._need_scan()
+        data = np.asarray(mask)
+        if data.shape != tuple(volume.shape):
+            raise InvalidInputError(f"the mask has {data.shape} voxels, the scan {tuple(volume.shape)}: a mask must "
+                                    "lie on the scan's voxel grid")
+        chosen = data == label if label else data != 0
+        count = int(np.count_nonzero(chosen))
+        if count == 0:
+            what = f"label {label}" if label else "any label"
+            raise InvalidInputError(f"the mask holds no voxel of {what}: pick another label")
+        self.selection = Selection(mask=chosen, key=key if key is not None else (id(mask), label),
+                                   options=self.options.segment)
+        self.selection_changed.emit(self.selection)
+        return count
+
+    def _need_selection(self) -> Selection:
+        s = self.selection
+        if s.mask is None and (s.features is None or not s.ids):
+            raise InvalidInputError("no feature is selected: segment the scan and click the specimen (step 2)")
+        return s
+
+    @property
+    def has_selection(self) -> bool:
+        return self.selection.mask is not None or bool(self.selection.ids)
+
+    def mask(self) -> Any:
+        """The selection at full resolution (lazy dask bool array; nothing computed here)."""
+        return self._need_selection().full_mask(self._need_scan())
+
+    # ---- ends and skeleton -------------------------------------------------------------------------------------
+    def set_ends(self, ends: Any) -> None:
+        """The ends (an :class:`~napari_unwind.session.Endpoints`, or None: suggested by the skeleton step)."""
+        self.ends = ends
+        self.ends_changed.emit(ends)
+
+    def suggest_ends_task(self) -> Task:
+        volume, selection, backend, name = self._need_scan(), self._need_selection(), self.backend, self.name
+
+        def make() -> Generator[Progress, None, list]:
+            return (yield from backend.suggest_ends(volume, selection, name=name))
+
+        def apply(ends: list) -> None:
+            from .session import Endpoints
+
+            self.set_ends(Endpoints(head=tuple(ends[0]), tail=tuple(ends[-1])))
+
+        return Task("suggesting the ends", make, apply)
+
+    def skeleton_task(self) -> Task:
+        volume, selection, backend, name = self._need_scan(), self._need_selection(), self.backend, self.name
+        ends, options = self.ends, self.options.skeleton
+
+        def make() -> Generator[Progress, None, Skeletonized]:
+            return (yield from backend.skeleton(volume, selection, ends, name=name, options=options))
+
+        def apply(result: Skeletonized) -> None:
+            self.skeleton = result
+            if self.ends is None and result.endpoints is not None:
+                self.set_ends(result.endpoints)
+            self.edit.set_deformation(result.deformation)
+            self.skeleton_changed.emit(result)
+
+        return Task("computing the skeleton", make, apply)
+
+    # ---- export and session ------------------------------------------------------------------------------------
+    def folded(self) -> float | None:
+        """The share of the mask in the deformation's folds, as the last skeleton measured it (None: unknown or
+        edited since)."""
+        s = self.skeleton
+        if s is None or self.edit.deformation is None or s.deformation.to_dict() != self.edit.deformation.to_dict():
+            return None
+        value = getattr(s.specimen, "folded", None)
+        return None if value is None else float(value)
+
+    def export_task(self, target: str | os.PathLike, *, options: ExportOptions | None = None,
+                    overwrite: bool = False) -> Task:
+        """Straighten the scan with the deformation and write ``target`` (its suffix names the format)."""
+        from .io._formats import output_format
+
+        volume, d = self._need_scan(), self.edit.deformation
+        if d is None:
+            raise InvalidInputError("there is no deformation yet: compute the skeleton (step 4) or open a session")
+        if not str(target).strip():
+            raise InvalidInputError("give the export's path (its suffix names the format, e.g. straight.nrrd)")
+        target = Path(target).expanduser()
+        output_format(target)
+        options = options or self.options.export
+        folded, session, backend, name = self.folded(), self.session_or_none(), self.backend, self.name
+
+        def make() -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
+            return (yield from backend.export(volume, d, target, name=name, options=options, folded=folded,
+                                              session=session, overwrite=overwrite))
+
+        def apply(value: tuple[Path, tuple[str, ...]]) -> None:
+            self.exported.emit(*value)
+
+        return Task("exporting", make, apply)
+
+    def session(self, source: Any) -> Any:
+        """The :class:`~napari_unwind.session.Session` of the current state with ``source`` (a SourceInfo)."""
+        from .session import Segmentation, Session
+
+        s, seg = self.selection, None
+        if s.mask is None and s.features is not None and s.ids:
+            seg = Segmentation(k=s.features.k, level=s.features.level, selected=tuple(s.ids),
+                               seeds=tuple(s.seeds[i] for i in s.ids))
+        return Session(source=source, deformation=self.edit.deformation, segmentation=seg, endpoints=self.ends,
+                       notes="napari-unwind dock")
+
+    def session_or_none(self) -> Any:
+        """The session written into an export (None: the scan's checksum is not known yet)."""
+        if self.source_info is None:
+            return None
+        try:
+            return self.session(self.source_info)
+        except InvalidInputError:
+            return None

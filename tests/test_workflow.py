@@ -1,0 +1,131 @@
+"""The workflow model without Qt or napari (issue 21, item 1): the steps the dock runs, driven as a script would.
+
+References are independent of the model: the phantom's ground truth (mask, centreline), the core's own functions
+called directly (join_tree, refine_mask, straighten) and the spine's manual cord mask read with pynrrd.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from napari_unwind.datasets import fish_phantom
+from napari_unwind.errors import InvalidInputError
+from napari_unwind.io import as_volume, open_volume
+from napari_unwind.progress import run
+from napari_unwind.warp import straighten
+from napari_unwind.workflow import LocalBackend, Workflow
+
+
+def _do(wf, task):
+    """Run a task as the dock does: its generator off the UI thread, then apply."""
+    return task.apply(run(task.make()))
+
+
+@pytest.fixture(scope="module")
+def fish():
+    return fish_phantom(length=80, body_radius=5, tube=False, seed=1)
+
+
+@pytest.fixture(scope="module")
+def done(fish, tmp_path_factory):
+    """The whole workflow on the fish phantom, with the events it emitted."""
+    wf = Workflow()
+    events: list[str] = []
+    for name in ("scan_changed", "features_changed", "selection_changed", "ends_changed", "skeleton_changed",
+                 "exported"):
+        getattr(wf, name).connect(lambda *a, name=name: events.append(name))
+    volume = as_volume(fish.volume, spacing=fish.spacing, unit=fish.unit)
+    wf.set_scan(volume, name="fish")
+    _do(wf, wf.segment_task())
+    centre = fish.centerline[len(fish.centerline) // 2]
+    fid = wf.pick(centre)
+    _do(wf, wf.suggest_ends_task())
+    _do(wf, wf.skeleton_task())
+    out = tmp_path_factory.mktemp("wf") / "straight.nrrd"
+    _do(wf, wf.export_task(out))
+    return wf, events, fid, out, volume
+
+
+def test_the_steps_in_order_emit_their_events(done):
+    wf, events, fid, out, _ = done
+    assert events == ["scan_changed", "features_changed", "selection_changed", "selection_changed", "ends_changed",
+                      "skeleton_changed", "exported"]
+
+
+def test_the_click_selects_the_fish(done, fish):
+    wf, _, fid, _, _ = done
+    assert fid != 0 and wf.selection.ids == (fid,)
+    mask = np.asarray(wf.mask())
+    assert (mask & fish.mask).sum() > 0.9 * fish.mask.sum()
+    assert (mask & ~fish.mask).sum() < 0.3 * fish.mask.sum()
+
+
+def test_ends_and_skeleton_follow_the_phantom(done, fish):
+    wf, *_ = done
+    assert np.linalg.norm(np.asarray(wf.ends.head) - fish.centerline[0]) < 12
+    assert np.linalg.norm(np.asarray(wf.ends.tail) - fish.centerline[-1]) < 12
+    d = wf.edit.deformation
+    assert d is wf.skeleton.deformation and abs(d.length - fish.length) < 0.2 * fish.length
+    assert wf.skeleton.specimen.status == "ok", wf.skeleton.specimen.reason
+
+
+def test_the_export_is_the_cores_straighten(done):
+    wf, _, _, out, volume = done
+    written = np.asarray(open_volume(out).data)
+    np.testing.assert_array_equal(written, np.asarray(straighten(volume, wf.edit.deformation).data))
+
+
+def test_a_new_scan_drops_the_old_work(done, fish):
+    wf = Workflow()
+    wf.set_scan(as_volume(fish.volume, spacing=fish.spacing), name="a")
+    _do(wf, wf.segment_task())
+    wf.pick(fish.centerline[len(fish.centerline) // 2])
+    assert wf.has_selection
+    wf.set_scan(as_volume(fish.volume[:, :, :-2], spacing=fish.spacing), name="b")
+    assert wf.features is None and not wf.has_selection and wf.ends is None
+
+
+def test_a_mask_is_the_selection(fish):
+    wf = Workflow()
+    wf.set_scan(as_volume(fish.volume, spacing=fish.spacing, unit=fish.unit), name="fish")
+    labels = fish.mask.astype(np.uint8) * 2
+    assert wf.use_mask(labels, label=2) == int(fish.mask.sum())
+    np.testing.assert_array_equal(np.asarray(wf.mask()), fish.mask)
+    with pytest.raises(InvalidInputError, match="holds no voxel of label 3"):
+        wf.use_mask(labels, label=3)
+    with pytest.raises(InvalidInputError, match="must lie on the scan's voxel grid"):
+        wf.use_mask(labels[:, 1:])
+
+
+@pytest.mark.parametrize("step", ["segment_task", "suggest_ends_task", "skeleton_task", "export_task"])
+def test_steps_without_what_they_need_say_what_to_do(step):
+    wf = Workflow()
+    args = ("x.nrrd",) if step == "export_task" else ()
+    with pytest.raises(InvalidInputError, match="there is no scan yet"):
+        getattr(wf, step)(*args)
+
+
+def test_no_step_knows_its_backend(fish):
+    """A backend that records its calls runs every step: the model passes the scan, the selection and the
+    options; nothing else decides where the work happens."""
+    calls = []
+
+    class Recording(LocalBackend):
+        label = "recording"
+
+        def segment(self, volume, **kw):
+            calls.append(("segment", sorted(kw)))
+            return (yield from super().segment(volume, **kw))
+
+        def suggest_ends(self, volume, selection, **kw):
+            calls.append(("suggest_ends", sorted(kw)))
+            return (yield from super().suggest_ends(volume, selection, **kw))
+
+    wf = Workflow(Recording())
+    wf.set_scan(as_volume(fish.volume, spacing=fish.spacing), name="fish")
+    _do(wf, wf.segment_task(k=3))
+    assert wf.features.k == 3
+    wf.pick(fish.centerline[len(fish.centerline) // 2])
+    _do(wf, wf.suggest_ends_task())
+    assert calls == [("segment", ["k", "level", "name", "smooth"]), ("suggest_ends", ["name"])]
