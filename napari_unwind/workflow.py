@@ -292,13 +292,15 @@ class Workflow:
     Signals
     -------
     scan_changed(volume), features_changed(features), selection_changed(selection), ends_changed(ends),
-    skeleton_changed(Skeletonized), exported(path, warnings), backend_changed(backend)
+    isovalue_changed(isovalue or None), skeleton_changed(Skeletonized), exported(path, warnings),
+    backend_changed(backend)
     """
 
     scan_changed = Signal(object)
     features_changed = Signal(object)
     selection_changed = Signal(object)
     ends_changed = Signal(object)
+    isovalue_changed = Signal(object)
     skeleton_changed = Signal(object)
     exported = Signal(object, object)
     backend_changed = Signal(object)
@@ -422,6 +424,55 @@ class Workflow:
                                    options=self.options.segment)
         self.selection_changed.emit(self.selection)
         return count
+
+    # ---- the mask's isovalue: grow or shrink a selection of features -------------------------------------------------
+    @property
+    def isovalue(self) -> float | None:
+        """The full-resolution threshold of a selection of features (None: the pipeline's one default rule)."""
+        return self.options.segment.isovalue
+
+    def set_isovalue(self, value: float | None) -> None:
+        """Threshold the selected features at ``value`` (lower: a larger mask) instead of the default rule (None).
+        A chosen mask is taken as it is."""
+        from dataclasses import replace
+
+        seg = replace(self.options.segment, isovalue=None if value is None else float(value))
+        self.options = replace(self.options, segment=seg)
+        self.selection = replace(self.selection, options=seg)
+        self.isovalue_changed.emit(seg.isovalue)
+        self.selection_changed.emit(self.selection)
+
+    def measure_task(self) -> Task:
+        """The selection's full-resolution mask measured: returns ``(voxels, share of the scan, isovalue used)``
+        (the isovalue is None for a chosen mask). Off the UI thread: it computes the mask."""
+        volume, selection = self._need_scan(), self._need_selection()
+
+        def make() -> Generator[Progress, None, tuple[int, float, float | None]]:
+            from .pipeline import SegmentOptions, select_step
+
+            yield Progress("measure", 0, 1, "the selection at full resolution")
+            if selection.mask is not None:
+                count, iso = int(np.count_nonzero(np.asarray(selection.mask))), None
+            else:
+                sel = yield from select_step(volume, selection.features, ids=list(selection.ids),
+                                             options=selection.options or SegmentOptions())
+                count, iso = int(sel.mask.sum().compute()), float(sel.isovalue)
+            yield Progress("measure", 1, 1)
+            return count, count / max(1, int(np.prod(volume.shape))), iso
+
+        return Task("measuring the selection", make, lambda value: value)
+
+    def intensity_range(self) -> tuple[float, float]:
+        """The scan's 0.1 and 99.9 percentiles on its coarsest level (the isovalue slider's range)."""
+        volume = self._need_scan()
+        data = volume.levels[-1] if len(getattr(volume, "levels", ())) > 1 else volume.data
+        step = max(1, int(round((int(np.prod(data.shape)) / 2e6) ** (1 / 3))))
+        sample = np.asarray(data[::step, ::step, ::step], dtype=float)
+        sample = sample[np.isfinite(sample)]
+        if sample.size == 0:
+            return 0.0, 1.0
+        lo, hi = np.percentile(sample, [0.1, 99.9])
+        return float(lo), float(hi if hi > lo else lo + 1)
 
     def _need_selection(self) -> Selection:
         s = self.selection

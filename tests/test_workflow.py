@@ -129,3 +129,32 @@ def test_no_step_knows_its_backend(fish):
     wf.pick(fish.centerline[len(fish.centerline) // 2])
     _do(wf, wf.suggest_ends_task())
     assert calls == [("segment", ["k", "level", "name", "smooth"]), ("suggest_ends", ["name"])]
+
+
+def test_the_isovalue_grows_and_shrinks_the_mask(fish):
+    """A lower threshold gives a larger mask, a higher one a smaller; each equals the core's refine_mask of the
+    same features at that threshold; None is the default rule again."""
+    from napari_unwind.segmentation import refine_mask, select
+
+    wf = Workflow()
+    volume = as_volume(fish.volume, spacing=fish.spacing, unit=fish.unit)
+    wf.set_scan(volume, name="fish")
+    _do(wf, wf.segment_task())
+    fid = wf.pick(fish.centerline[len(fish.centerline) // 2])
+    n0, share0, iso0 = run(wf.measure_task().make())
+    assert wf.isovalue is None and share0 == pytest.approx(n0 / fish.volume.size)
+    lo, hi = wf.intensity_range()
+    assert lo < iso0 < hi
+    counts = {}
+    for iso in (iso0 - 0.3 * (iso0 - lo), iso0 + 0.3 * (hi - iso0)):
+        wf.set_isovalue(iso)
+        n, _, used = run(wf.measure_task().make())
+        assert used == pytest.approx(iso)
+        reference = refine_mask(volume, select(wf.features, ids=[fid]), features=wf.features, isovalue=iso)
+        assert n == int(np.asarray(reference).sum())
+        np.testing.assert_array_equal(np.asarray(wf.mask()), np.asarray(reference))
+        counts[iso] = n
+    low, high = sorted(counts)
+    assert counts[low] > n0 > counts[high]
+    wf.set_isovalue(None)
+    assert run(wf.measure_task().make())[0] == n0
