@@ -215,16 +215,19 @@ class RefinePanel(QWidget):
         self.strip.s_requested.connect(lambda s: self._call(lambda: self.model.set_s(s)))
         lay.addWidget(self.strip)
         self.position_label = QLabel("")
+        self.position_label.setWordWrap(True)  # "s = ... , keyframe k of n; folds at ..." must not widen the dock
         lay.addWidget(self.position_label)
 
-        row = QHBoxLayout()
+        # napari's dock starts ~400 px wide (a 365 px viewport once the step scrolls vertically): the controls go
+        # in rows of at most ~300 px (issue 21), never in one long row that needs a horizontal scroll bar
+        nav = QGridLayout()
         self.prev_button = self._button("< keyframe", "previous keyframe")
         self.next_button = self._button("keyframe >", "next keyframe")
         self.add_button = self._button("add here", "add a keyframe here")
         self.delete_button = self._button("delete", "delete the keyframe")
-        for b in (self.prev_button, self.next_button, self.add_button, self.delete_button):
-            row.addWidget(b)
-        lay.addLayout(row)
+        for i, b in enumerate((self.prev_button, self.next_button, self.add_button, self.delete_button)):
+            nav.addWidget(b, i // 2, i % 2)
+        lay.addLayout(nav)
 
         grid = QGridLayout()
         self.tilt_buttons = {}
@@ -242,31 +245,32 @@ class RefinePanel(QWidget):
             grid.addWidget(b, 1, col)
         lay.addLayout(grid)
 
-        pad = QHBoxLayout()
+        pad = QGridLayout()  # one row each: "pad head [box]", "pad tail [box]" (side by side they need ~450 px)
         self.pad_head = QDoubleSpinBox()
         self.pad_tail = QDoubleSpinBox()
-        for box, end in ((self.pad_head, "head"), (self.pad_tail, "tail")):
+        for row, (box, end) in enumerate(((self.pad_head, "head"), (self.pad_tail, "tail"))):
             box.setRange(0.0, 1e6)
             box.setDecimals(2)
             box.setKeyboardTracking(False)
             box.setToolTip(f"extra length of the straight box beyond the {end} (physical units)")
             box.valueChanged.connect(self._on_pad)
-            pad.addWidget(QLabel(f"pad {end}"))
-            pad.addWidget(box)
+            pad.addWidget(QLabel(f"pad {end}"), row, 0)
+            pad.addWidget(box, row, 1)
+        pad.setColumnStretch(2, 1)  # the boxes keep their own width
+        lay.addLayout(pad)
         self.preview_check = QCheckBox("straight preview")
         self.preview_check.setChecked(True)
         self.preview_check.setToolTip("recompute the straight preview layer after every edit (coarse level)")
         self.preview_check.toggled.connect(self._on_preview_toggled)
-        pad.addWidget(self.preview_check)
-        lay.addLayout(pad)
+        lay.addWidget(self.preview_check)
 
-        live = QHBoxLayout()
         self.live_check = QCheckBox("live 3D straight view (GPU)")
         self.live_check.setToolTip("draw the straight fish in the 3D view with the GLSL shader, from the scan's own "
                                    "texture: an edit re-uploads only the frame table (falls back to the CPU preview "
                                    "where GL lacks what it needs)")
         self.live_check.toggled.connect(self._on_live_toggled)
-        live.addWidget(self.live_check)
+        lay.addWidget(self.live_check)
+        live = QHBoxLayout()  # under the live view's box: its "bent" box and "finer level here"
         self.bent_check = QCheckBox("bent")
         self.bent_check.setToolTip("show the scan bent (as scanned) in the same layer and texture; off: straight")
         self.bent_check.setEnabled(False)
@@ -278,14 +282,17 @@ class RefinePanel(QWidget):
         self.finer_button.setEnabled(False)
         self.finer_button.clicked.connect(self._on_finer)
         live.addWidget(self.finer_button)
+        live.addStretch(1)
         lay.addLayout(live)
         self.live_label = QLabel("")
         self.live_label.setWordWrap(True)
+        self.live_label.setMinimumWidth(1)  # a path in it has no break: cut, never widen the dock
         lay.addWidget(self.live_label)
         self.live: Any = None
 
         self.status = QLabel("")
         self.status.setWordWrap(True)
+        self.status.setMinimumWidth(1)  # a path in it has no break: cut, never widen the dock
         self.status.setStyleSheet("color: #ff8080")
         lay.addWidget(self.status)
 

@@ -260,12 +260,21 @@ class UnwindWidget(QWidget):
         return button, cancel
 
     def _scan_page(self) -> QWidget:
+        # the steps take the dock's height: napari adds a stretch under a dock with no vertically expanding
+        # widget, weighted by how many docks the process opened before (the 4th got the open step ~50 px tall)
+        policy = self.toolbox.sizePolicy()
+        policy.setVerticalPolicy(policy.Policy.Expanding)
+        self.toolbox.setSizePolicy(policy)
         w = QWidget()
         lay = QVBoxLayout(w)
         lay.addLayout(self._backend_form())
         row = QHBoxLayout()
         self.layer_combo = QComboBox()
         self.layer_combo.setToolTip("The 3D Image layer to straighten")
+        # a layer named after a long file must not widen the dock (napari's starts ~400 px): the combo shows what
+        # fits, its list shows the whole names
+        self.layer_combo.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+        self.layer_combo.setMinimumContentsLength(12)
         self.layer_combo.activated.connect(self._on_layer_chosen)
         self.open_button = QPushButton("Open file...")
         self.open_button.clicked.connect(self._open_dialog)
@@ -274,6 +283,7 @@ class UnwindWidget(QWidget):
         lay.addLayout(row)
         self.scan_info = QLabel("no scan: pick an Image layer or open a file")
         self.scan_info.setWordWrap(True)
+        self.scan_info.setMinimumWidth(1)  # a layer's name (a file's) has no break: cut at the edge, never widen
         self.scan_warning = QLabel("")
         self.scan_warning.setWordWrap(True)
         self.scan_warning.setStyleSheet("color: #ff8c00")
@@ -285,6 +295,7 @@ class UnwindWidget(QWidget):
 
     def _backend_form(self) -> QFormLayout:
         form = QFormLayout()
+        form.setFieldGrowthPolicy(QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)  # fields take the dock's width
         self.backend_combo = QComboBox()
         self.backend_combo.addItem("this computer", "local")
         self.backend_combo.addItem("server", "server")
@@ -307,6 +318,7 @@ class UnwindWidget(QWidget):
         self.connect_button.clicked.connect(self.connect_server)
         self.backend_info = QLabel("")
         self.backend_info.setWordWrap(True)
+        self.backend_info.setMinimumWidth(1)  # a long server address has no break: cut, never widen the dock
         self._server_rows = (self.server_address, self.server_token, self.server_ca, self.server_path,
                              self.connect_button)
         for label, widget in zip(("address", "token", "TLS CA", "path on server", ""), self._server_rows):
@@ -425,6 +437,7 @@ class UnwindWidget(QWidget):
         self.export_need.setWordWrap(True)
         lay.addWidget(self.export_need)
         form = QFormLayout()
+        form.setFieldGrowthPolicy(QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)  # fields take the dock's width
         self.format_combo = QComboBox()
         for label, suffix in EXPORT_FORMATS:
             self.format_combo.addItem(f"{label} ({suffix})", suffix)
@@ -463,6 +476,7 @@ class UnwindWidget(QWidget):
             lay, "Export", lambda: self.export(self.path_edit.text()))
         self.export_info = QLabel("")
         self.export_info.setWordWrap(True)
+        self.export_info.setMinimumWidth(1)  # the written path has no break: cut at the dock's edge, never widen it
         lay.addWidget(self.export_info)
         lay.addStretch(1)
         return w
@@ -498,7 +512,15 @@ class UnwindWidget(QWidget):
         for i, (key, action) in enumerate(rows):
             table.setItem(i, 0, QTableWidgetItem(key))
             table.setItem(i, 1, QTableWidgetItem(action))
-        table.resizeColumnsToContents()
+        # the two columns share the dock's width and wrap their text (no horizontal scrolling at napari's default
+        # dock width); the rows grow to the wrapped text
+        table.setWordWrap(True)
+        table.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        header = table.horizontalHeader()
+        header.setSectionResizeMode(header.ResizeMode.Stretch)
+        header.setMinimumSectionSize(60)
+        table.verticalHeader().setSectionResizeMode(header.ResizeMode.ResizeToContents)
+        table.verticalHeader().hide()
         self.shortcuts_table = table
         return table
 
