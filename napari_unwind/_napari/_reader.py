@@ -12,11 +12,17 @@ Every coordinate is a world coordinate (physical units: voxel index x spacing + 
 lives in. Each layer's ``metadata["napari_unwind"]`` holds ``session_path`` and what the layer restores;
 the curve's holds ``deformation`` (:meth:`~napari_unwind.deformation.Deformation.to_dict`) for the Unwind dock.
 No napari import: the layers are napari's plain ``(data, meta, type)`` tuples.
+
+A scan's layer (opened alone or by a session) carries ``contrast_limits`` from its voxels
+(:func:`contrast_limits`): napari gives lazy float data [0, 1] and lazy integer data its first slice's range, so a CT
+in Hounsfield units would open black and white until auto-contrast.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
+from itertools import product
 from pathlib import Path
 from typing import Any
 
@@ -27,10 +33,109 @@ from ..io import detect_format, open_volume
 from ..session import SESSION_SUFFIX, Session, SourceChangedError, SourceMissingError, load_session
 from ._docks import current_viewer_has_dock
 
-__all__ = ["get_reader", "get_session_reader", "read", "read_session", "session_layers"]
+__all__ = ["contrast_limits", "get_reader", "get_session_reader", "read", "read_session", "session_layers"]
 
 #: Most points of the curve path drawn (the deformation itself is in the metadata, exact).
 _CURVE_POINTS = 512
+
+#: Contrast limits of a scan: these percentiles of at most ``_CLIM_VOXELS`` voxels of one pyramid level, taken
+#: from whole chunks of at most ``_CLIM_READ`` voxels in all (at least one chunk, at most ``_CLIM_CHUNKS``): dask
+#: reads a chunk whole however little of it is asked for (a slab of the NRRD reader, a chunk of a compressed store).
+_CLIM_PERCENTILES = (0.5, 99.5)
+_CLIM_VOXELS = 2**22
+_CLIM_READ = 2**25
+_CLIM_CHUNKS = 64
+
+
+def contrast_limits(data: Any, *, max_voxels: int = _CLIM_VOXELS, max_read: int = _CLIM_READ,
+                    max_chunks: int = _CLIM_CHUNKS) -> tuple[float, float]:
+    """Contrast limits for a scan: the 0.5th and 99.5th percentiles of a bounded sample of its voxels.
+
+    napari gives a lazy float array [0, 1] and a lazy integer one the range of the first slice it draws; its own
+    rule for large arrays (:func:`napari.layers.utils.calc_data_range`) reads three planes' minimum and maximum,
+    which one bright voxel or the air around a specimen decides.
+
+    Parameters
+    ----------
+    data : array or sequence of arrays
+        The voxels (numpy or dask), or a pyramid finest first (``Volume.levels``). The finest level of at most
+        ``max_voxels`` voxels is read whole. When every level is larger, the coarsest is sampled: chunks spread
+        over it, as many as ``max_read`` voxels hold (at least one, at most ``max_chunks``), each strided to keep
+        ``max_voxels`` values in all. No other chunk is read.
+    max_voxels, max_read, max_chunks : int
+        The sample's bounds.
+
+    Returns
+    -------
+    (low, high) : tuple of 2 float
+        ``low < high`` always: NaN and infinities are ignored; percentiles that meet fall back to the sample's
+        minimum and maximum, a constant ``v`` gives ``(v, v + 1)`` and a sample without a finite value ``(0, 1)``.
+    """
+    levels = list(data) if isinstance(data, (list, tuple)) else [data]
+    sizes = [math.prod(int(n) for n in a.shape) for a in levels]
+    fits = [i for i, n in enumerate(sizes) if n <= max_voxels]
+    array = levels[fits[0]] if fits else levels[int(np.argmin(sizes))]
+    values = _sample(array, int(max_voxels), int(max_read), int(max_chunks))
+    values = np.asarray(values, dtype=np.float64).ravel()
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return 0.0, 1.0
+    low, high = (float(v) for v in np.percentile(values, _CLIM_PERCENTILES))
+    if not high > low:
+        low, high = float(values.min()), float(values.max())
+    if not high > low:  # constant: a range napari can draw (v + 1 == v for |v| >= 2**53)
+        high = low + max(1.0, abs(low) * 1e-6)
+    return low, high
+
+
+def _sample(array: Any, max_voxels: int, max_read: int, max_chunks: int) -> np.ndarray:
+    """At most ``max_voxels`` voxels of ``array`` from chunks of ``max_read`` voxels in all (at least one chunk)."""
+    shape = tuple(int(n) for n in array.shape)
+    if math.prod(shape) <= max_voxels:
+        return np.asarray(array)
+    chunks = getattr(array, "chunks", None)
+    chunks = (tuple(tuple(int(c) for c in axis) for axis in chunks) if _is_chunked(chunks, shape)
+              else tuple((n,) for n in shape))  # numpy (a memory map reads only what is asked): one chunk
+    grid = [len(axis) for axis in chunks]
+    chunk_voxels = math.prod(max(axis) for axis in chunks)
+    budget = max(1, min(max_chunks, max_read // chunk_voxels))
+    # chunks per axis: doubled along the axis with the most chunks per pick while the total stays in the budget
+    picks = [1] * len(grid)
+    while True:
+        free = [ax for ax in range(len(grid)) if picks[ax] < grid[ax]]
+        if not free:
+            break
+        ax = max(free, key=lambda a: grid[a] / picks[a])
+        more = min(grid[ax], 2 * picks[ax])
+        if math.prod(picks) // picks[ax] * more > budget:
+            break
+        picks[ax] = more
+    indices = [sorted({int((k + 0.5) * g / p) for k in range(p)}) for g, p in zip(grid, picks)]
+    starts = [np.concatenate([[0], np.cumsum(axis)[:-1]]).astype(int) for axis in chunks]
+    blocks = list(product(*indices))
+    per_block = max(1, max_voxels // len(blocks))
+    pieces = []
+    for block in blocks:
+        extent = [chunks[ax][i] for ax, i in enumerate(block)]
+        step = max(1, math.ceil((math.prod(extent) / per_block) ** (1 / len(extent))))
+        while math.prod(-(-n // step) for n in extent) > per_block:
+            step += 1
+        pieces.append(array[tuple(
+            slice(int(starts[ax][i]) + min(step // 2, n - 1), int(starts[ax][i]) + n, step)
+            for ax, (i, n) in enumerate(zip(block, extent)))])
+    if hasattr(array, "dask"):
+        import dask
+
+        pieces = list(dask.compute(*pieces))
+    return np.concatenate([np.asarray(p).ravel() for p in pieces])
+
+
+def _is_chunked(chunks: Any, shape: tuple[int, ...]) -> bool:
+    """Whether ``chunks`` are dask's: per axis, the chunk lengths adding up to the axis' length."""
+    try:
+        return len(chunks) == len(shape) and all(sum(int(c) for c in axis) == n for axis, n in zip(chunks, shape))
+    except TypeError:
+        return False
 
 
 def _single(path: str | list[str]) -> str | None:
@@ -59,7 +164,8 @@ def read(path: str | list[str]) -> list:
 
     if isinstance(path, list):
         path = path[0]
-    return [image_layer(open_volume(path))]
+    volume = open_volume(path)
+    return [image_layer(volume, contrast_limits=contrast_limits(volume.levels))]
 
 
 def get_session_reader(path: str | list[str]) -> Callable[[Any], list] | None:
@@ -136,8 +242,8 @@ def session_layers(session: Session, *, session_path: str | Path | None = None, 
     units = {"units": (unit,) * 3} if unit else {}
     common = {"session_path": None if session_path is None else str(session_path), "source": src.path}
 
-    image = image_layer(volume, name=scan_path.name,
-                        scale=tuple(spacing), translate=tuple(origin), **units)
+    image = image_layer(volume, name=scan_path.name, scale=tuple(spacing), translate=tuple(origin),
+                        contrast_limits=contrast_limits(volume.levels), **units)
     image[1]["metadata"]["napari_unwind"].update(common, spacing=tuple(spacing), unit=unit)
     layers: list = [image]
 

@@ -139,6 +139,10 @@ def test_session_layers_without_the_selection_keep_its_record(fish_session):
     layers = session_layers(session, session_path=path, selection=False)
     assert [t for *_, t in layers] == ["image", "points", "shapes"]
     assert layers[0][1]["metadata"]["napari_unwind"]["segmentation"] == session.segmentation.to_dict()
+    # the scan's contrast: its voxels' 0.5th and 99.5th percentiles (napari's own would be one slice's range)
+    expected = np.percentile(np.asarray(p.volume, dtype=np.float64), [0.5, 99.5])
+    np.testing.assert_allclose(layers[0][1]["contrast_limits"], expected, rtol=1e-6, atol=1e-6)
+    assert expected[1] > expected[0]
 
 
 def _moved_source(path, tmp_path, new_source):
@@ -232,3 +236,57 @@ def test_rendered_slice_matches_the_data(make_napari_viewer, scan):
     h_ratio = (rows.max() - rows.min() + 1) / (cols.max() - cols.min() + 1)
     data_ratio = (data_rows.max() - data_rows.min() + 1) / (data_cols.max() - data_cols.min() + 1)
     assert abs(h_ratio - data_ratio) < 0.1
+
+
+def _ct_scan(dtype):
+    """A CT-like scan in Hounsfield units: air (-1000) around a water body (0 +- 30) holding bone (1000..3000)."""
+    rng = np.random.default_rng(5)
+    shape = (40, 36, 32)
+    z, y, x = np.ogrid[tuple(slice(0, n) for n in shape)]
+    body = ((z - 20) / 18) ** 2 + ((y - 18) / 14) ** 2 + ((x - 16) / 12) ** 2 < 1
+    a = rng.normal(-1000, 20, shape)
+    a[body] = rng.normal(0, 30, int(body.sum()))
+    bone = body & (np.abs(y - 18) < 3) & (np.abs(x - 16) < 3)
+    a[bone] = rng.uniform(1000, 3000, int(bone.sum()))
+    return np.clip(a, -1000, 3000).astype(dtype)
+
+
+@pytest.fixture
+def reader_preference():
+    """napari's reader preferences (Preferences > Plugins), restored after the test; not saved to the user's
+    settings file meanwhile."""
+    from napari.settings import get_settings
+
+    settings = get_settings()
+    before = dict(settings.plugins.extension2reader)
+    saving = settings._save_on_change
+    settings._save_on_change = False
+    try:
+        yield settings.plugins
+    finally:
+        settings.plugins.extension2reader = before
+        settings._save_on_change = saving
+
+
+@pytest.mark.gui
+@pytest.mark.parametrize("dtype", ["int16", "float32"])
+def test_nrrd_opens_with_the_contrast_of_its_voxels(make_napari_viewer, reader_preference, tmp_path, dtype):
+    """File > Open of a .nrrd by this plugin (chosen, or napari's preference for *.nrrd): the CT is not black and
+    white, its contrast limits are its voxels' 0.5th and 99.5th percentiles (issue 21)."""
+    a = _ct_scan(dtype)
+    path = write_volume(a, tmp_path / "ct.nrrd", spacing=(0.5, 0.4, 0.4), unit="mm")
+    expected = np.percentile(a.astype(np.float64), [0.5, 99.5])
+    viewer = make_napari_viewer()
+
+    chosen = viewer.open(str(path), plugin="napari-unwind")[0]
+
+    reader_preference.extension2reader = {**reader_preference.extension2reader, "*.nrrd": "napari-unwind"}
+    # File > Open names no plugin: napari takes its preference (viewer.open's own default, plugin="napari", is
+    # napari's builtins, which need itk for NRRD)
+    preferred = viewer.open(str(path), plugin=None)[0]
+
+    for layer in (chosen, preferred):
+        assert layer.metadata["napari_unwind"]["format"] == "nrrd"
+        np.testing.assert_allclose(layer.contrast_limits, expected, atol=0.01 * 4000)
+        assert list(layer.contrast_limits) != [0, 1]
+        np.testing.assert_array_equal(np.asarray(layer.data), a)
