@@ -1,4 +1,6 @@
-"""Volumes as napari layer-data tuples: plain data and dicts, no napari import (the core stays Qt-free)."""
+"""Volumes as napari layer-data tuples (plain data and dicts, no napari import at module level: the core stays
+Qt-free), the 3D stand-in of a Labels layer (:class:`LabelsIn3D`), and where the straight specimen is placed and
+framed (:func:`beside`, :func:`frame_side_view`)."""
 
 from __future__ import annotations
 
@@ -8,7 +10,7 @@ import numpy as np
 
 from ..io import Volume
 
-__all__ = ["image_layer", "labels_layer"]
+__all__ = ["image_layer", "labels_layer", "labels_surface", "LabelsIn3D", "labels_in_3d"]
 
 
 def _geometry(spacing: Any, unit: str | None, origin: Any = (0.0, 0.0, 0.0)) -> dict[str, Any]:
@@ -52,3 +54,228 @@ def scan_units(viewer: Any) -> dict[str, Any]:
         if layer.__class__.__name__ == "Image" and units is not None and {str(u) for u in units} != {"pixel"}:
             return {"units": tuple(units)}
     return {}
+
+
+# -- Labels in 3D: a coarse Surface instead of napari's volume ray caster ------------------------------------------
+SURFACE_3D_SUFFIX = " (3D)"
+SURFACE_3D_STEP = 2          # marching-cubes step (voxels): the 3D stand-in is this much coarser than the labels
+
+
+def labels_surface(labels: Any, *, step: int = SURFACE_3D_STEP, min_voxels: int = 8
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``(vertices, faces, label_of_vertex)`` of every label's boundary (marching cubes at ``step`` voxels, each
+    label on its own bounding box), vertices in the labels' voxel coordinates; None when no label has
+    ``min_voxels`` voxels."""
+    from scipy import ndimage
+    from skimage.measure import marching_cubes
+
+    data = np.asarray(labels)
+    step = max(1, int(step))
+    verts: list[np.ndarray] = []
+    faces: list[np.ndarray] = []
+    values: list[np.ndarray] = []
+    count = 0
+    boxes = ndimage.find_objects(data) if np.issubdtype(data.dtype, np.integer) and data.min() >= 0 else None
+    if boxes is None:
+        return None
+    for index, box in enumerate(boxes, start=1):
+        if box is None:
+            continue
+        mask = data[box] == index
+        if int(mask.sum()) < min_voxels:
+            continue
+        padded = np.pad(mask, step).astype(np.float32)   # closed surfaces where a label touches its box's side
+        try:
+            v, f, _, _ = marching_cubes(padded, 0.5, step_size=step, allow_degenerate=False)
+        except (RuntimeError, ValueError):   # too small for this step
+            continue
+        verts.append(v - step + np.array([s.start for s in box], dtype=np.float32))
+        faces.append(f + count)
+        values.append(np.full(len(v), index, dtype=np.float32))
+        count += len(v)
+    if not verts:
+        return None
+    return np.concatenate(verts).astype(np.float32), np.concatenate(faces), np.concatenate(values)
+
+
+class LabelsIn3D:
+    """Draws a Labels layer in 3D as a Surface layer (``"<name> (3D)"``) instead of napari's volume ray caster.
+
+    napari draws a Labels layer in 3D by ray casting its whole volume; on software GL (Mesa llvmpipe) one frame of
+    a few hundred voxels per side takes seconds and the first one tens of seconds, so switching to 3D froze the
+    viewer (issue 21). Here the layer's own 3D volume node draws nothing, and while the viewer is in 3D a Surface
+    of the labels' boundaries (marching cubes at ``step`` voxels, coloured with the layer's label colours) stands
+    in for it; it follows the layer's data, visibility, opacity, blending, scale and translate. In 2D the stand-in
+    is removed and the layer is exactly as before. The layer stays the one clicks reach (napari's ``get_value``
+    along the view ray reads the layer's data, not what is drawn), and the layer selection is kept.
+
+    ``close()`` disconnects and gives the layer its volume rendering back.
+    """
+
+    def __init__(self, viewer: Any, layer: Any, *, step: int = SURFACE_3D_STEP) -> None:
+        self.viewer = viewer
+        self.layer = layer
+        self.step = int(step)
+        self.surface: Any = None
+        self.builds = 0                    # marching-cubes runs (tests: data edits in 2D cost none)
+        self._key: Any = None
+        self._node: Any = None
+        self._closed = False
+        viewer.dims.events.ndisplay.connect(self._sync)
+        for name in ("data", "visible", "opacity", "blending", "scale", "translate"):
+            getattr(layer.events, name).connect(self._sync)
+        viewer.layers.events.removed.connect(self._on_removed)
+        self._sync()
+
+    # the layer's own 3D node: napari resets its visibility on every ndisplay / visible change, so its draw is
+    # replaced instead (it is drawn in 3D only; the 2D image node is untouched)
+    def _silence_volume(self) -> None:
+        from . import _private
+
+        try:
+            node = _private.volume_node(self.viewer, self.layer)
+        except (KeyError, AttributeError, RuntimeError):
+            return  # not on a canvas (a headless viewer): nothing is ray cast
+        if node is not self._node:
+            self._restore_volume()
+            object.__setattr__(node, "draw", lambda *args, **kwargs: None)
+            self._node = node
+
+    def _restore_volume(self) -> None:
+        if self._node is not None:
+            try:
+                object.__delattr__(self._node, "draw")
+            except AttributeError:
+                pass
+            self._node = None
+
+    @property
+    def active(self) -> bool:
+        """The stand-in is shown (the viewer is in 3D and the layer is in it)."""
+        return self.surface is not None and self.surface in self.viewer.layers
+
+    def _sync(self, event: Any = None) -> None:
+        if self._closed:
+            return
+        layers = self.viewer.layers
+        if self.layer not in layers or self.viewer.dims.ndisplay != 3:
+            self._remove_surface()
+            return
+        self._silence_volume()
+        layer = self.layer
+        key = (id(layer.data), getattr(layer.data, "shape", None), self.step)
+        if self._key != key or self.surface is None:
+            mesh = labels_surface(layer.data, step=self.step)
+            self.builds += 1
+            self._key = key
+            self._mesh = mesh
+        mesh = self._mesh
+        props = {"visible": bool(layer.visible) and mesh is not None, "opacity": float(layer.opacity),
+                 "blending": layer.blending, "scale": tuple(layer.scale), "translate": tuple(layer.translate)}
+        if mesh is None:
+            mesh = (np.zeros((3, 3), np.float32), np.array([[0, 1, 2]]), np.zeros(3, np.float32))
+        verts, faces, values = mesh
+        ids, inverse = np.unique(values.astype(np.int64), return_inverse=True)
+        colors = np.asarray([layer.get_color(int(i)) for i in ids], dtype=np.float32).reshape(-1, 4)[inverse]
+        if self.surface is None or self.surface not in layers:
+            from napari.layers import Surface
+
+            self.surface = Surface((verts, faces, values), vertex_colors=colors, shading="flat",
+                                   name=f"{layer.name}{SURFACE_3D_SUFFIX}", units=tuple(layer.units),
+                                   metadata={"napari_unwind": {"surface_of": layer.name}}, **props)
+            active, selected = layers.selection.active, set(layers.selection)
+            layers.insert(layers.index(layer) + 1, self.surface)
+            layers.selection.clear()
+            layers.selection.update(selected)   # adding a layer selects it: keep the user's (clicks reach it)
+            layers.selection.active = active
+            return
+        s = self.surface
+        if s.data[0] is not verts:
+            s.vertex_colors = None            # napari checks the colours against the vertices on each assignment
+            s.data = (verts, faces, values)
+            s.vertex_colors = colors
+        for name, value in props.items():
+            if getattr(s, name) != value if name in ("visible", "opacity", "blending") \
+                    else not np.allclose(getattr(s, name), value):
+                setattr(s, name, value)
+
+    def _remove_surface(self) -> None:
+        if self.surface is not None and self.surface in self.viewer.layers:
+            layers = self.viewer.layers
+            active, selected = layers.selection.active, set(layers.selection) - {self.surface}
+            layers.remove(self.surface)
+            layers.selection.clear()
+            layers.selection.update({x for x in selected if x in layers})
+            if active is not None and active in layers:
+                layers.selection.active = active
+        self.surface = None
+
+    def _on_removed(self, event: Any) -> None:
+        if event.value is self.layer:
+            self.close()
+
+    def close(self) -> None:
+        """Disconnect; remove the stand-in; the layer is ray cast in 3D again."""
+        if self._closed:
+            return
+        self._closed = True
+        self.viewer.dims.events.ndisplay.disconnect(self._sync)
+        for name in ("data", "visible", "opacity", "blending", "scale", "translate"):
+            getattr(self.layer.events, name).disconnect(self._sync)
+        self.viewer.layers.events.removed.disconnect(self._on_removed)
+        self._remove_surface()
+        self._restore_volume()
+
+
+def labels_in_3d(viewer: Any, layer: Any, *, step: int = SURFACE_3D_STEP) -> LabelsIn3D:
+    """The hook the dock calls once per Labels layer it adds: a :class:`LabelsIn3D` for it (the viewer's and the
+    layer's events keep it alive); calling it again for the same layer returns the first one."""
+    existing = getattr(layer, "_napari_unwind_3d", None)
+    if isinstance(existing, LabelsIn3D) and not existing._closed:
+        return existing
+    helper = LabelsIn3D(viewer, layer, step=step)
+    object.__setattr__(layer, "_napari_unwind_3d", helper)
+    return helper
+
+
+# -- where the straight specimen goes, and the camera on it ---------------------------------------------------------
+def world_box(shape: Any, scale: Any, translate: Any) -> np.ndarray:
+    """``(2, 3)`` world corners (low, high) of a volume's voxels, each voxel a box of ``scale`` around its centre."""
+    n = np.asarray(tuple(shape)[-3:], dtype=float)
+    s = np.asarray(tuple(scale)[-3:], dtype=float)
+    t = np.asarray(tuple(translate)[-3:], dtype=float)
+    return np.stack([t - s / 2, t + (n - 0.5) * s])
+
+
+def beside(scan_box: np.ndarray, box: np.ndarray, *, gap: float | None = None) -> np.ndarray:
+    """The shift that puts ``box`` next to ``scan_box`` along the last axis: its low side ``gap`` beyond the scan's
+    high side (default: a tenth of the scan's width there), its axis0 start on the scan's, centred on axis1."""
+    scan_box, box = np.asarray(scan_box, float), np.asarray(box, float)
+    if gap is None:
+        gap = 0.1 * float(scan_box[1, 2] - scan_box[0, 2])
+    shift = np.empty(3)
+    shift[0] = scan_box[0, 0] - box[0, 0]
+    shift[1] = scan_box.mean(axis=0)[1] - box.mean(axis=0)[1]
+    shift[2] = scan_box[1, 2] + max(float(gap), 0.0) - box[0, 2]
+    return shift
+
+
+def scan_box(scan: Any) -> np.ndarray | None:
+    """The world box of a scan (a Volume: its spacing and origin; a bare array: unit voxels at 0), or None."""
+    shape = getattr(scan, "shape", None)
+    if shape is None or len(shape) < 3:
+        return None
+    return world_box(shape, getattr(scan, "spacing", (1.0,) * 3), getattr(scan, "origin", (0.0,) * 3))
+
+
+def frame_side_view(viewer: Any, box: np.ndarray, *, margin: float = 0.9) -> None:
+    """3D camera on ``box`` (world low/high corners of a straight specimen, long axis = axis0): looking along axis2
+    with axis1 up, so axis0 runs across the screen; centred on the box and zoomed so it fits the canvas."""
+    box = np.asarray(box, float)
+    camera = viewer.scene.camera
+    if viewer.dims.ndisplay == 3:
+        camera.set_view_direction((0.0, 0.0, 1.0), up_direction=(0.0, -1.0, 0.0))
+    camera.center = tuple(box.mean(axis=0))
+    size = np.maximum(box[1] - box[0], 1e-9)
+    height, width = (float(v) for v in viewer.canvas.size)   # (rows, columns) of the canvas
+    camera.zoom = margin * min(width / size[0], height / size[1])

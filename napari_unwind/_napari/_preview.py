@@ -119,22 +119,37 @@ class StraightPreview:
             job, self._pending = self._pending, None
             self._start(job)
 
+    def _placed(self, array: np.ndarray, ds: float, origin: tuple[float, float, float]) -> tuple[float, ...]:
+        """The layer's translate: the straight volume beside the scan (along the last axis, with a gap), not over
+        it at the straight coordinates' origin; the straight coordinates stay in the layer's metadata."""
+        from ._layers import beside, scan_box, world_box
+
+        box = scan_box(self._scan())
+        if box is None:
+            return tuple(float(v) for v in origin)
+        return tuple(float(v) for v in np.asarray(origin, float) + beside(box, world_box(array.shape, (ds,) * 3,
+                                                                                            origin)))
+
     def _show(self, array: np.ndarray, ds: float, origin: tuple[float, float, float]) -> None:
         layer = self.layer
         scale = (ds, ds, ds)
+        translate = self._placed(array, ds, origin)
+        meta = {"napari_unwind": {"preview": True, "straight_origin": tuple(float(v) for v in origin)}}
         if layer is None:
             layers = self.viewer.layers
             active = layers.selection.active  # adding a layer selects it: keep the user's selection
             from ._layers import scan_units
 
-            self.viewer.add_image(array, name=PREVIEW_NAME, scale=scale, translate=origin,
-                                  metadata={"napari_unwind": {"preview": True}}, **scan_units(self.viewer))
+            self.viewer.add_image(array, name=PREVIEW_NAME, scale=scale, translate=translate, metadata=meta,
+                                  **scan_units(self.viewer))
             if active is not None and active in layers:
                 layers.selection.active = active
+            self.viewer.reset_view()   # first shown: the camera takes in the scan and the preview beside it
             return
         layer.data = array
         layer.scale = scale
-        layer.translate = origin
+        layer.translate = translate
+        layer.metadata = {**layer.metadata, **meta}
 
 
 def _run(gen: int, scan: Any, d: Deformation, min_across: float) -> tuple[int, Any, Any, Any, str | None]:

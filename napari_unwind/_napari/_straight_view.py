@@ -239,6 +239,7 @@ class StraightView:
             _private.set_box(self.node, self._shape)
         self._set_table()
         if first:
+            self.frame()
             problem = self._try_draw()
             if problem is not None:
                 self._fail(problem)
@@ -327,7 +328,19 @@ class StraightView:
             self.layer.scale = scale
         if not np.allclose(self.layer.translate, translate):
             self.layer.translate = translate
-        self.viewer.reset_view()
+        if straight:
+            self.frame()
+        else:
+            self.viewer.reset_view()
+
+    def frame(self) -> None:
+        """Camera on the straight specimen from its side: its long axis (axis0) across the screen, the box
+        fitted to the canvas (napari's default 3D view looks end-on down axis0)."""
+        if self.layer is None or self._shape is None:
+            return
+        from ._layers import frame_side_view, world_box
+
+        frame_side_view(self.viewer, world_box(self._shape, self.layer.scale, self.layer.translate))
 
     @property
     def scan_texture(self) -> Any:

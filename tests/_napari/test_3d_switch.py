@@ -1,0 +1,229 @@
+"""Issue 21 item 6: switching to 3D does not ray cast the Labels layers (a coarse Surface stands in for them), and
+the straight specimen is placed beside the scan (2D preview) and seen from its side (3D live view).
+
+The timing goal is in benchmarks/bench_gui_3d.py; here the behaviour. References are independent of the code under
+test: the mask's own numpy projection (compared with the pixels read back from the 3D screenshot through the
+orthographic camera's own centre and zoom), and world boxes computed here from shape, scale and translate.
+Run: QT_QPA_PLATFORM=xcb xvfb-run -a -s "-screen 0 1600x1200x24" .venv/bin/python -m pytest -q \
+tests/_napari/test_3d_switch.py
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("napari")
+
+from napari_unwind.deformation import Deformation  # noqa: E402
+from napari_unwind.io import Volume  # noqa: E402
+
+pytestmark = pytest.mark.gui
+
+SHAPE = (90, 48, 40)
+FID = 3
+
+
+def specimen(shape=SHAPE):
+    """A bent rod (label FID) along axis0, its axis1 position on a parabola, and a small blob (label 1)."""
+    z, y, x = np.indices(shape, dtype=float)
+    cy = 14 + 20 * ((z - 45) / 45) ** 2
+    rod = ((y - cy) ** 2 + (x - 24) ** 2 <= 36) & (z >= 8) & (z < 82)
+    blob = (z - 20) ** 2 + (y - 38) ** 2 + (x - 8) ** 2 <= 16
+    labels = np.zeros(shape, np.uint16)
+    labels[rod] = FID
+    labels[blob] = 1
+    return labels
+
+
+def _viewer(make_napari_viewer):
+    viewer = make_napari_viewer(show=True)
+    viewer.window._qt_window.resize(800, 700)
+    return viewer
+
+
+def shot(viewer):
+    return viewer.screenshot(canvas_only=True, flash=False)[..., :3].astype(float)
+
+
+def test_labels_are_a_coarse_surface_in_3d_and_themselves_in_2d(make_napari_viewer, qtbot):
+    from napari_unwind._napari import _private
+    from napari_unwind._napari._layers import SURFACE_3D_SUFFIX, labels_in_3d
+
+    viewer = _viewer(make_napari_viewer)
+    labels = specimen()
+    scale, translate = (2.0, 1.0, 1.0), (5.0, -3.0, 2.0)
+    layer = viewer.add_labels(labels, name="selection", scale=scale, translate=translate, opacity=0.8)
+    hook = labels_in_3d(viewer, layer)
+    assert labels_in_3d(viewer, layer) is hook
+    names_2d = [x.name for x in viewer.layers]
+    assert viewer.layers.selection.active is layer
+
+    viewer.dims.ndisplay = 3
+    surface = viewer.layers["selection" + SURFACE_3D_SUFFIX]
+    assert hook.active and surface is hook.surface
+    assert viewer.layers.selection.active is layer          # clicks still reach the Labels layer
+    # the Labels layer's own ray caster draws nothing in 3D (its draw is replaced), the surface follows its geometry
+    node = _private.volume_node(viewer, layer)
+    assert "draw" in node.__dict__
+    np.testing.assert_allclose(surface.scale, scale)
+    np.testing.assert_allclose(surface.translate, translate)
+    assert surface.opacity == pytest.approx(0.8) and surface.visible
+    verts = surface.data[0]
+    assert verts.min(axis=0).min() >= -1 and (verts.max(axis=0) <= np.array(SHAPE) + 1).all()
+    assert set(np.unique(surface.data[2]).astype(int)) == {1, FID}
+
+    # the pixels: orthographic view along axis2 (rows = axis1 downwards, columns = axis0); the selection's colour
+    # where the numpy projection of the rod is, dark where nothing projects
+    camera = viewer.scene.camera
+    camera.perspective = 0
+    camera.set_view_direction((0.0, 0.0, 1.0), up_direction=(0.0, -1.0, 0.0))
+    centre = np.asarray(translate) + (np.asarray(SHAPE) - 1) / 2 * np.asarray(scale)
+    camera.center = tuple(centre)
+    camera.zoom = 3.0
+    img = shot(viewer)
+    h, w = img.shape[:2]
+    rows, cols = np.mgrid[0:h, 0:w]
+    wy = centre[1] + (rows + 0.5 - h / 2) / camera.zoom      # world axis1 of a pixel
+    wz = centre[0] + (cols + 0.5 - w / 2) / camera.zoom      # world axis0
+    iz = np.round((wz - translate[0]) / scale[0]).astype(int)
+    iy = np.round((wy - translate[1]) / scale[1]).astype(int)
+    inside = (iz >= 0) & (iz < SHAPE[0]) & (iy >= 0) & (iy < SHAPE[1])
+    proj_rod = (labels == FID).any(axis=2)
+    proj_any = (labels > 0).any(axis=2)
+    expected = np.zeros((h, w), bool)
+    expected[inside] = proj_rod[iz[inside], iy[inside]]
+    nothing = np.ones((h, w), bool)
+    nothing[inside] = ~proj_any[iz[inside], iy[inside]]
+    colour = np.asarray(layer.get_color(FID))[:3]
+    norm = np.linalg.norm(img, axis=2)
+    cosine = (img @ colour) / np.maximum(norm * np.linalg.norm(colour), 1e-9)
+    drawn = (norm > 20) & (cosine > 0.97)
+    # away from the outline (one coarse step): every projected pixel is drawn in the colour, nothing elsewhere
+    from scipy import ndimage
+
+    core = ndimage.binary_erosion(expected, iterations=8)
+    far = ndimage.binary_erosion(nothing, iterations=8)
+    assert core.sum() > 2000
+    assert drawn[core].mean() > 0.97, drawn[core].mean()
+    assert (norm[far] > 20).mean() < 0.01
+    iou = (drawn & expected).sum() / (drawn | expected).sum()
+    assert iou > 0.8, iou
+
+    # a data edit in 3D: the surface follows (one more marching cubes), the layer keeps its full data
+    builds = hook.builds
+    edited = labels.copy()
+    edited[edited == 1] = 0
+    layer.data = edited
+    assert hook.builds == builds + 1
+    assert set(np.unique(hook.surface.data[2]).astype(int)) == {FID}
+    assert layer.data is edited
+    layer.visible = False
+    assert not hook.surface.visible
+    layer.visible = True
+    assert hook.surface.visible
+
+    # napari's pick along the view ray still reads the Labels layer (its data, not what is drawn)
+    world = centre.copy()
+    world[1] = translate[1] + cy_at(45) * scale[1]
+    value = layer.get_value(tuple(world), view_direction=(0.0, 0.0, 1.0), dims_displayed=[0, 1, 2], world=True)
+    assert value == FID
+
+    # back to 2D: exactly the layers there were, no draw spent on a stand-in, the edits in 2D build nothing
+    viewer.dims.ndisplay = 2
+    assert [x.name for x in viewer.layers] == names_2d
+    assert not hook.active and viewer.layers.selection.active is layer
+    builds = hook.builds
+    layer.data = labels
+    assert hook.builds == builds
+    hook.close()
+    assert "draw" not in node.__dict__
+
+
+def cy_at(z):
+    return 14 + 20 * ((z - 45) / 45) ** 2
+
+
+def bent(origin=(0.0, 0.0, 0.0)):
+    """Keyframes on a quarter circle in the axis0-axis1 plane (as in test_preview)."""
+    t = np.linspace(0, np.pi / 2, 5)
+    pos = np.stack([40 * np.sin(t), 40 * (1 - np.cos(t)), np.zeros_like(t)], axis=1) + [12.0, 10.0, 30.0]
+    pos = pos + np.asarray(origin)
+    n = np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], axis=1)
+    u = np.tile([0.0, 0.0, 1.0], (5, 1))
+    v = np.cross(n, u)
+    return Deformation.from_keyframes(pos, np.stack([u, v, n], axis=1), (9.0, 7.0), spacing=(1.0, 1.0, 1.0),
+                                      origin=origin)
+
+
+def box_of(layer):
+    n = np.asarray(layer.data.shape, float)
+    s, t = np.asarray(layer.scale, float), np.asarray(layer.translate, float)
+    return np.stack([t - s / 2, t + (n - 0.5) * s])
+
+
+def test_the_2d_preview_lies_beside_the_scan_and_the_camera_shows_both(make_napari_viewer, qtbot):
+    from scipy import ndimage
+
+    from napari_unwind._napari._preview import PREVIEW_NAME, StraightPreview
+
+    origin = (4.0, -6.0, 3.0)
+    rng = np.random.default_rng(2)
+    data = ndimage.gaussian_filter(rng.random((70, 64, 60)).astype(np.float32), 2.0)
+    vol = Volume(data, spacing=(1.0, 1.0, 1.0), origin=origin)
+    viewer = _viewer(make_napari_viewer)
+    scan = viewer.add_image(data, translate=origin, name="scan")
+    preview = StraightPreview(viewer, lambda: vol, min_across=4)
+    preview.request(bent(origin))
+    qtbot.waitUntil(lambda: preview.idle and preview.layer is not None, timeout=20000)
+    layer = viewer.layers[PREVIEW_NAME]
+    a, b = box_of(scan), box_of(layer)
+    overlap = np.minimum(a[1], b[1]) - np.maximum(a[0], b[0])
+    assert (overlap <= 0).any(), (a, b)                 # disjoint boxes
+    assert b[0, 2] > a[1, 2]                            # beside the scan along the last axis, with a gap
+    # the straight coordinates are kept
+    assert layer.metadata["napari_unwind"]["straight_origin"][0] == pytest.approx(bent(origin).s_range[0])
+    # the 2D camera (axis1 rows, axis2 columns) takes in both
+    h, w = viewer.canvas.size
+    c, z = np.asarray(viewer.scene.camera.center)[-2:], viewer.scene.camera.zoom
+    seen = np.stack([c - np.array([h, w]) / (2 * z), c + np.array([h, w]) / (2 * z)])
+    for box in (a, b):
+        assert (seen[0] <= box[0, 1:] + 1e-6).all() and (box[1, 1:] <= seen[1] + 1e-6).all(), (seen, box)
+    # a later edit keeps it beside the scan
+    preview.request(bent(origin).replace_cage((8.0, 6.0)) if hasattr(Deformation, "replace_cage") else bent(origin))
+    qtbot.waitUntil(lambda: preview.idle and preview.shown_generation == preview.generation, timeout=20000)
+    assert box_of(layer)[0, 2] > a[1, 2]
+
+
+def test_the_live_straight_view_is_seen_from_its_side_and_framed(make_napari_viewer, qtbot):
+    from scipy import ndimage
+
+    from napari_unwind._napari._straight_view import StraightView
+
+    rng = np.random.default_rng(0)
+    data = ndimage.gaussian_filter(rng.random((70, 64, 60)), 2).astype(np.float32)
+    viewer = _viewer(make_napari_viewer)
+    viewer.dims.ndisplay = 3
+    sv = StraightView(viewer, data)
+    if not sv.available:
+        pytest.skip(sv.reason)
+    sv.update(bent())
+    if not sv.available:
+        pytest.skip(sv.reason)
+    long_axis = np.array([1.0, 0.0, 0.0])   # the straight box's axis0 (arclength)
+    view = np.asarray(viewer.scene.camera.view_direction, float)
+    angle = np.degrees(np.arccos(abs(view @ long_axis) / np.linalg.norm(view)))
+    assert abs(angle - 90) <= 10, angle
+    box = box_of(sv.layer) if sv.layer.data.shape == sv._shape else None
+    ds = float(sv.layer.scale[0])
+    box = np.stack([-np.full(3, ds / 2), (np.asarray(sv._shape) - 0.5) * ds])
+    np.testing.assert_allclose(viewer.scene.camera.center, box.mean(axis=0), atol=1e-6)
+    h, w = viewer.canvas.size
+    length = box[1, 0] - box[0, 0]
+    assert 0.5 * w <= length * viewer.scene.camera.zoom <= w   # the length spans most of the canvas, all of it on it
+    # the bent toggle and back: framed again from the side
+    sv.set_straight(False)
+    sv.set_straight(True)
+    view = np.asarray(viewer.scene.camera.view_direction, float)
+    assert abs(np.degrees(np.arccos(abs(view @ long_axis) / np.linalg.norm(view))) - 90) <= 10
+    img = shot(viewer)
+    assert img.max() > 0
