@@ -111,6 +111,9 @@ class Backend(Protocol):
                  ) -> Generator[Progress, None, Skeletonized]:
         """The pipeline's skeleton step, judged."""
 
+    def check_export(self, deformation: Any) -> None:
+        """Raise InvalidInputError, before any work, when this backend cannot export ``deformation``."""
+
     def export(self, volume: Any, deformation: Any, target: Path, *, name: str, options: ExportOptions,
                folded: float | None, session: Any, overwrite: bool
                ) -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
@@ -163,6 +166,9 @@ class LocalBackend:
         result = specimen.skeleton
         return Skeletonized(specimen, result.deformation, result.endpoints)
 
+    def check_export(self, deformation: Any) -> None:
+        pass
+
     def export(self, volume: Any, deformation: Any, target: Path, *, name: str, options: ExportOptions,
                folded: float | None, session: Any, overwrite: bool
                ) -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
@@ -201,6 +207,12 @@ class ServerBackend:
 
     def forget(self) -> None:
         self._ids = {}
+
+    def check_export(self, deformation: Any) -> None:
+        known = self._ids.get("session")
+        if known is None or known[1].to_dict() != deformation.to_dict():
+            raise InvalidInputError("the server holds no session of this deformation (it was edited, or opened "
+                                    "here): compute the skeleton on the server, or export on 'this computer'")
 
     def _volume_id(self, volume: Any, name: str) -> Generator[Progress, None, str]:
         from ._remote import register_iter, upload_iter
@@ -268,10 +280,8 @@ class ServerBackend:
         from ._remote import export_iter
         from ._steps import check_folds
 
-        known = self._ids.get("session")
-        if known is None or known[1].to_dict() != deformation.to_dict():
-            raise InvalidInputError("the server holds no session of this deformation (it was edited, or opened "
-                                    "here): compute the skeleton on the server, or export on 'this computer'")
+        self.check_export(deformation)
+        known = self._ids["session"]
         warned = check_folds(deformation, folded=folded, options=options)  # the one fold rule, before any job
         volume_id = yield from self._volume_id(volume, name)
         written = yield from export_iter(self.server, volume_id, known[0], target, options=options,
@@ -365,8 +375,7 @@ class Workflow:
         """New features (a simplification of the tree): the clicked seeds choose again among them."""
         self.features = features
         seeds = dict(self.selection.seeds)
-        self.features_changed.emit(features)
-        if self.selection.mask is None:
+        if self.selection.mask is None:  # before the event: its handlers may select among the new features
             ids, new_seeds = [], {}
             for p in seeds.values():
                 i = int(features.ids_at([p])[0])
@@ -374,6 +383,7 @@ class Workflow:
                     ids.append(i)
                     new_seeds[i] = p
             self.select(ids, seeds=new_seeds)
+        self.features_changed.emit(features)
 
     def select(self, ids: list[int], *, seeds: dict[int, tuple] | None = None) -> Selection:
         """Select features of the current segmentation by id (``seeds``: the voxels clicked, default each
@@ -547,6 +557,7 @@ class Workflow:
         output_format(target)
         options = options or self.options.export
         folded, session, backend, name = self.folded(), self.session_or_none(), self.backend, self.name
+        backend.check_export(d)
 
         def make() -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
             return (yield from backend.export(volume, d, target, name=name, options=options, folded=folded,

@@ -49,7 +49,7 @@ def done(fish, tmp_path_factory):
 
 def test_the_steps_in_order_emit_their_events(done):
     wf, events, fid, out, _ = done
-    assert events == ["scan_changed", "features_changed", "selection_changed", "selection_changed", "ends_changed",
+    assert events == ["scan_changed", "selection_changed", "features_changed", "selection_changed", "ends_changed",
                       "skeleton_changed", "exported"]
 
 

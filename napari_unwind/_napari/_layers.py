@@ -176,7 +176,9 @@ class LabelsIn3D:
             mesh = (np.zeros((3, 3), np.float32), np.array([[0, 1, 2]]), np.zeros(3, np.float32))
         verts, faces, values = mesh
         ids, inverse = np.unique(values.astype(np.int64), return_inverse=True)
-        colors = np.asarray([layer.get_color(int(i)) for i in ids], dtype=np.float32).reshape(-1, 4)[inverse]
+        rgba = [layer.get_color(int(i)) for i in ids]  # None for the background (an empty selection's mesh)
+        colors = np.asarray([(0, 0, 0, 0) if c is None else c for c in rgba], dtype=np.float32).reshape(-1, 4)
+        colors = colors[inverse.reshape(-1)]
         if self.surface is None or self.surface not in layers:
             from napari.layers import Surface
 

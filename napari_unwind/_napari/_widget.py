@@ -75,15 +75,15 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from ..editing import EditModel
 from ..errors import InvalidInputError, UnwindError
 from ..io import Volume, open_volume
 from ..io._volume import normalise_unit, unit_label
-from ..pipeline import ExportOptions, PipelineOptions
+from ..pipeline import ExportOptions
 from ..progress import Progress
+from ..workflow import LocalBackend, ServerBackend, Workflow
 from . import _docks
 from ._messages import for_dock
-from ._workers import Job, JobCancelled, prewarm, start_job, start_process_job
+from ._workers import Job, JobCancelled, in_child, prewarm, start_job, start_process_job
 
 __all__ = ["UnwindWidget", "volume_from_layer"]
 
@@ -192,24 +192,15 @@ class UnwindWidget(QWidget):
     def __init__(self, napari_viewer: Any, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.viewer = napari_viewer
-        self.model = EditModel()
-        self.volume: Volume | None = None
+        #: The workflow's state and steps (Qt-free); the dock shows it and turns clicks into its calls. Its
+        #: backend runs the steps on this computer (the skeleton in a child process) or on a server.
+        self.workflow = Workflow(LocalBackend(runner=in_child))
+        self.model = self.workflow.edit
         self.scan_layer: Any = None
-        self.tree: Any = None  # JoinTree
-        self.features: Any = None  # Features
-        self.selected: list[int] = []
-        self.seeds: dict[int, tuple[float, float, float]] = {}  # feature id -> the full-resolution voxel clicked
-        #: the selection taken from a Labels layer instead of the features: (layer, label; None: every label)
+        #: the Labels layer whose mask is the selection: (layer, label; None: every label), or None
         self.mask_choice: tuple[Any, int | None] | None = None
-        self.result: Any = None  # SkeletonResult
-        self.specimen: Any = None  # the pipeline's SpecimenResult of the last skeleton (status ok / partial, reason)
-        #: The pipeline's options (napari_unwind.pipeline: every default once); the export page's fields and the
-        #: "allow folds" box override its export part when an export starts.
-        self.options = PipelineOptions()
-        self._skeleton_deformation: Any = None  # the model's deformation as the skeleton left it (unedited)
         self.exported: Path | None = None
         self.job: Job | None = None
-        self._source_info: Any = None  # SourceInfo of the scan (its checksum is computed once)
         self._features_layer: Any = None
         self._selection_layer: Any = None
         self._ends_layer: Any = None
@@ -217,8 +208,8 @@ class UnwindWidget(QWidget):
         self._simplify_worker: Any = None
         self._simplify_pending: int | None = None
         self._syncing = False
-        self.server: Any = None  # _remote.Server once "Connect" succeeded with the "server" backend; None: local
-        self._remote: dict[str, Any] = {}  # server ids of this scan: volume, mask (per selection), session
+        self.workflow.features_changed.connect(self._features_ready)
+        self.workflow.selection_changed.connect(self._show_selection)
 
         self.toolbox = QToolBox()
         self.toolbox.addItem(self._scan_page(), "1. Scan")
@@ -242,6 +233,36 @@ class UnwindWidget(QWidget):
         self.model.deformation_changed.connect(self._on_deformation_changed)
         self._refresh_layer_combo()
         self._update_needs()
+
+    # the workflow's state, under the names the dock's views and tests read
+    volume = property(lambda self: self.workflow.volume)
+    tree = property(lambda self: self.workflow.tree)
+    features = property(lambda self: self.workflow.features)
+    selected = property(lambda self: list(self.workflow.selection.ids))
+    seeds = property(lambda self: dict(self.workflow.selection.seeds))
+
+    @property
+    def options(self) -> Any:
+        """The pipeline's options (napari_unwind.pipeline: every default once); the export page's fields and the
+        "allow folds" box override its export part when an export starts."""
+        return self.workflow.options
+
+    @options.setter
+    def options(self, value: Any) -> None:
+        self.workflow.options = value
+
+    specimen = property(lambda self: None if self.workflow.skeleton is None else self.workflow.skeleton.specimen)
+    result = property(lambda self: None if self.specimen is None else getattr(self.specimen, "skeleton", None))
+
+    @property
+    def server(self) -> Any:
+        """The server the steps run on (a ServerBackend's), or None: this computer."""
+        return getattr(self.workflow.backend, "server", None)
+
+    @property
+    def _remote(self) -> dict[str, Any]:
+        """The server's ids of this scan (volume, segmentation, mask, session); empty on this computer."""
+        return getattr(self.workflow.backend, "_ids", {})
 
     # ==============================================================================================================
     # pages
@@ -331,19 +352,22 @@ class UnwindWidget(QWidget):
         server = self.backend_combo.currentData() == "server"
         for widget in self._server_rows:
             widget.setEnabled(server)
-        self.server = None
-        self._remote = {}
+        if not isinstance(self.workflow.backend, LocalBackend):
+            self.workflow.set_backend(LocalBackend(runner=in_child))  # until "Connect" succeeds
         self.backend_info.setText("jobs run on a server once connected" if server else "jobs run on this computer")
 
     def _on_server_path_edited(self, text: str) -> None:
-        self._remote = {}  # another scan on the server: its ids (volume, segmentation, mask, session) start again
+        backend = self.workflow.backend
+        if isinstance(backend, ServerBackend):
+            backend.forget()  # another scan on the server: its ids (volume, segmentation, mask, session) start again
+            backend.server_path = text
 
     def connect_server(self) -> Job | None:
         """Check the server's health and the token (with a deadline); on success the dock's jobs run there."""
         from .._remote import check_server, parse_server
 
-        self.server = None
-        self._remote = {}
+        if not isinstance(self.workflow.backend, LocalBackend):
+            self.workflow.set_backend(LocalBackend(runner=in_child))
         try:
             server = parse_server(self.server_address.text(), self.server_token.text(), self.server_ca.text())
         except UnwindError as exc:
@@ -351,7 +375,7 @@ class UnwindWidget(QWidget):
             return None
 
         def done(status: str) -> None:
-            self.server = server
+            self.workflow.set_backend(ServerBackend(server, server_path=self.server_path.text()))
             self.backend_info.setText(f"connected to {server.address} ({status})")
             self._say(f"server {server.address}: {status}")
 
@@ -652,12 +676,10 @@ class UnwindWidget(QWidget):
 
     def _set_scan(self, volume: Volume, layer: Any) -> None:
         changed = self.volume is None or volume.source != self.volume.source or volume.shape != self.volume.shape
-        self.volume, self.scan_layer = volume, layer
+        self.scan_layer = layer
+        self.workflow.set_scan(volume, name=layer.name)
         if changed:
-            self._remote = {}
-            self.tree = self.features = self.result = None
-            self.selected, self.seeds, self.mask_choice = [], {}, None
-            self._source_info = None
+            self.mask_choice = None
         self._refresh_layer_combo()
         unit = unit_label(volume.unit)
         levels = f", {len(volume.levels)} pyramid levels" if len(volume.levels) > 1 else ""
@@ -716,6 +738,10 @@ class UnwindWidget(QWidget):
         else:
             layer = self._add_layer(layer_tuple)
             setattr(self, attr, layer)
+            if layer_tuple[2] == "labels":
+                from ._layers import labels_in_3d
+
+                labels_in_3d(self.viewer, layer)  # in 3D a coarse surface: napari's ray caster froze software GL
         return layer
 
     # ==============================================================================================================
@@ -723,30 +749,21 @@ class UnwindWidget(QWidget):
     # ==============================================================================================================
     def segment(self, *, level: int | None = None) -> Job | None:
         """Build the join tree of the scan in a worker (at pyramid ``level``, default the finest with every side
-        <= 256); then show the features (slider value). On a server: the Segment job there (the scan uploaded
-        once), whose features' label volume comes back to draw and pick; the slider then simplifies there."""
-        if self.volume is None:
-            self._fail(InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)"))
-            return None
-        volume, seg = self.volume, self.options.segment
-        level = seg.level if level is None else level
-        if self.server is not None:
-            return self._remote_segment(level)
-
-        def make() -> Generator[Progress, None, Any]:
-            # the pipeline's segment_step is this tree simplified once; the dock keeps the tree for its slider
-            from ..segmentation import join_tree_iter
-
-            return join_tree_iter(volume, level=level, smooth=seg.smooth)
-
-        return self._start(make, "building the join tree", self._tree_ready, (self.segment_cancel,))
-
-    def _tree_ready(self, tree: Any) -> None:
+        <= 256), on this computer or on the server; then show the features (slider value), which the slider
+        simplifies again without a rebuild."""
         pending = self._pending_segmentation
-        self.tree = tree
-        self._remote.pop("segmentation", None)
-        k = self._set_slider(int(tree.n_maxima), pending.k if pending is not None and pending.k else None)
-        self.set_feature_count(k)
+        k = pending.k if pending is not None and pending.k else self.count_slider.value()
+        try:
+            task = self.workflow.segment_task(level=level, k=k)
+        except UnwindError as exc:
+            self._fail(exc)
+            return None
+
+        def done(value: Any) -> None:
+            task.apply(value)
+            self._set_slider(int(getattr(self.tree, "n_maxima", 0) or 0), self.features.k)
+
+        return self._start(task.make, task.label, done, (self.segment_cancel,))
 
     def _set_slider(self, maxima: int, k: int | None) -> int:
         """The slider's range for a tree of ``maxima`` maxima (0: unknown) at ``k`` (default: its value); returns
@@ -764,8 +781,8 @@ class UnwindWidget(QWidget):
         return k
 
     def _simplify_source(self) -> Any:
-        """What the slider simplifies: the local tree, or the server's segmentation id (None: nothing yet)."""
-        return self.tree if self.tree is not None else self._remote.get("segmentation")
+        """What the slider simplifies: the workflow's tree (this computer's or the server's; None: nothing yet)."""
+        return self.tree
 
     def set_feature_count(self, k: int) -> None:
         """Re-simplify the tree to ``k`` features (no rebuild), off the UI thread; while the slider moves only the
@@ -786,17 +803,7 @@ class UnwindWidget(QWidget):
         if k is None or source is None:
             self._simplify_worker = None
             return
-        if self.tree is not None:
-            fn = source.simplify
-        else:
-            from .._remote import simplify
-
-            server = self.server
-
-            def fn(k: int) -> Any:
-                return simplify(server, source, k)
-
-        worker = create_worker(lambda: (source, fn(k)), _start_thread=False, _ignore_errors=True)
+        worker = create_worker(lambda: (source, source.simplify(k)), _start_thread=False, _ignore_errors=True)
         worker.returned.connect(self._on_simplified)
         worker.errored.connect(self._fail)
         worker.finished.connect(self._next_simplify)
@@ -807,10 +814,12 @@ class UnwindWidget(QWidget):
         source, features = value
         if source is not self._simplify_source():
             return  # from a tree or segmentation replaced meanwhile (another scan, another server)
-        self._features_ready(features)
+        self.workflow.set_features(features)  # -> _features_ready
 
     def _features_ready(self, features: Any) -> None:
-        self.features = f = features
+        """The workflow's features changed: draw them, fill the table; a loaded session's selection is applied
+        (the workflow itself lets the clicked seeds choose again among the new features)."""
+        f = features
         self._put_layer("_features_layer", self._labels_tuple(f.labels, "features", opacity=0.4))
         self._features_layer.metadata["napari_unwind"] = {"features": True}
         if self._on_features_click not in self._features_layer.mouse_drag_callbacks:
@@ -825,15 +834,8 @@ class UnwindWidget(QWidget):
                 self.select_features(ids, seeds=dict(zip(ids, seeds)) if len(seeds) == len(ids) else None)
             else:
                 self.select_features(list(f.ids_at(seeds)))
-        else:  # the clicked points choose again among the new features
-            ids: list[int] = []
-            new_seeds: dict[int, tuple] = {}
-            for p in self.seeds.values():
-                i = int(f.ids_at([p])[0])
-                if i:
-                    ids.append(i)
-                    new_seeds[i] = p
-            self.select_features(ids, seeds=new_seeds)
+        else:
+            self._show_selection(self.workflow.selection)  # the table was refilled
         self._say(f"{f.k} features (level {f.level}, {_fmt(f.shape, 6)} working voxels)")
 
     def _labels_tuple(self, labels: np.ndarray, name: str, **kwargs: Any) -> tuple:
@@ -901,20 +903,21 @@ class UnwindWidget(QWidget):
 
     def select_features(self, ids: list[int], *, seeds: dict[int, tuple] | None = None) -> None:
         """Set the selection (feature ids of the current segmentation); shown in the table and the layer."""
-        f = self.features
-        if f is None:
+        if self.features is None:
             return
-        ids = sorted({int(i) for i in ids if int(i) != 0})
-        for i in ids:
-            f.stat(i)  # raises for an unknown id
-        if seeds is None:
-            seeds = {i: tuple(float(c) for c in f.stat(i).max_position_full) for i in ids}
-        self.selected = ids
-        if ids:
-            self.mask_choice = None
-        self.seeds = {i: seeds.get(i, tuple(float(c) for c in f.stat(i).max_position_full)) for i in ids}
-        labels = np.where(np.isin(f.labels, ids), f.labels, 0).astype(f.labels.dtype)
-        self._put_layer("_selection_layer", self._labels_tuple(labels, "selection", opacity=0.8, blending="additive"))
+        self.mask_choice = None
+        self.workflow.select(ids, seeds=seeds)  # -> _show_selection
+
+    def _show_selection(self, selection: Any) -> None:
+        """The workflow's selection changed: the selection layer, the table's rows and the label."""
+        if selection.mask is not None:
+            self._update_needs()
+            return
+        ids, f = list(selection.ids), selection.features
+        if f is not None:
+            labels = np.where(np.isin(f.labels, ids), f.labels, 0).astype(f.labels.dtype)
+            self._put_layer("_selection_layer", self._labels_tuple(labels, "selection", opacity=0.8,
+                                                                   blending="additive"))
         self._syncing = True
         self.table.clearSelection()
         self.table.setSelectionMode(QAbstractItemView.SelectionMode.MultiSelection)
@@ -966,15 +969,15 @@ class UnwindWidget(QWidget):
             if label is not None:
                 label = int(label)
             data = np.asarray(layer.data)
-            count = int(np.count_nonzero(data == label if label else data))
-            if count == 0:
+            if not np.count_nonzero(data == label if label else data):
                 what = f"label {label}" if label else "any label"
                 raise InvalidInputError(f"the mask {layer.name!r} holds no voxel of {what}: pick another label")
+            count = self.workflow.use_mask(data, label=label or None,
+                                           key=(id(layer), label, hash(data.tobytes())))
         except UnwindError as exc:
             self._fail(exc)
             return 0
         self.mask_choice = (layer, label or None)
-        self.selected, self.seeds = [], {}
         if self._selection_layer is not None and self._selection_layer in self.viewer.layers:
             self.viewer.layers.remove(self._selection_layer)
         self._selection_layer = None
@@ -1022,57 +1025,40 @@ class UnwindWidget(QWidget):
             return data.astype(np.uint8) if data.dtype == np.bool_ else data
 
         def done(data: np.ndarray) -> None:
-            from ._layers import labels_layer
+            from ._layers import labels_in_3d, labels_layer
 
             layer = self._add_layer(labels_layer(data, spacing=volume.spacing, unit=volume.unit,
                                                  name=Path(path).name, translate=tuple(volume.origin)))
+            labels_in_3d(self.viewer, layer)
             self.use_labels(layer)
 
         return self._start(make, "opening the mask", done)
 
     def mask(self) -> Any:
-        """The selection at full resolution (lazy dask bool array): the chosen mask's label(s), or the selected
-        features through the pipeline's select_step with the dock's segmentation options (nothing is computed)."""
-        from ..pipeline import select_step
-        from ..progress import run
-
+        """The selection at full resolution (lazy dask bool array): the chosen mask, or the selected features
+        through the pipeline's select_step with the dock's segmentation options (nothing is computed here)."""
         self._check_selection()
-        if self.mask_choice is not None:
-            layer, label = self.mask_choice
-            data = da.asarray(layer.data)
-            return data == label if label else data != 0
-        return run(select_step(self.volume, self.features, ids=list(self.selected),
-                               options=self.options.segment)).mask
+        return self.workflow.mask()
 
     # ==============================================================================================================
     # ends
     # ==============================================================================================================
     def suggest_ends(self) -> Job | None:
-        """Suggest head and tail on the selection's mask (in a worker) and show them in the "ends" layer."""
+        """Suggest head and tail on the selection's mask (in a worker, here or on the server) and show them in the
+        "ends" layer."""
         try:
-            if self.server is not None:
-                return self._remote_suggest_ends()
-            mask = self.mask()
+            self._check_selection()
+            task = self.workflow.suggest_ends_task()
         except UnwindError as exc:
             self._fail(exc)
             return None
-        volume = self.volume
-
-        def make() -> Generator[Progress, None, tuple]:
-            from ..skeleton import suggest_endpoints
-
-            yield Progress("mask", 0, 1, "full resolution")
-            full = np.asarray(mask.compute())
-            yield Progress("ends", 0, 1, "longest geodesic")
-            ends = suggest_endpoints(full, spacing=volume.spacing, volume=volume.data)
-            yield Progress("ends", 1, 1)
-            return ends
 
         def done(ends: Any) -> None:
-            self.set_ends(list(ends))
+            task.apply(ends)
+            self.set_ends([self.workflow.ends.head, self.workflow.ends.tail])
             self._say("suggested head and tail: check them in the \"ends\" layer, drag to move")
 
-        return self._start(make, "suggesting the ends", done)
+        return self._start(task.make, task.label, done)
 
     def set_ends(self, voxels: list, roles: list[str] | None = None) -> Any:
         """Show ends (full-resolution voxel coordinates, head first) in the "ends" Points layer."""
@@ -1132,43 +1118,41 @@ class UnwindWidget(QWidget):
     # skeleton
     # ==============================================================================================================
     def run_skeleton(self) -> Job | None:
-        """Estimate the deformation of the selection in a worker (progress, Cancel); the model gets it."""
+        """Estimate the deformation of the selection in a worker (progress, Cancel), here (in a child process) or
+        on the server; the model gets it."""
         try:
-            if self.server is not None:
-                self._check_selection()
-                ends = self.endpoints()
-                self.skeleton_report.setPlainText("computing...")
-                return self._remote_skeleton(ends)
-            mask = self.mask()
-            ends = self.endpoints()
+            self._check_selection()
+            self.workflow.set_ends(self.endpoints())  # the ends layer as the user left it (None: suggested)
+            task = self.workflow.skeleton_task()
         except UnwindError as exc:
             self._fail(exc)
             return None
-        volume = self.volume
         self.skeleton_report.setPlainText("computing...")
-        # in a child process: the tet mesher holds the GIL for seconds, which would freeze a thread worker's UI
-        return self._start(None, "computing the skeleton", self._skeleton_ready, (self.skeleton_cancel,),
-                           process=(_SKELETON, (mask, ends),
-                                    dict(spacing=volume.spacing, origin=volume.origin, unit=volume.unit,
-                                         volume=volume.data, options=self.options.skeleton)))
 
-    def _skeleton_ready(self, specimen: Any) -> None:
-        self.specimen = specimen
-        self.result = result = specimen.skeleton
-        d = result.deformation
-        lines = [f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes"
-                 + (" (suggested ends)" if result.suggested else ""), result.report()]
-        folds = _folds_line(d, result.folded, "edit the keyframes there (Refine)")
+        def done(result: Any) -> None:
+            had_ends = self._ends_layer is not None
+            task.apply(result)
+            self._skeleton_ready(result, show_ends=not had_ends)
+
+        return self._start(task.make, task.label, done, (self.skeleton_cancel,))
+
+    def _skeleton_ready(self, outcome: Any, *, show_ends: bool = True) -> None:
+        specimen, d = outcome.specimen, outcome.deformation
+        result = getattr(specimen, "skeleton", None)
+        where = outcome.where
+        lines = [_status_line(specimen), f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes"
+                 + (" (suggested ends)" if result is not None and result.suggested else "") + where]
+        if result is not None:
+            lines.append(result.report())
+        folds = _folds_line(d, specimen.folded, "edit the keyframes there (Refine)")
         if folds:
             lines.append(folds)
-        lines += [f"warning: {w}" for w in result.warnings]
-        lines.insert(0, _status_line(specimen))
+        lines += [f"warning: {w}" for w in specimen.warnings]
         self.skeleton_report.setPlainText(for_dock("\n".join(lines)))
-        if result.endpoints is not None and self._ends_layer is None:
-            self._show_session_ends(result.endpoints)
-        self.model.set_deformation(d)
-        self._skeleton_deformation = self.model.deformation
-        self._say(_status_line(specimen) + (" (warnings: see Skeleton)" if result.warnings or folds else ""))
+        if show_ends and outcome.endpoints is not None:
+            self._show_session_ends(outcome.endpoints)
+        self._say(_status_line(specimen) + (" (server)" if where else "")
+                  + (" (warnings: see Skeleton)" if specimen.warnings or folds else ""))
 
     def _show_session_ends(self, ends: Any) -> None:
         if ends.chain:
@@ -1231,10 +1215,8 @@ class UnwindWidget(QWidget):
     def _folded(self) -> float | None:
         """The fraction of the specimen's mask in the folds of the model's deformation: the skeleton's figure
         while the deformation is as the skeleton left it, else None (unknown: the fold rule then refuses any
-        fold unless folds are allowed, as ``unwind straighten`` does)."""
-        if self.specimen is None or self.model.deformation is not self._skeleton_deformation:
-            return None
-        return self.specimen.folded
+        fold unless folds are allowed)."""
+        return self.workflow.folded()
 
     def export(self, path: str | os.PathLike) -> Job | None:
         """Straighten the scan with the model's deformation and write ``path`` (worker, progress, Cancel); the
@@ -1261,220 +1243,44 @@ class UnwindWidget(QWidget):
                 self._say(f"not exported: {target} was kept")
                 return None
             overwrite = True
-        volume, d = self.volume, self.model.deformation
         try:
-            options = self.export_options()
+            task = self.workflow.export_task(target, options=self.export_options(), overwrite=overwrite)
         except UnwindError as exc:
             self._fail(exc)
             return None
-        folded = self._folded()
-        if self.server is not None:
-            return self._remote_export(target, options=options, folded=folded, overwrite=overwrite)
-        session = self._session_or_none()
-
-        def make() -> Generator[Progress, None, Any]:
-            from .._steps import export  # the pipeline's export_step: the one fold rule, then the writer
-
-            return export(volume, d, target, options=options, folded=folded, session=session, overwrite=overwrite)
+        where = "" if self.server is None else " (server)"
 
         def done(value: Any) -> None:
             from ._layers import image_layer
 
+            task.apply(value)
             written, warned = value
             self.exported = Path(written)
             self._add_layer(image_layer(open_volume(written), name=f"straight {self.exported.name}"))
-            self.export_info.setText(for_dock("\n".join([f"written: {self.exported}"]
+            self.export_info.setText(for_dock("\n".join([f"written: {self.exported}{where}"]
                                                          + [f"warning: {w}" for w in warned])))
-            self._say(f"exported to {self.exported}" + (f" (warning: {warned[0]})" if warned else ""))
+            self._say(f"exported to {self.exported}{where}" + (f" (warning: {warned[0]})" if warned else ""))
 
-        return self._start(make, "exporting", done, (self.export_cancel,))
-
-    # ==============================================================================================================
-    # the server backend (same progress and Cancel; the generators are in ._remote)
-    # ==============================================================================================================
-    def _with_scan_uploaded(self, then: Callable[[str], Generator[Progress, None, Any]]
-                            ) -> Callable[[], Generator[Progress, None, Any]]:
-        """``then(volume_id)`` after uploading the scan once (its id is kept for this scan and server), or
-        registering it when "path on server" names it under the server's data root."""
-        from .._remote import register_iter, upload_iter
-
-        server, volume, remote = self.server, self.volume, self._remote
-        name = self.scan_layer.name if self.scan_layer is not None else "scan"
-        path = self.server_path.text().strip()
-
-        def make() -> Generator[Progress, None, Any]:
-            if "volume_id" not in remote:
-                remote["volume_id"] = yield from (register_iter(server, path, volume, name=name) if path
-                                                  else upload_iter(server, volume, name=name))
-            return (yield from then(remote["volume_id"]))
-
-        return make
-
-    def _remote_segment(self, level: int | None) -> Job | None:
-        from .._remote import segment_iter
-
-        server = self.server
-        pending = self._pending_segmentation
-        k = pending.k if pending is not None and pending.k else self.count_slider.value()
-
-        def then(volume_id: str) -> Generator[Progress, None, Any]:
-            return (yield from segment_iter(server, volume_id, features=k, level=level))
-
-        def done(value: Any) -> None:
-            seg, maxima, features = value
-            self.tree = None
-            self._remote["segmentation"] = seg
-            self._remote.pop("mask", None)
-            self._set_slider(maxima, features.k)
-            self._features_ready(features)
-
-        return self._start(self._with_scan_uploaded(then), "segmenting (server)", done, (self.segment_cancel,))
+        return self._start(task.make, task.label, done, (self.export_cancel,))
 
     def _check_selection(self) -> None:
-        if self.mask_choice is not None:
-            if self.mask_choice[0] not in self.viewer.layers:
-                self.mask_choice = None
-                raise InvalidInputError("the mask layer chosen as the selection was removed: choose another mask "
-                                        "or click a feature (step 2)")
-            return
-        if self.features is None or not self.selected:
+        if self.mask_choice is not None and self.mask_choice[0] not in self.viewer.layers:
+            self.mask_choice = None
+            self.workflow.select([]) if self.features is not None else None
+            raise InvalidInputError("the mask layer chosen as the selection was removed: choose another mask "
+                                    "or click a feature (step 2)")
+        if not self.workflow.has_selection:
             raise InvalidInputError("no feature is selected: segment the scan and click the specimen (step 2)")
-
-    def _remote_mask(self) -> tuple[Any, Callable[[str], Generator[Progress, None, str]]]:
-        """The selection's full-resolution mask on the server: (its key, ``make(volume_id)`` giving its volume id).
-
-        Features of the server's segmentation: a Select job there (no upload; refine_mask's default isovalue, as
-        :meth:`mask` here). Features made on this computer (segmented before connecting): :meth:`mask` uploaded.
-        The mask is made once per selection and reused by the ends and the skeleton.
-        """
-        from .._remote import mask_volume, select_iter, upload_iter
-
-        self._check_selection()
-        server, volume, f, seg = self.server, self.volume, self.features, self._remote.get("segmentation")
-        if self.mask_choice is not None:  # a mask layer: uploaded as it is now
-            seg = None
-            layer, label = self.mask_choice
-            key = ("mask", id(layer), label, hash(np.asarray(layer.data).tobytes()))
-        else:
-            key = (seg, f.k, tuple(self.selected)) if seg is not None else (id(f), tuple(self.selected))
-        known = self._remote.get("mask")
-        local = self.mask() if seg is None and (known is None or known[0] != key) else None
-
-        def make(volume_id: str) -> Generator[Progress, None, str]:
-            if known is not None and known[0] == key:
-                return known[1]
-            if seg is not None:
-                return (yield from select_iter(server, seg, key[2], key[1]))
-            return (yield from upload_iter(server, mask_volume(local, volume), labels=True, name="selection"))
-
-        return key, make
-
-    def _remote_suggest_ends(self) -> Job | None:
-        from .._remote import suggest_ends_iter
-
-        server = self.server
-        key, mask = self._remote_mask()
-
-        def then(volume_id: str) -> Generator[Progress, None, Any]:
-            mask_id = yield from mask(volume_id)
-            ends = yield from suggest_ends_iter(server, volume_id, mask_id)
-            return ends, mask_id
-
-        def done(value: Any) -> None:
-            ends, mask_id = value
-            self._remote["mask"] = (key, mask_id)
-            self.set_ends(list(ends))
-            self._say("suggested head and tail (server): check them in the \"ends\" layer, drag to move")
-
-        return self._start(self._with_scan_uploaded(then), "suggesting the ends", done)
-
-    def _remote_skeleton(self, ends: Any) -> Job | None:
-        from .._remote import skeleton_iter
-
-        server, options = self.server, self.options.skeleton
-        key, mask = self._remote_mask()
-
-        def then(volume_id: str) -> Generator[Progress, None, Any]:
-            mid = yield from mask(volume_id)
-            session, session_id, specimen = yield from skeleton_iter(server, volume_id, mid, ends, options=options)
-            return session, session_id, specimen, mid
-
-        def done(value: Any) -> None:
-            session, session_id, specimen, mid = value
-            warnings = specimen.warnings
-            self._remote["mask"] = (key, mid)
-            d = session.deformation
-            lines = [_status_line(specimen),  # the server's pipeline judged it as this computer's does
-                     f"length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes (server {server.address}, "
-                     f"session {session_id})"]
-            folds = _folds_line(d, specimen.folded, "edit the keyframes there (Refine), then export on this computer")
-            if folds:
-                lines.append(folds)
-            lines += [f"warning: {w}" for w in warnings]
-            self.skeleton_report.setPlainText(for_dock("\n".join(lines)))
-            if session.endpoints is not None and self._ends_layer is None:
-                self._show_session_ends(session.endpoints)
-            self.model.set_deformation(d)
-            self.specimen = specimen
-            self._skeleton_deformation = self.model.deformation
-            self._remote["session"] = (session_id, self.model.deformation)  # an edit makes another object
-            self._say(_status_line(specimen) + " (server)"
-                      + (" (warnings: see Skeleton)" if warnings or folds else ""))
-
-        return self._start(self._with_scan_uploaded(then), "computing the skeleton", done, (self.skeleton_cancel,))
-
-    def _remote_export(self, target: Path, *, options: ExportOptions, folded: float | None,
-                       overwrite: bool) -> Job | None:
-        from .._remote import export_iter
-
-        server = self.server
-        known = self._remote.get("session")
-        if known is None or known[1] is not self.model.deformation:
-            self._fail(InvalidInputError("the server holds no session of this deformation (it was edited, or opened "
-                                         "here): compute the skeleton on the server, or export on 'this computer'"))
-            return None
-        session_id = known[0]
-
-        d = self.model.deformation
-
-        def then(volume_id: str) -> Generator[Progress, None, Any]:
-            from .._steps import check_folds
-
-            check_folds(d, folded=folded, options=options)  # the one fold rule, before any upload or job
-            return (yield from export_iter(server, volume_id, session_id, target, options=options,
-                                           overwrite=overwrite))
-
-        def done(written: Any) -> None:
-            from ._layers import image_layer
-
-            self.exported = Path(written)
-            self._add_layer(image_layer(open_volume(written), name=f"straight {self.exported.name}"))
-            self.export_info.setText(f"written: {self.exported} (server)")
-            self._say(f"exported to {self.exported} (server)")
-
-        return self._start(self._with_scan_uploaded(then), "exporting", done, (self.export_cancel,))
 
     # ==============================================================================================================
     # session
     # ==============================================================================================================
     def _session_or_none(self) -> Any:
-        """The session written into an export (None: the scan's checksum is not known yet, or no selection)."""
-        if self._source_info is None:
-            return None
-        try:
-            return self._session(self._source_info)
-        except UnwindError:
-            return None
+        """The session written into an export (None: the scan's checksum is not known yet)."""
+        return self.workflow.session_or_none()
 
     def _session(self, source: Any) -> Any:
-        from ..session import Segmentation, Session
-
-        seg = None
-        if self.features is not None and self.selected:
-            seg = Segmentation(k=self.features.k, level=self.features.level, selected=tuple(self.selected),
-                               seeds=tuple(self.seeds[i] for i in self.selected))
-        return Session(source=source, deformation=self.model.deformation, segmentation=seg,
-                       endpoints=self.endpoints(), notes="napari-unwind dock")
+        return self.workflow.session(source)
 
     def _save_dialog(self) -> None:
         path, _ = QFileDialog.getSaveFileName(self, "Save the session", "", "Sessions (*.unwind.json)")
@@ -1513,7 +1319,7 @@ class UnwindWidget(QWidget):
         except UnwindError as exc:
             self._fail(exc)
             return None
-        known = self._source_info if scan_file is None else None
+        known = self.workflow.source_info if scan_file is None else None
 
         def make() -> Generator[Progress, None, Any]:
             if known is not None:
@@ -1531,9 +1337,9 @@ class UnwindWidget(QWidget):
 
         def done(result: Any) -> None:
             source, scan = result
-            self._source_info = source
+            self.workflow.source_info = source
             if scan is not volume:
-                self.volume = scan  # the dock now works on the file the session records
+                self.workflow.volume = scan  # the dock now works on the file the session records (same voxels)
                 meta = dict(self.scan_layer.metadata or {})
                 meta["napari_unwind"] = {**meta.get("napari_unwind", {}), "source": scan.source,
                                          "format": scan.format}
@@ -1577,9 +1383,9 @@ class UnwindWidget(QWidget):
             from ._layers import image_layer
 
             layer = self._add_layer(image_layer(volume))
-            self.volume = None
+            self.workflow.volume = None  # a fresh start, even on the same scan
             self._set_scan(volume, layer)
-            self._source_info = src if src.checksum else None
+            self.workflow.source_info = src if src.checksum else None
             if session.endpoints is not None:
                 self._show_session_ends(session.endpoints)
             if session.deformation is not None:
@@ -1600,7 +1406,7 @@ class UnwindWidget(QWidget):
         scan = self.volume is not None
         self.segment_need.setText("" if scan else "Needs a scan (step 1).")
         self.segment_button.setEnabled(scan)
-        sel = bool(self.selected) or (self.mask_choice is not None and self.mask_choice[0] in self.viewer.layers)
+        sel = self.workflow.has_selection and (self.mask_choice is None or self.mask_choice[0] in self.viewer.layers)
         self.ends_need.setText("" if sel else "Needs a selected feature (step 2).")
         self.suggest_button.setEnabled(sel)
         ends = self._ends_layer is not None and self._ends_layer in self.viewer.layers

@@ -34,7 +34,7 @@ from ..progress import Progress
 # napari and Qt are imported where a worker starts, not here: the spawned child of start_process_job imports this
 # module to find its entry point and must stay free of Qt (importing napari there costs seconds, or worse).
 
-__all__ = ["Job", "JobCancelled", "prewarm", "start_job", "start_process_job"]
+__all__ = ["Job", "JobCancelled", "in_child", "prewarm", "start_job", "start_process_job"]
 
 #: Seconds the relay waits on the child's queue before checking Cancel and the child's health again.
 _POLL = 0.05
@@ -277,6 +277,13 @@ def _in_process(fn: Callable[..., Generator[Progress, None, Any]] | str, args: t
             q.cancel_join_thread()
             q.close()
         prewarm(fn)  # the next run starts warm
+
+
+def in_child(fn: Callable[..., Generator[Progress, None, Any]] | str, args: tuple = (), kwargs: dict | None = None
+             ) -> Generator[Progress, None, Any]:
+    """``fn(*args, **kwargs)`` in a spare child process, as a progress generator (the workflow's runner for the
+    skeleton step: :class:`napari_unwind.workflow.LocalBackend`); closing it (Cancel) terminates the child."""
+    return (yield from _in_process(fn, args, dict(kwargs or {}), threading.Event()))
 
 
 def start_process_job(

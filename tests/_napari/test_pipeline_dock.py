@@ -17,11 +17,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "services"))
 from test_workflow import fish_voxel, wait  # noqa: E402 - the workflow test's helpers
 
 from napari_unwind import pipeline  # noqa: E402
+from napari_unwind._napari._messages import for_dock  # noqa: E402
 from napari_unwind._napari._widget import UnwindWidget  # noqa: E402
 from napari_unwind.datasets import fish_phantom  # noqa: E402
 from napari_unwind.deformation import Deformation  # noqa: E402
 from napari_unwind.io import write_volume  # noqa: E402
 from napari_unwind.progress import run  # noqa: E402
+from napari_unwind.workflow import Skeletonized  # noqa: E402
 
 pytestmark = pytest.mark.gui
 
@@ -101,7 +103,7 @@ def test_dock_on_a_server_shows_the_status_line_of_the_local_dock(make_napari_vi
     for name, options in cages.items():
         w.options = replace(w.options, skeleton=options)
         wait(qtbot, w, w.run_skeleton(), timeout=180_000)
-        line = _status_line(w.specimen)
+        line = for_dock(_status_line(w.specimen))  # the core's advice said in the dock's words
         assert w.skeleton_report.toPlainText().splitlines()[0] == line and w.status.text().startswith(line)
         # the pipeline's judge on the same mask and ends
         direct = run(pipeline.skeleton_step(mask, ends, spacing=vol.spacing, origin=vol.origin, unit=vol.unit,
@@ -120,7 +122,7 @@ def test_dock_on_a_server_shows_the_status_line_of_the_local_dock(make_napari_vi
         assert w.server is not None, w.status.text()
         for name, options in cages.items():
             w.options = replace(w.options, skeleton=options)
-            w.specimen = None
+            w.workflow.skeleton = None
             wait(qtbot, w, w.run_skeleton(), timeout=180_000)
             line, values = local[name]
             assert w.specimen is not None and {k: getattr(w.specimen, k) for k in figures} == values
@@ -140,6 +142,7 @@ def test_partial_status_and_fold_rule_in_the_dock(make_napari_viewer, qtbot, tmp
 
     class Fake:  # a SpecimenResult as the child sends it (only what the dock reads)
         status, reason, folded = "partial", "coverage 95.0 % of the mask inside the cage (goal 99 %)", None
+        warnings = ()
 
         class skeleton:  # noqa: N801
             deformation = Deformation.from_polyline(np.array([[5.0, 20, 20], [20, 20, 20], [35, 20, 20]]),
@@ -150,7 +153,7 @@ def test_partial_status_and_fold_rule_in_the_dock(make_napari_viewer, qtbot, tmp
             def report():
                 return "min Jacobian 1"
 
-    w._skeleton_ready(Fake)
+    w._skeleton_ready(Skeletonized(Fake, Fake.skeleton.deformation))
     assert w.status.text().startswith("skeleton: partial: coverage 95.0 %"), w.status.text()
 
     # a tight bend with a wide cage folds
@@ -165,8 +168,9 @@ def test_partial_status_and_fold_rule_in_the_dock(make_napari_viewer, qtbot, tmp
     assert not w.allow_folds_box.isChecked()
     job = w.export(target)
     qtbot.waitUntil(lambda: job.done, timeout=60_000)
-    assert w.status.text() == f"error: {expected}", w.status.text()
+    assert w.status.text() == f"error: {for_dock(expected)}", w.status.text()
+    assert "--" not in w.status.text() and "tick \"allow folds\" (Export)" in w.status.text()
     assert not target.exists()
     w.allow_folds_box.setChecked(True)
     wait(qtbot, w, w.export(target))
-    assert target.exists() and "allow_folds" in w.export_info.text()
+    assert target.exists() and "\"allow folds\" is ticked" in w.export_info.text()
