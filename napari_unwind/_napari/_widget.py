@@ -60,6 +60,7 @@ from qtpy.QtWidgets import (
     QDoubleSpinBox,
     QFileDialog,
     QFormLayout,
+    QGridLayout,
     QHBoxLayout,
     QLabel,
     QLineEdit,
@@ -80,6 +81,7 @@ from ..io import Volume, open_volume
 from ..io._volume import normalise_unit, unit_label
 from ..pipeline import ExportOptions
 from ..progress import Progress
+from ..progress import run as run_progress
 from ..workflow import LocalBackend, ServerBackend, Workflow
 from . import _docks
 from ._messages import for_dock
@@ -99,6 +101,9 @@ DOCK_SHORTCUTS = (
 #: The skeleton step (the pipeline's skeleton_step, judged), run in a child process by name (the UI process need not
 #: import the mesher; the spare child imports the pipeline and the solver while idle).
 _SKELETON = "napari_unwind._steps:skeleton"
+#: Positions of the threshold slider over the scan's intensity range.
+_ISO_STEPS = 1000
+
 _TABLE_COLUMNS = ("id", "voxels", "elongation", "persistence", "threshold", "border", "container")
 
 
@@ -208,6 +213,9 @@ class UnwindWidget(QWidget):
         self._simplify_worker: Any = None
         self._simplify_pending: int | None = None
         self._syncing = False
+        self._iso_range_cache: tuple | None = None
+        self._measure_worker: Any = None
+        self._measure_pending = False
         self.workflow.features_changed.connect(self._features_ready)
         self.workflow.selection_changed.connect(self._show_selection)
 
@@ -409,7 +417,139 @@ class UnwindWidget(QWidget):
         self.selection_label = QLabel("selected: none (click a feature; shift-click adds)")
         self.selection_label.setWordWrap(True)
         lay.addWidget(self.selection_label)
+        # the selected features' threshold at full resolution: lower grows the mask, higher shrinks it
+        grid = QGridLayout()
+        grid.addWidget(QLabel("threshold"), 0, 0)
+        self.iso_slider = QSlider(Qt.Orientation.Horizontal)
+        self.iso_slider.setRange(0, _ISO_STEPS)
+        self.iso_slider.setEnabled(False)
+        self.iso_slider.setToolTip("The selected features' threshold at full resolution: left grows the mask, "
+                                   "right shrinks it")
+        self.iso_slider.valueChanged.connect(self._on_iso_slider)
+        grid.addWidget(self.iso_slider, 0, 1)
+        self.iso_default_button = QPushButton("default")
+        self.iso_default_button.setToolTip("The threshold the pipeline chooses from the scan (its one rule)")
+        self.iso_default_button.setEnabled(False)
+        self.iso_default_button.clicked.connect(lambda: self.set_isovalue(None))
+        grid.addWidget(self.iso_default_button, 0, 2)
+        grid.setColumnStretch(1, 1)
+        lay.addLayout(grid)
+        self.mask_info = QLabel("")
+        self.mask_info.setWordWrap(True)
+        lay.addWidget(self.mask_info)
+        # or a mask: a Labels layer (an expert's segmentation) or a mask file
+        masks = QGridLayout()
+        masks.addWidget(QLabel("or a mask"), 0, 0)
+        self.mask_combo = QComboBox()
+        self.mask_combo.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+        self.mask_combo.setMinimumContentsLength(12)
+        self.mask_combo.setToolTip("A Labels layer on the scan's grid; its label under a click is then the selection")
+        masks.addWidget(self.mask_combo, 0, 1, 1, 2)
+        self.use_mask_button = QPushButton("Use mask")
+        self.use_mask_button.setToolTip("Every labelled voxel of the chosen Labels layer is the selection; click a "
+                                        "label in the viewer to take that label alone")
+        self.use_mask_button.clicked.connect(self._use_chosen_mask)
+        masks.addWidget(self.use_mask_button, 1, 1)
+        self.open_mask_button = QPushButton("Open mask file...")
+        self.open_mask_button.clicked.connect(self._open_mask_dialog)
+        masks.addWidget(self.open_mask_button, 1, 2)
+        masks.setColumnStretch(1, 1)
+        masks.setColumnStretch(2, 1)
+        lay.addLayout(masks)
         return w
+
+    # ---- the threshold slider and the mask controls -----------------------------------------------------------------
+    def _iso_range(self) -> tuple[float, float]:
+        if self._iso_range_cache is None or self._iso_range_cache[0] is not self.volume:
+            self._iso_range_cache = (self.volume, self.workflow.intensity_range())
+        return self._iso_range_cache[1]
+
+    def _iso_at(self, position: int) -> float:
+        lo, hi = self._iso_range()
+        return lo + (hi - lo) * position / _ISO_STEPS
+
+    def _on_iso_slider(self, position: int) -> None:
+        if not self._syncing:
+            self.set_isovalue(self._iso_at(position))
+
+    def set_isovalue(self, value: float | None) -> None:
+        """Threshold the selected features at ``value`` (None: the pipeline's default rule); the mask is measured
+        again in a worker (while the slider moves only the latest value waits)."""
+        self.workflow.set_isovalue(value)
+        self._measure()
+
+    def _measure(self) -> None:
+        """Measure the selection (voxels, share of the scan, threshold) off the UI thread; latest request wins."""
+        if not self.workflow.has_selection:
+            self.mask_info.setText("")
+            return
+        self._measure_pending = True
+        if self._measure_worker is None:
+            self._next_measure()
+
+    def _next_measure(self) -> None:
+        from napari.qt.threading import create_worker
+
+        if not self._measure_pending or not self.workflow.has_selection:
+            self._measure_worker = None
+            return
+        self._measure_pending = False
+        task = self.workflow.measure_task()
+        selection = self.workflow.selection
+
+        def compute() -> tuple:
+            return selection, run_progress(task.make())
+
+        worker = create_worker(compute, _start_thread=False, _ignore_errors=True)
+        worker.returned.connect(self._on_measured)
+        worker.errored.connect(self._fail)
+        worker.finished.connect(self._next_measure)
+        self._measure_worker = worker
+        worker.start()
+
+    def _on_measured(self, value: tuple) -> None:
+        selection, (count, share, iso) = value
+        if selection is not self.workflow.selection:
+            return  # another selection or threshold meanwhile: its own measurement follows
+        chosen = self.workflow.isovalue
+        if iso is None:
+            self.mask_info.setText(f"mask: {count:,} voxels ({100 * share:.3g} % of the scan)")
+            return
+        how = "default" if chosen is None else "chosen"
+        self.mask_info.setText(f"mask: {count:,} voxels ({100 * share:.3g} % of the scan) at threshold "
+                               f"{iso:.4g} ({how})")
+        lo, hi = self._iso_range()
+        self._syncing = True
+        self.iso_slider.setValue(int(round(_ISO_STEPS * (iso - lo) / (hi - lo))) if hi > lo else 0)
+        self._syncing = False
+
+    def _refresh_mask_combo(self) -> None:
+        from napari.layers import Labels
+
+        own = {id(self._features_layer), id(self._selection_layer)}
+        layers = [lyr for lyr in self.viewer.layers
+                  if isinstance(lyr, Labels) and lyr.ndim == 3 and id(lyr) not in own]
+        current = self.mask_combo.currentData()
+        self.mask_combo.blockSignals(True)
+        self.mask_combo.clear()
+        self.mask_combo.addItem("(choose a Labels layer)", None)
+        for lyr in layers:
+            self.mask_combo.addItem(lyr.name, lyr)
+        if current is not None and current in layers:
+            self.mask_combo.setCurrentIndex(layers.index(current) + 1)
+        self.mask_combo.blockSignals(False)
+
+    def _use_chosen_mask(self) -> None:
+        layer = self.mask_combo.currentData()
+        if layer is None:
+            self._fail(InvalidInputError("choose a Labels layer in \"or a mask\" first, or open a mask file"))
+            return
+        self.use_labels(layer)
+
+    def _open_mask_dialog(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Open a mask")
+        if path:
+            self.open_mask(path)
 
     def _ends_page(self) -> QWidget:
         w = QWidget()
@@ -582,10 +722,11 @@ class UnwindWidget(QWidget):
 
     @property
     def idle(self) -> bool:
-        """No job running, no re-simplification, and nothing left for the Refine panel's straight preview."""
+        """No job running, no re-simplification or measurement of the selection, and nothing left for the Refine
+        panel's straight preview."""
         preview = getattr(self.refine_panel, "preview", None)
         return ((self.job is None or self.job.done) and self._simplify_worker is None
-                and bool(getattr(preview, "idle", True)))
+                and self._measure_worker is None and bool(getattr(preview, "idle", True)))
 
     def cancel(self) -> None:
         """Cancel the running job (it stops at its next progress step)."""
@@ -615,6 +756,7 @@ class UnwindWidget(QWidget):
 
     def _on_layers_changed(self, event: Any = None) -> None:
         self._refresh_layer_combo()
+        self._refresh_mask_combo()
         layer = getattr(event, "value", None)
         if event is not None and getattr(event, "type", "") == "removed":
             if layer is self.scan_layer:
@@ -738,6 +880,7 @@ class UnwindWidget(QWidget):
         else:
             layer = self._add_layer(layer_tuple)
             setattr(self, attr, layer)
+            self._refresh_mask_combo()  # the dock's own layers are no masks to choose
             if layer_tuple[2] == "labels":
                 from ._layers import labels_in_3d
 
@@ -911,6 +1054,7 @@ class UnwindWidget(QWidget):
     def _show_selection(self, selection: Any) -> None:
         """The workflow's selection changed: the selection layer, the table's rows and the label."""
         if selection.mask is not None:
+            self._measure()
             self._update_needs()
             return
         ids, f = list(selection.ids), selection.features
@@ -930,6 +1074,9 @@ class UnwindWidget(QWidget):
                                      "selected: none (click a feature; shift-click adds)")
         if ids:
             prewarm(_SKELETON)  # the skeleton's child process imports the core while the ends are placed
+            self._measure()
+        else:
+            self.mask_info.setText("")
         if self._features_layer is not None and self._features_layer in self.viewer.layers:
             self.viewer.layers.selection.active = self._features_layer  # clicks keep reaching its callback
         self._update_needs()
@@ -1407,6 +1554,9 @@ class UnwindWidget(QWidget):
         self.segment_need.setText("" if scan else "Needs a scan (step 1).")
         self.segment_button.setEnabled(scan)
         sel = self.workflow.has_selection and (self.mask_choice is None or self.mask_choice[0] in self.viewer.layers)
+        features_chosen = bool(self.workflow.selection.ids)
+        self.iso_slider.setEnabled(features_chosen)
+        self.iso_default_button.setEnabled(features_chosen and self.workflow.isovalue is not None)
         self.ends_need.setText("" if sel else "Needs a selected feature (step 2).")
         self.suggest_button.setEnabled(sel)
         ends = self._ends_layer is not None and self._ends_layer in self.viewer.layers

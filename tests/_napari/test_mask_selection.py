@@ -49,6 +49,7 @@ def test_a_mask_file_is_the_selection_and_the_cord_is_straightened(make_napari_v
     manual = np.loadtxt(shared_data / "spine_t2_centerline_manual.csv", delimiter=",", skiprows=1)
     length = np.linalg.norm(np.diff(manual, axis=0) * np.asarray(w.volume.spacing), axis=1).sum()
     assert abs(d.length - length) < 0.15 * length, (d.length, length)
+    qtbot.waitUntil(lambda: w.idle, timeout=60_000)  # the Refine panel's preview, the selection's measurement
 
 
 def test_a_labels_layer_whole_one_label_or_the_label_clicked(make_napari_viewer, qtbot):
@@ -92,3 +93,57 @@ def test_a_labels_layer_whole_one_label_or_the_label_clicked(make_napari_viewer,
     assert not w.suggest_button.isEnabled()
     assert w.suggest_ends() is None
     assert "was removed" in w.status.text()
+    qtbot.waitUntil(lambda: w.idle, timeout=60_000)
+
+
+def test_the_threshold_slider_grows_and_shrinks_the_selection(make_napari_viewer, qtbot):
+    """The tank: a fish clicked, its mask measured (voxels, share of the scan, the default threshold); the slider
+    to the left grows it, to the right shrinks it (each count against the core's refine_mask at the slider's
+    threshold); "default" gives the default rule's mask again. The mask controls list the true labels layer."""
+    from napari_unwind.segmentation import refine_mask, select
+
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    layers = viewer.open_sample("napari-unwind", "tank")
+    image = next(lyr for lyr in layers if lyr.name == "tank")
+    truth = next(lyr for lyr in layers if lyr.name == "tank true fish")
+    w.use_layer(image)
+    assert not w.iso_slider.isEnabled()
+    wait(qtbot, w, w.segment())
+    qtbot.waitUntil(lambda: w.idle and w.features is not None, timeout=60_000)
+    inside = np.argwhere(np.asarray(truth.data) == 1)[len(np.argwhere(np.asarray(truth.data) == 1)) // 2]
+    click(w._features_layer, inside * np.asarray(w.volume.spacing) + np.asarray(w.volume.origin), viewer=viewer)
+    assert w.selected and w.iso_slider.isEnabled() and not w.iso_default_button.isEnabled()
+    qtbot.waitUntil(lambda: "(default)" in w.mask_info.text(), timeout=60_000)
+
+    def count() -> int:
+        return int(w.mask_info.text().split("mask: ")[1].split(" voxels")[0].replace(",", ""))
+
+    def reference(iso) -> int:
+        return int(np.asarray(refine_mask(w.volume, select(w.features, ids=w.selected), features=w.features,
+                                          isovalue=iso)).sum())
+
+    default = count()
+    assert default == reference(None)
+    position = w.iso_slider.value()
+    for move in (-60, +60):
+        w.iso_slider.setValue(position + move)
+        iso = w._iso_at(position + move)
+        qtbot.waitUntil(lambda iso=iso: f"{iso:.4g} (chosen)" in w.mask_info.text(), timeout=60_000)
+        assert count() == reference(iso)
+        assert (count() > default) == (move < 0) and count() != default
+    assert w.iso_default_button.isEnabled()
+    w.iso_default_button.click()
+    qtbot.waitUntil(lambda: "(default)" in w.mask_info.text(), timeout=60_000)
+    assert count() == default and w.workflow.isovalue is None
+
+    # the mask controls: the true labels layer is listed (the dock's own layers are not); "Use mask" takes it
+    names = [w.mask_combo.itemText(i) for i in range(w.mask_combo.count())]
+    assert "tank true fish" in names and "features" not in names and "selection" not in names
+    w.mask_combo.setCurrentIndex(names.index("tank true fish"))
+    w.use_mask_button.click()
+    assert w.mask_choice == (truth, None) and not w.iso_slider.isEnabled()
+    qtbot.waitUntil(lambda: w.mask_info.text().startswith("mask: ") and "threshold" not in w.mask_info.text(),
+                    timeout=60_000)  # a mask is taken as it is: no threshold
+    assert count() == int((np.asarray(truth.data) > 0).sum())
+    qtbot.waitUntil(lambda: w.idle, timeout=60_000)

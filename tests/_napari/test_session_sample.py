@@ -80,6 +80,7 @@ def test_a_session_saved_from_the_sample_tank_reopens(make_napari_viewer, qtbot,
     ends_layer = next(lyr for lyr in layers if lyr.name == "ends")
     world = np.asarray([ends.head, ends.tail]) * np.asarray(w.volume.spacing) + np.asarray(w.volume.origin)
     np.testing.assert_allclose(np.asarray(ends_layer.data)[:, -3:], world, atol=1e-6)
+    qtbot.waitUntil(lambda: w.idle and w2.idle, timeout=60_000)  # the Refine panels' previews
 
 
 def test_a_scan_file_in_the_way_is_named_and_nothing_is_written(make_napari_viewer, tmp_path):
