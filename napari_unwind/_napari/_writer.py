@@ -77,5 +77,8 @@ def write_image(path: str, data: Any, meta: dict[str, Any]) -> list[str]:
                                 "(select a 3D Image layer)")
     spacing = _triple(meta, "scale", 1.0, "spacing")
     origin = _triple(meta, "translate", 0.0, "origin")
+    placed = (meta.get("metadata") or {}).get("napari_unwind", {}).get("straight_origin")
+    if placed is not None:  # the straight preview, drawn beside the scan: its own straight grid's origin
+        origin = _triple({"straight_origin": placed}, "straight_origin", 0.0, "origin")
     written = write_volume(data, path, spacing=spacing, origin=origin, unit=_unit(meta), overwrite=True)
     return [str(written)]

@@ -46,6 +46,16 @@ def test_writer_round_trip_keeps_data_and_spacing(tmp_path, straight, suffix):
     assert not [p for p in tmp_path.iterdir() if "unwind-tmp" in p.name]
 
 
+def test_the_straight_preview_beside_the_scan_writes_its_own_origin(tmp_path, straight):
+    """The 2D straight preview is drawn beside the scan (its translate moved); saved, the file holds the straight
+    grid's origin the preview recorded, not the place it was drawn."""
+    target = tmp_path / "preview.nrrd"
+    meta = _meta(translate=[1.0, -2.0, 503.0], metadata={"napari_unwind": {"preview": True,
+                                                                          "straight_origin": list(ORIGIN)}})
+    _write(target, [(straight, meta, "image")])
+    np.testing.assert_allclose(open_volume(target).origin, ORIGIN)
+
+
 def test_multiscale_layer_writes_its_full_resolution(tmp_path, straight):
     target = tmp_path / "fish.nrrd"
     _write(target, [([straight, straight[::2, ::2, ::2]], _meta(multiscale=True), "image")])
