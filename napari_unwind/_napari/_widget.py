@@ -85,6 +85,7 @@ from ..progress import run as run_progress
 from ..workflow import LocalBackend, ServerBackend, Workflow
 from . import _docks
 from ._messages import for_dock
+from ._reader import contrast_limits
 from ._workers import Job, JobCancelled, in_child, prewarm, start_job, start_process_job
 
 __all__ = ["UnwindWidget", "volume_from_layer"]
@@ -847,14 +848,16 @@ class UnwindWidget(QWidget):
         """Open a scan file (lazily, in a worker) and add it as an Image layer; it becomes the scan."""
         from ._layers import image_layer
 
-        def make() -> Generator[Progress, None, Volume]:
+        def make() -> Generator[Progress, None, tuple]:
             yield Progress("open", 0, 1, str(path))
             volume = open_volume(path)
+            clim = contrast_limits(volume.levels)  # from its voxels, as the reader does (napari's: [0, 1])
             yield Progress("open", 1, 1)
-            return volume
+            return volume, clim
 
-        def done(volume: Volume) -> None:
-            layer = self._add_layer(image_layer(volume))
+        def done(value: tuple) -> None:
+            volume, clim = value
+            layer = self._add_layer(image_layer(volume, contrast_limits=clim))
             self._set_scan(volume, layer)
             if then is not None:
                 then()
@@ -1397,18 +1400,24 @@ class UnwindWidget(QWidget):
             return None
         where = "" if self.server is None else " (server)"
 
-        def done(value: Any) -> None:
+        def make() -> Generator[Progress, None, tuple]:
+            value = yield from task.make()
+            return value, contrast_limits(open_volume(value[0]).levels)
+
+        def done(result: tuple) -> None:
             from ._layers import image_layer
 
+            value, clim = result
             task.apply(value)
             written, warned = value
             self.exported = Path(written)
-            self._add_layer(image_layer(open_volume(written), name=f"straight {self.exported.name}"))
+            self._add_layer(image_layer(open_volume(written), name=f"straight {self.exported.name}",
+                                        contrast_limits=clim))
             self.export_info.setText(for_dock("\n".join([f"written: {self.exported}{where}"]
                                                          + [f"warning: {w}" for w in warned])))
             self._say(f"exported to {self.exported}{where}" + (f" (warning: {warned[0]})" if warned else ""))
 
-        return self._start(task.make, task.label, done, (self.export_cancel,))
+        return self._start(make, task.label, done, (self.export_cancel,))
 
     def _check_selection(self) -> None:
         if self.mask_choice is not None and self.mask_choice[0] not in self.viewer.layers:
@@ -1524,12 +1533,13 @@ class UnwindWidget(QWidget):
                                         f"{tuple(src.shape)}: it is not the scan the session was made from")
             yield Progress("open", 1, 1)
             origin = session.deformation.origin if session.deformation is not None else volume.origin
-            return _with_geometry(volume, src.spacing, origin)
+            return _with_geometry(volume, src.spacing, origin), contrast_limits(volume.levels)
 
-        def done(volume: Volume) -> None:
+        def done(value: tuple) -> None:
             from ._layers import image_layer
 
-            layer = self._add_layer(image_layer(volume))
+            volume, clim = value
+            layer = self._add_layer(image_layer(volume, contrast_limits=clim))
             self.workflow.volume = None  # a fresh start, even on the same scan
             self._set_scan(volume, layer)
             self.workflow.source_info = src if src.checksum else None

@@ -222,3 +222,22 @@ def test_a_failed_skeleton_says_why_in_the_dock(rod_dock, qtbot):
     assert text.startswith("error: ") and "\n" not in text and "Traceback" not in text
     assert "the head [0.0, 0.0, 0.0]" in text and "from the mask" in text, text  # the core's message, as is
     assert w.model.deformation is None
+
+
+def test_a_scan_opened_in_the_dock_gets_contrast_from_its_voxels(make_napari_viewer, qtbot, tmp_path):
+    """The dock's "Open file..." showed a CT black and white (napari's [0, 1] for lazy float data, the first
+    slice's range for integers): the layer's limits are the voxels' 0.5 and 99.5 percentiles (numpy's, here),
+    as the plugin's reader gives them."""
+    from napari_unwind.io import write_volume
+
+    rng = np.random.default_rng(3)
+    ct = np.full((40, 48, 56), -1000.0, np.float32)
+    ct[:, 10:38, 8:48] = rng.normal(40.0, 30.0, (40, 28, 40))  # soft tissue
+    ct[15:25, 20:28, 20:30] = 1800.0  # bone
+    path = tmp_path / "ct.nrrd"
+    write_volume(ct, path, spacing=(1.0, 0.8, 0.8), unit="millimeter")
+    w = UnwindWidget(make_napari_viewer())
+    wait(qtbot, w.open_scan(path))
+    lo, hi = np.percentile(ct, [0.5, 99.5])
+    clim = w.scan_layer.contrast_limits
+    assert clim[0] == pytest.approx(lo, abs=0.01 * (hi - lo)) and clim[1] == pytest.approx(hi, abs=0.01 * (hi - lo))
