@@ -2,7 +2,7 @@
 
 The Unwind dock (:mod:`napari_unwind._napari._widget`) is a view over :class:`Workflow`, as the 2D editor is over
 :class:`~napari_unwind.editing.EditModel` and as napari-animation keeps its ``Animation`` apart from its widget.
-It imports neither napari nor Qt: tests and scripts drive it the same way (``tests/test_workflow.py``).
+It imports neither napari nor Qt: tests and scripts drive it the same way (``tests/test_workflow_model.py``).
 
 State
     ``volume`` (the scan), ``tree`` and ``features`` (the join tree and its simplification), the selection
