@@ -10,7 +10,7 @@ import numpy as np
 
 from ..io import Volume
 
-__all__ = ["image_layer", "labels_layer", "labels_surface", "LabelsIn3D", "labels_in_3d"]
+__all__ = ["image_layer", "labels_layer", "labels_surface", "LabelsIn3D", "labels_in_3d", "in_3d"]
 
 
 def _geometry(spacing: Any, unit: str | None, origin: Any = (0.0, 0.0, 0.0)) -> dict[str, Any]:
@@ -238,6 +238,16 @@ def labels_in_3d(viewer: Any, layer: Any, *, step: int = SURFACE_3D_STEP) -> Lab
     helper = LabelsIn3D(viewer, layer, step=step)
     object.__setattr__(layer, "_napari_unwind_3d", helper)
     return helper
+
+
+def in_3d(viewer: Any, layer: Any) -> Any:
+    """The hook the dock calls for each layer it adds or takes as the scan: a 3D stand-in where napari's own 3D
+    drawing is too slow on software GL (Labels: :func:`labels_in_3d`); None for a layer drawn as it is."""
+    from napari.layers import Labels
+
+    if isinstance(layer, Labels):
+        return labels_in_3d(viewer, layer)
+    return None
 
 
 # -- where the straight specimen goes, and the camera on it ---------------------------------------------------------

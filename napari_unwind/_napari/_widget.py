@@ -821,6 +821,9 @@ class UnwindWidget(QWidget):
         changed = self.volume is None or volume.source != self.volume.source or volume.shape != self.volume.shape
         self.scan_layer = layer
         self.workflow.set_scan(volume, name=layer.name)
+        from ._layers import in_3d
+
+        in_3d(self.viewer, layer)
         if changed:
             self.mask_choice = None
         self._refresh_layer_combo()
@@ -884,10 +887,9 @@ class UnwindWidget(QWidget):
             layer = self._add_layer(layer_tuple)
             setattr(self, attr, layer)
             self._refresh_mask_combo()  # the dock's own layers are no masks to choose
-            if layer_tuple[2] == "labels":
-                from ._layers import labels_in_3d
+            from ._layers import in_3d
 
-                labels_in_3d(self.viewer, layer)  # in 3D a coarse surface: napari's ray caster froze software GL
+            in_3d(self.viewer, layer)  # in 3D a coarse stand-in: napari's ray caster froze software GL
         return layer
 
     # ==============================================================================================================
@@ -1175,11 +1177,11 @@ class UnwindWidget(QWidget):
             return data.astype(np.uint8) if data.dtype == np.bool_ else data
 
         def done(data: np.ndarray) -> None:
-            from ._layers import labels_in_3d, labels_layer
+            from ._layers import in_3d, labels_layer
 
             layer = self._add_layer(labels_layer(data, spacing=volume.spacing, unit=volume.unit,
                                                  name=Path(path).name, translate=tuple(volume.origin)))
-            labels_in_3d(self.viewer, layer)
+            in_3d(self.viewer, layer)
             self.use_labels(layer)
 
         return self._start(make, "opening the mask", done)
