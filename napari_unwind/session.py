@@ -25,6 +25,7 @@ Schema 2 (``"schema": "napari-unwind/session"``, ``"schema_version": 2``)::
       "deformation": {... Deformation.to_dict() ...} or null,
       "segmentation": {"k": 5, "level": 2, "selected": [3, 7], "seeds": [[z, y, x], ...], "isovalue": 812.0,
                        "fill_holes": true} or null,
+          (or, when a mask was the selection: {"mask": "/data/fish_mask.nrrd", "mask_label": 2 or null})
       "endpoints": {"head": [z, y, x], "tail": [z, y, x], "chain": [[[z, y, x], [z, y, x]], ...]} or null,
       "notes": ""
     }
@@ -553,6 +554,11 @@ class Segmentation:
         Intensity threshold of the mask.
     fill_holes : bool or None
         Whether holes of the mask were filled.
+    mask : str or None
+        Instead of features: the mask file that was the selection (absolute path; a Labels layer without a file
+        is written beside the session by the plugin).
+    mask_label : int or None
+        The label of ``mask`` that was the selection (None: every non-zero voxel).
     """
 
     k: int | None = None
@@ -561,8 +567,19 @@ class Segmentation:
     seeds: tuple[tuple[float, float, float], ...] = ()
     isovalue: float | None = None
     fill_holes: bool | None = None
+    mask: str | None = None
+    mask_label: int | None = None
 
     def __post_init__(self) -> None:
+        if self.mask is not None:
+            _string(self.mask, "segmentation.mask")
+            if not self.mask:
+                raise InvalidInputError("segmentation.mask must be a file path or null, got an empty string")
+        if self.mask_label is not None:
+            object.__setattr__(self, "mask_label", _integer(self.mask_label, "segmentation.mask_label", 1))
+            if self.mask is None:
+                raise InvalidInputError("segmentation.mask_label is given without segmentation.mask: give the mask "
+                                        "file, or remove the label")
         if self.k is not None:
             object.__setattr__(self, "k", _integer(self.k, "segmentation.k", 1))
         if self.level is not None:
@@ -581,14 +598,18 @@ class Segmentation:
             object.__setattr__(self, "fill_holes", bool(self.fill_holes))
 
     def to_dict(self) -> dict[str, Any]:
-        return {"k": self.k, "level": self.level, "selected": list(self.selected),
-                "seeds": [list(p) for p in self.seeds], "isovalue": self.isovalue, "fill_holes": self.fill_holes}
+        d = {"k": self.k, "level": self.level, "selected": list(self.selected),
+             "seeds": [list(p) for p in self.seeds], "isovalue": self.isovalue, "fill_holes": self.fill_holes}
+        if self.mask is not None:  # written only when used: files without it stay as they were
+            d.update(mask=self.mask, mask_label=self.mask_label)
+        return d
 
     @classmethod
     def from_dict(cls, d: Any) -> Segmentation:
         d = _object(d, "segmentation")
         return cls(k=d.get("k"), level=d.get("level"), selected=d.get("selected", ()), seeds=d.get("seeds", ()),
-                   isovalue=d.get("isovalue"), fill_holes=d.get("fill_holes"))
+                   isovalue=d.get("isovalue"), fill_holes=d.get("fill_holes"), mask=d.get("mask"),
+                   mask_label=d.get("mask_label"))
 
 
 @dataclass(frozen=True)

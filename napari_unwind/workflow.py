@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Generator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -57,7 +57,8 @@ class Task:
 @dataclass(frozen=True)
 class Selection:
     """What the specimen is: features of a segmentation (``ids``, with the clicked ``seeds``), or a chosen
-    ``mask`` (a boolean array on the scan's grid; ``key`` tells two masks apart without comparing voxels)."""
+    ``mask`` (a boolean array on the scan's grid; ``key`` tells two masks apart without comparing voxels; ``source``
+    is the mask's file and ``label`` its label that was chosen, as a session records them)."""
 
     features: Any = None
     ids: tuple[int, ...] = ()
@@ -65,6 +66,8 @@ class Selection:
     mask: Any = None
     key: Any = None
     options: Any = None  # SegmentOptions
+    source: str | None = None
+    label: int | None = None
 
     def full_mask(self, volume: Any) -> Any:
         """The selection at full resolution (a lazy dask bool array): the chosen mask, or the features refined by
@@ -417,9 +420,11 @@ class Workflow:
         self.select(ids, seeds=seeds)
         return fid
 
-    def use_mask(self, mask: Any, *, label: int | None = None, key: Any = None) -> int:
+    def use_mask(self, mask: Any, *, label: int | None = None, key: Any = None, source: Any = None) -> int:
         """Make a mask the selection: an integer or boolean array on the scan's voxel grid, every non-zero voxel
-        (``label`` None) or those equal to ``label``. Returns the selected voxel count."""
+        (``label`` None) or those equal to ``label``. ``source`` is the mask's file (a session records it; None: it
+        has none, and a session cannot reopen the selection until it is written, see :meth:`mask_written`).
+        Returns the selected voxel count."""
         volume = self._need_scan()
         data = np.asarray(mask)
         if data.shape != tuple(volume.shape):
@@ -431,9 +436,45 @@ class Workflow:
             what = f"label {label}" if label else "any label"
             raise InvalidInputError(f"the mask holds no voxel of {what}: pick another label")
         self.selection = Selection(mask=chosen, key=key if key is not None else (id(mask), label),
-                                   options=self.options.segment)
+                                   options=self.options.segment, label=int(label) if label else None,
+                                   source=None if source is None else str(Path(source).absolute()))
         self.selection_changed.emit(self.selection)
         return count
+
+    def mask_written(self, path: Any) -> None:
+        """The chosen mask (which had no file) now lies at ``path``: a session records it from here on."""
+        s = self.selection
+        if s.mask is None:
+            raise InvalidInputError("the selection is not a mask: there is no mask to record")
+        self.selection = replace(s, source=str(Path(path).absolute()))
+
+    def mask_file_task(self, path: Any, *, label: int | None = None) -> Task:
+        """Open a mask file (any scan format on the scan's voxel grid; non-zero voxels are the mask) and make it,
+        or its ``label``, the selection. The Task's value is the mask's voxels (for a Labels layer)."""
+        volume = self._need_scan()
+        path = Path(path)
+
+        def make() -> Generator[Progress, None, Any]:
+            from .io import open_volume
+
+            yield Progress("open", 0, 1, str(path))
+            if not path.exists():
+                raise InvalidInputError(f"the mask file is missing: expected at {path}; put it back, or choose the "
+                                        "mask again")
+            mask = open_volume(path)
+            if tuple(mask.shape) != tuple(volume.shape):
+                raise InvalidInputError(f"the mask {path.name} has {tuple(mask.shape)} voxels, the scan "
+                                        f"{tuple(volume.shape)}: a mask must lie on the scan's voxel grid")
+            data = np.asarray(mask.data)
+            if not (np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_):
+                data = data != 0
+            yield Progress("open", 1, 1)
+            return data.astype(np.uint8) if data.dtype == np.bool_ else data
+
+        def apply(data: Any) -> None:
+            self.use_mask(data, label=label, key=("file", str(path.absolute()), label), source=path)
+
+        return Task("opening the mask", make, apply)
 
     # ---- the mask's isovalue: grow or shrink a selection of features -------------------------------------------------
     @property
@@ -576,6 +617,8 @@ class Workflow:
         if s.mask is None and s.features is not None and s.ids:
             seg = Segmentation(k=s.features.k, level=s.features.level, selected=tuple(s.ids),
                                seeds=tuple(s.seeds[i] for i in s.ids))
+        elif s.mask is not None and s.source is not None:
+            seg = Segmentation(mask=s.source, mask_label=s.label)
         return Session(source=source, deformation=self.edit.deformation, segmentation=seg, endpoints=self.ends,
                        notes="napari-unwind dock")
 

@@ -158,3 +158,44 @@ def test_the_isovalue_grows_and_shrinks_the_mask(fish):
     assert counts[low] > n0 > counts[high]
     wf.set_isovalue(None)
     assert run(wf.measure_task().make())[0] == n0
+
+
+def test_a_mask_file_is_recorded_in_the_session_and_reopens_it(fish, tmp_path):
+    """Issue 21 item 3/5: a session whose selection was a mask (a file, one of its labels) reopens that selection;
+    a mask without a file is recorded once it is written. Reference: the phantom's own mask on disk (pynrrd)."""
+    import nrrd
+
+    from napari_unwind.session import Segmentation, Session, SourceInfo
+
+    labels = fish.mask.astype(np.uint8) * 3
+    labels[0, 0, 0] = 7  # another label: the session must keep the chosen one
+    path = tmp_path / "expert mask.nrrd"
+    nrrd.write(str(path), labels, index_order="C")
+    wf = Workflow()
+    volume = as_volume(fish.volume, spacing=fish.spacing, unit=fish.unit)
+    wf.set_scan(volume, name="fish")
+    task = wf.mask_file_task(path, label=3)
+    data = run(task.make())
+    task.apply(data)
+    assert np.array_equal(np.asarray(wf.mask()), fish.mask)
+    source = SourceInfo(path="scan", shape=volume.shape, dtype=volume.dtype.name, spacing=volume.spacing)
+    seg = Session.from_dict(wf.session(source).to_dict()).segmentation
+    assert seg == Segmentation(mask=str(path.absolute()), mask_label=3)
+
+    again = Workflow()
+    again.set_scan(volume, name="fish")
+    task = again.mask_file_task(seg.mask, label=seg.mask_label)
+    task.apply(run(task.make()))
+    assert np.array_equal(np.asarray(again.mask()), fish.mask)
+
+    # a mask that has no file: no record (nothing could reopen it) until it is written
+    again.use_mask(labels, label=3)
+    assert again.session(source).segmentation is None
+    again.mask_written(tmp_path / "written.ome.zarr")
+    assert again.session(source).segmentation.mask == str((tmp_path / "written.ome.zarr").absolute())
+
+    path.unlink()
+    with pytest.raises(InvalidInputError, match="mask file is missing"):
+        run(again.mask_file_task(seg.mask).make())
+    with pytest.raises(InvalidInputError, match="mask_label is given without"):
+        Segmentation(mask_label=2)
