@@ -1034,21 +1034,6 @@ def _session_dict(session: Any) -> dict | None:
     raise InvalidInputError(f"session must be a dict or have a to_dict() method, got {type(session).__name__}")
 
 
-def _compressed(fmt: str, path: str | os.PathLike, write_options: dict[str, Any]) -> bool:
-    """Whether the writer of ``fmt`` compresses (so that the file may be smaller than the voxels)."""
-    if fmt == "ome-zarr":
-        return True
-    if fmt == "nrrd":
-        return str(write_options.get("encoding", "gzip")).lower() != "raw"
-    if fmt == "nifti":
-        return str(path).lower().endswith(".gz")
-    if fmt == "tiff":
-        return str(write_options.get("compression") or "none").lower() != "none"
-    if fmt == "stack":
-        return Path(str(write_options.get("pattern") or path)).suffix.lower() in (".png", ".jpg", ".jpeg")
-    return False  # raw, DICOM
-
-
 def _check_disk(path: str | os.PathLike, straight: Volume, fmt: str, write_options: dict[str, Any]) -> None:
     """Compare the output's uncompressed size with the free space of the target's folder, before writing.
 
@@ -1067,7 +1052,9 @@ def _check_disk(path: str | os.PathLike, straight: Volume, fmt: str, write_optio
         return
     what = (f"{path} needs {nbytes:,} bytes ({_size(nbytes)}) for a straight volume of shape {straight.shape} "
             f"({straight.dtype}, uncompressed) but {folder} has only {free:,} bytes free ({_size(free)})")
-    if _compressed(fmt, path, write_options):
+    from .io._formats import compresses
+
+    if compresses(fmt, path, write_options):
         warnings.warn(f"{what}; {fmt} is compressed and may fit, but the export may stop with a full disk",
                       DiskSpaceWarning, stacklevel=4)
         return

@@ -15,7 +15,7 @@ from ..errors import InvalidInputError, OutputError
 from ..progress import Progress, run
 from ._atomic import atomic_output, check_not_input, check_writable, final_name
 from ._files import _size, check_room
-from ._formats import detect_format, output_format, reader_for, writer_for
+from ._formats import compresses, detect_format, output_format, reader_for, writer_for
 from ._volume import Volume
 
 __all__ = ["open_volume", "write_volume", "write_volume_iter", "import_volume", "import_volume_iter", "as_volume",
@@ -182,7 +182,7 @@ def write_volume_iter(
     target = check_writable(path, overwrite=overwrite)
     # a volume read from a file is never written into, over or around that file (the CLI's rule, for the API too)
     check_not_input([target], [getattr(data, "source", None)] if isinstance(data, Volume) else [])
-    check_room(target, volume.nbytes, compressed=_compressed(fmt, target, options))
+    check_room(target, volume.nbytes, compressed=compresses(fmt, target, options))
     try:
         with atomic_output(target, overwrite=overwrite) as tmp:  # removes the temporary output on any error
             yield from writer(volume, tmp, **options)
@@ -192,21 +192,6 @@ def write_volume_iter(
             raise
         raise full from None
     return target
-
-
-def _compressed(fmt: str, path: Path, options: dict[str, Any]) -> bool:
-    """Whether the writer of ``fmt`` compresses the voxels with these options (each writer's default)."""
-    if fmt == "ome-zarr":
-        return str(options.get("compression", "")).lower() != "none"
-    if fmt == "tiff":
-        return str(options.get("compression") or "none").lower() != "none"
-    if fmt == "nrrd":
-        return str(options.get("encoding", "gzip")).lower() != "raw"
-    if fmt == "nifti":
-        return path.name.lower().endswith(".gz")
-    if fmt == "stack":
-        return str(options.get("pattern", path.name)).lower().endswith((".png", ".jpg", ".jpeg"))
-    return False
 
 
 def write_volume(

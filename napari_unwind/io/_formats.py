@@ -19,6 +19,7 @@ import os
 import re
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from ..errors import InvalidInputError, UnknownFormatError
 from ._files import check_regular, open_regular
@@ -200,3 +201,26 @@ def reader_for(fmt: str) -> Callable:
 def writer_for(fmt: str) -> Callable:
     """The ``write_<fmt>`` generator function of a format."""
     return _load(fmt, 2)
+
+
+def compresses(fmt: str, path: str | os.PathLike, options: dict[str, Any]) -> bool:
+    """Whether the writer of ``fmt`` compresses the voxels of ``path`` with these write ``options``: an option not
+    given takes the writer's own default, read from its signature (nothing here restates a default)."""
+    import inspect
+
+    def option(name: str) -> Any:
+        if name in options:
+            return options[name]
+        p = inspect.signature(writer_for(fmt)).parameters.get(name)
+        return None if p is None or p.default is inspect.Parameter.empty else p.default
+
+    name = Path(str(path)).name.lower()
+    if fmt in ("ome-zarr", "tiff"):
+        return str(option("compression") or "none").lower() not in ("none", "")
+    if fmt == "nrrd":
+        return str(option("encoding") or "raw").lower() != "raw"
+    if fmt == "nifti":
+        return name.endswith(".gz")
+    if fmt == "stack":
+        return str(option("pattern") or name).lower().endswith((".png", ".jpg", ".jpeg"))
+    return False  # raw, DICOM: the voxels as they are
