@@ -215,7 +215,8 @@ def session_layers(session: Session, *, session_path: str | Path | None = None, 
     Returns
     -------
     list of (data, meta, layer type)
-        In this order: ``image``, ``labels`` (when the session records selected features), ``points`` (when it
+        In this order: ``image``, ``labels`` (when the session records selected features; or its mask file,
+        metadata ``selection_mask``), ``points`` (when it
         records ends), ``shapes`` (when it holds a deformation).
     """
     from ._layers import image_layer
@@ -252,6 +253,8 @@ def session_layers(session: Session, *, session_path: str | Path | None = None, 
         image[1]["metadata"]["napari_unwind"]["segmentation"] = seg.to_dict()
     if selection and seg is not None and seg.k is not None and (seg.selected or seg.seeds):
         layers.append(_selection_layer(volume, session, spacing, origin, units, common))
+    if seg is not None and seg.mask is not None:
+        layers.append(_mask_layer(volume, seg, named, spacing, origin, units, common))
 
     if session.endpoints is not None:
         ends = session.endpoints
@@ -276,6 +279,27 @@ def session_layers(session: Session, *, session_path: str | Path | None = None, 
             "metadata": {"napari_unwind": {**common, "deformation": deformation.to_dict()}}, **units,
         }, "shapes"))
     return layers
+
+
+def _mask_layer(volume: Any, seg: Any, named: str, spacing: np.ndarray, origin: np.ndarray, units: dict,
+                common: dict) -> tuple[Any, dict[str, Any], str]:
+    """The mask file that was the selection, as a Labels layer on the scan (its metadata names the chosen label)."""
+    path = Path(seg.mask)
+    if not path.exists():
+        raise SourceMissingError(f"the mask of {named} is missing: expected at {path}. Put it back there, or "
+                                 "correct \"segmentation\" -> \"mask\" in the session file")
+    mask = open_volume(path)
+    if tuple(mask.shape) != tuple(volume.shape):
+        raise SourceChangedError(f"the mask at {path} holds {tuple(mask.shape)} voxels, the scan of {named} "
+                                 f"{tuple(volume.shape)}: it is not the mask the session was made with")
+    data = np.asarray(mask.data)
+    if not (np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_):
+        data = data != 0
+    data = data.astype(np.uint8) if data.dtype == np.bool_ else data
+    meta = {"name": path.name, "scale": tuple(spacing), "translate": tuple(origin), "opacity": 0.5,
+            "metadata": {"napari_unwind": {**common, "source": str(path), "mask_label": seg.mask_label,
+                                           "selection_mask": True}}, **units}
+    return data, meta, "labels"
 
 
 def _selection_layer(volume: Any, session: Session, spacing: np.ndarray, origin: np.ndarray, units: dict,

@@ -145,6 +145,31 @@ def test_session_layers_without_the_selection_keep_its_record(fish_session):
     assert expected[1] > expected[0]
 
 
+def test_session_whose_selection_was_a_mask_file_reopens_it(fish_session, tmp_path):
+    """A mask file as the selection (issue 21 items 3/5): the session brings it back as a Labels layer on the scan
+    naming the chosen label; a missing or other-grid mask is refused in one line. Reference: the phantom's mask."""
+    p, path = fish_session
+    session = load_session(path)
+    labels = p.mask.astype(np.uint8) * 4
+    mask_file = write_volume(labels, tmp_path / "expert.nrrd", spacing=SPACING)
+    session.segmentation = Segmentation(mask=str(mask_file), mask_label=4)
+    with_mask = save_session(session, tmp_path / "masked.unwind.json")
+    layers = _read_session(with_mask)
+    assert [t for *_, t in layers] == ["image", "labels", "points", "shapes"]
+    data, meta = _by_type(layers)["labels"]
+    np.testing.assert_array_equal(np.asarray(data) == 4, p.mask)
+    assert meta["metadata"]["napari_unwind"]["mask_label"] == 4 and meta["metadata"]["napari_unwind"]["selection_mask"]
+    np.testing.assert_allclose(meta["scale"], SPACING)
+    np.testing.assert_allclose(meta["translate"], ORIGIN)
+
+    write_volume(labels[:, 1:], tmp_path / "expert.nrrd", spacing=SPACING, overwrite=True)
+    with pytest.raises(SourceChangedError, match="not the mask the session was made with"):
+        _read_session(with_mask)
+    (tmp_path / "expert.nrrd").unlink()
+    with pytest.raises(SourceMissingError, match="the mask of .* is missing"):
+        _read_session(with_mask)
+
+
 def _moved_source(path, tmp_path, new_source):
     d = json.loads(path.read_text())
     d["source"]["path"] = str(new_source)
