@@ -101,7 +101,7 @@ def check_step(w, dock, index, where):
             f"{name}: {type(c).__name__} {label!r} squeezed to {c.width()} px, below its minimum "
             f"{c.minimumSizeHint().width()} px (its text is cut)")
     bars = [b for b in dock.findChildren(QScrollBar) if b.orientation() == Qt.Orientation.Horizontal
-            and b.isVisible() and not w.table.isAncestorOf(b)]  # the feature table scrolls its many columns
+            and b.isVisible()]  # the feature table's columns too fit the dock
     assert not bars, f"{name}: a horizontal scroll bar shows in {[type(b.parentWidget()).__name__ for b in bars]}"
     return viewport.width()
 
@@ -148,3 +148,29 @@ def test_the_refine_step_with_a_deformation_fits_the_default_dock_width(docked, 
     if geometry == (1600, 1200):
         target = os.environ.get("UNWIND_DOCK_SCREENSHOT") or str(tmp_path / "refine_default_width.png")
         assert viewer.window._qt_window.grab().save(target)
+
+
+def test_the_feature_table_fits_the_default_dock_width(docked, qtbot):
+    """The Segment step with features shown: the table's columns share its width (no horizontal scroll bar), and
+    every header and value is shown whole."""
+    viewer, w, dock, geometry = docked
+    w.use_layer(viewer.add_image(rod(), name=LONG_NAME))
+    job = w.segment()
+    assert job is not None, w.status.text()
+    qtbot.waitUntil(lambda: job.done and w.idle and w.features is not None, timeout=60000)
+    segment = next(i for i in range(w.toolbox.count()) if "Segment" in w.toolbox.itemText(i))
+    open_step(qtbot, w, segment)
+    table = w.segment_step.table
+    assert table.rowCount() == len(w.features.stats) > 0
+    assert dock.width() <= 420, f"napari's default dock is ~400 px wide, this one {dock.width()} px"
+    where = f"{geometry}, dock {dock.width()} px, features shown"
+    check_step(w, dock, segment, where)
+    assert not table.horizontalScrollBar().isVisible(), f"{where}: the feature table scrolls sideways"
+    header = table.horizontalHeader()
+    assert header.length() <= table.viewport().width(), (
+        f"{where}: the columns need {header.length()} px of the table's {table.viewport().width()} px")
+    for col in range(table.columnCount()):
+        name = table.horizontalHeaderItem(col).text()
+        width = table.columnWidth(col)
+        assert width >= header.sectionSizeHint(col), f"{where}: the header {name!r} is cut ({width} px)"
+        assert width >= table.sizeHintForColumn(col), f"{where}: the values of {name!r} are cut ({width} px)"

@@ -29,8 +29,8 @@ def test_a_mask_file_is_the_selection_and_the_cord_is_straightened(make_napari_v
     layer = viewer.layers["spine_t2_cord_mask.nrrd"]
     assert w.mask_choice == (layer, None)
     np.testing.assert_array_equal(np.asarray(w.mask()), truth != 0)
-    assert f"{int((truth != 0).sum()):,} voxels" in w.selection_label.text()
-    assert w.suggest_button.isEnabled() and w.skeleton_button.isEnabled()
+    assert f"{int((truth != 0).sum()):,} voxels" in w.segment_step.selection_label.text()
+    assert w.ends_step.suggest_button.isEnabled() and w.skeleton_step.skeleton_button.isEnabled()
     wait(qtbot, w, w.suggest_ends())
     # the ends: large enough to see, and the view moved to the head (its slice, centred)
     ends = viewer.layers["ends"]
@@ -73,7 +73,7 @@ def test_a_labels_layer_whole_one_label_or_the_label_clicked(make_napari_viewer,
     click(labels, world, viewer=viewer)
     assert w.mask_choice == (labels, 2)
     np.testing.assert_array_equal(np.asarray(w.mask()), truth == 2)
-    assert "label 2 of the mask 'tank true fish'" in w.selection_label.text()
+    assert "label 2 of the mask 'tank true fish'" in w.segment_step.selection_label.text()
 
     # refusals, each one line; the selection stays as it was
     assert w.use_labels(labels, label=9) == 0
@@ -90,7 +90,7 @@ def test_a_labels_layer_whole_one_label_or_the_label_clicked(make_napari_viewer,
 
     # the mask layer removed: the steps that need a selection say so
     viewer.layers.remove(labels)
-    assert not w.suggest_button.isEnabled()
+    assert not w.ends_step.suggest_button.isEnabled()
     assert w.suggest_ends() is None
     assert "was removed" in w.status.text()
     qtbot.waitUntil(lambda: w.idle, timeout=60_000)
@@ -108,16 +108,16 @@ def test_the_threshold_slider_grows_and_shrinks_the_selection(make_napari_viewer
     image = next(lyr for lyr in layers if lyr.name == "tank")
     truth = next(lyr for lyr in layers if lyr.name == "tank true fish")
     w.use_layer(image)
-    assert not w.iso_slider.isEnabled()
+    assert not w.segment_step.iso_slider.isEnabled()
     wait(qtbot, w, w.segment())
     qtbot.waitUntil(lambda: w.idle and w.features is not None, timeout=60_000)
     inside = np.argwhere(np.asarray(truth.data) == 1)[len(np.argwhere(np.asarray(truth.data) == 1)) // 2]
     click(w._features_layer, inside * np.asarray(w.volume.spacing) + np.asarray(w.volume.origin), viewer=viewer)
-    assert w.selected and w.iso_slider.isEnabled() and not w.iso_default_button.isEnabled()
-    qtbot.waitUntil(lambda: "(default)" in w.mask_info.text(), timeout=60_000)
+    assert w.selected and w.segment_step.iso_slider.isEnabled() and not w.segment_step.iso_default_button.isEnabled()
+    qtbot.waitUntil(lambda: "(default)" in w.segment_step.mask_info.text(), timeout=60_000)
 
     def count() -> int:
-        return int(w.mask_info.text().split("mask: ")[1].split(" voxels")[0].replace(",", ""))
+        return int(w.segment_step.mask_info.text().split("mask: ")[1].split(" voxels")[0].replace(",", ""))
 
     def reference(iso) -> int:
         return int(np.asarray(refine_mask(w.volume, select(w.features, ids=w.selected), features=w.features,
@@ -125,25 +125,26 @@ def test_the_threshold_slider_grows_and_shrinks_the_selection(make_napari_viewer
 
     default = count()
     assert default == reference(None)
-    position = w.iso_slider.value()
+    position = w.segment_step.iso_slider.value()
     for move in (-60, +60):
-        w.iso_slider.setValue(position + move)
-        iso = w._iso_at(position + move)
-        qtbot.waitUntil(lambda iso=iso: f"{iso:.4g} (chosen)" in w.mask_info.text(), timeout=60_000)
+        w.segment_step.iso_slider.setValue(position + move)
+        iso = w.segment_step._iso_at(position + move)
+        qtbot.waitUntil(lambda iso=iso: f"{iso:.4g} (chosen)" in w.segment_step.mask_info.text(), timeout=60_000)
         assert count() == reference(iso)
         assert (count() > default) == (move < 0) and count() != default
-    assert w.iso_default_button.isEnabled()
-    w.iso_default_button.click()
-    qtbot.waitUntil(lambda: "(default)" in w.mask_info.text(), timeout=60_000)
+    assert w.segment_step.iso_default_button.isEnabled()
+    w.segment_step.iso_default_button.click()
+    qtbot.waitUntil(lambda: "(default)" in w.segment_step.mask_info.text(), timeout=60_000)
     assert count() == default and w.workflow.isovalue is None
 
     # the mask controls: the true labels layer is listed (the dock's own layers are not); "Use mask" takes it
-    names = [w.mask_combo.itemText(i) for i in range(w.mask_combo.count())]
+    names = [w.segment_step.mask_combo.itemText(i) for i in range(w.segment_step.mask_combo.count())]
     assert "tank true fish" in names and "features" not in names and "selection" not in names
-    w.mask_combo.setCurrentIndex(names.index("tank true fish"))
-    w.use_mask_button.click()
-    assert w.mask_choice == (truth, None) and not w.iso_slider.isEnabled()
-    qtbot.waitUntil(lambda: w.mask_info.text().startswith("mask: ") and "threshold" not in w.mask_info.text(),
+    w.segment_step.mask_combo.setCurrentIndex(names.index("tank true fish"))
+    w.segment_step.use_mask_button.click()
+    assert w.mask_choice == (truth, None) and not w.segment_step.iso_slider.isEnabled()
+    info = w.segment_step.mask_info
+    qtbot.waitUntil(lambda: info.text().startswith("mask: ") and "threshold" not in info.text(),
                     timeout=60_000)  # a mask is taken as it is: no threshold
     assert count() == int((np.asarray(truth.data) > 0).sum())
     qtbot.waitUntil(lambda: w.idle, timeout=60_000)

@@ -104,7 +104,8 @@ def test_dock_on_a_server_shows_the_status_line_of_the_local_dock(make_napari_vi
         w.options = replace(w.options, skeleton=options)
         wait(qtbot, w, w.run_skeleton(), timeout=180_000)
         line = for_dock(_status_line(w.specimen))  # the core's advice said in the dock's words
-        assert w.skeleton_report.toPlainText().splitlines()[0] == line and w.status.text().startswith(line)
+        report = w.skeleton_step.skeleton_report.toPlainText()
+        assert report.splitlines()[0] == line and w.status.text().startswith(line)
         # the pipeline's judge on the same mask and ends
         direct = run(pipeline.skeleton_step(mask, ends, spacing=vol.spacing, origin=vol.origin, unit=vol.unit,
                                             volume=vol.data, options=options))
@@ -115,8 +116,8 @@ def test_dock_on_a_server_shows_the_status_line_of_the_local_dock(make_napari_vi
 
     srv = ServerProcess(tmp_path / "data", "--workers", "1")
     try:
-        w.backend_combo.setCurrentIndex(w.backend_combo.findData("server"))
-        w.server_address.setText(srv.address)
+        w.scan_step.backend_combo.setCurrentIndex(w.scan_step.backend_combo.findData("server"))
+        w.scan_step.server_address.setText(srv.address)
         job = w.connect_server()
         qtbot.waitUntil(lambda: job.done, timeout=30_000)
         assert w.server is not None, w.status.text()
@@ -126,7 +127,7 @@ def test_dock_on_a_server_shows_the_status_line_of_the_local_dock(make_napari_vi
             wait(qtbot, w, w.run_skeleton(), timeout=180_000)
             line, values = local[name]
             assert w.specimen is not None and {k: getattr(w.specimen, k) for k in figures} == values
-            assert w.skeleton_report.toPlainText().splitlines()[0] == line  # the local dock's line
+            assert w.skeleton_step.skeleton_report.toPlainText().splitlines()[0] == line  # the local dock's line
             assert w.status.text().startswith(line + " (server)"), w.status.text()
     finally:
         srv.stop()
@@ -153,7 +154,7 @@ def test_partial_status_and_fold_rule_in_the_dock(make_napari_viewer, qtbot, tmp
             def report():
                 return "min Jacobian 1"
 
-    w._skeleton_ready(Skeletonized(Fake, Fake.skeleton.deformation))
+    w.skeleton_step.skeleton_ready(Skeletonized(Fake, Fake.skeleton.deformation))
     assert w.status.text().startswith("skeleton: partial: coverage 95.0 %"), w.status.text()
 
     # a tight bend with a wide cage folds
@@ -165,12 +166,12 @@ def test_partial_status_and_fold_rule_in_the_dock(make_napari_viewer, qtbot, tmp
     w.model.set_deformation(bent)
     expected = pipeline.fold_rule(bent, folded=None, allow_folds=False).message
     target = tmp_path / "folded.nrrd"
-    assert not w.allow_folds_box.isChecked()
+    assert not w.export_step.allow_folds_box.isChecked()
     job = w.export(target)
     qtbot.waitUntil(lambda: job.done, timeout=60_000)
     assert w.status.text() == f"error: {for_dock(expected)}", w.status.text()
     assert "--" not in w.status.text() and "tick \"allow folds\" (Export)" in w.status.text()
     assert not target.exists()
-    w.allow_folds_box.setChecked(True)
+    w.export_step.allow_folds_box.setChecked(True)
     wait(qtbot, w, w.export(target))
-    assert target.exists() and "\"allow folds\" is ticked" in w.export_info.text()
+    assert target.exists() and "\"allow folds\" is ticked" in w.export_step.export_info.text()

@@ -56,9 +56,9 @@ def server(tmp_path_factory):
 
 
 def _connect(qtbot, w, address, token):
-    w.backend_combo.setCurrentIndex(w.backend_combo.findData("server"))
-    w.server_address.setText(address)
-    w.server_token.setText(token)
+    w.scan_step.backend_combo.setCurrentIndex(w.scan_step.backend_combo.findData("server"))
+    w.scan_step.server_address.setText(address)
+    w.scan_step.server_token.setText(token)
     job = w.connect_server()
     assert job is not None, w.status.text()
     qtbot.waitUntil(lambda: job.done, timeout=30_000)
@@ -75,7 +75,7 @@ def test_wrong_token_and_unreachable_server_say_what_is_wrong_in_one_line(make_n
     text = w.status.text()
     assert text.startswith("error: UNAVAILABLE: 127.0.0.1:1") and "\n" not in text, text
     assert w.server is None
-    w.server_address.setText("127.0.0.1")
+    w.scan_step.server_address.setText("127.0.0.1")
     assert w.connect_server() is None
     assert w.status.text().startswith("error: the server address must be host:port"), w.status.text()
 
@@ -89,7 +89,7 @@ def test_dock_on_a_server_exports_the_voxels_of_the_local_dock(make_napari_viewe
     viewer.window.add_dock_widget(w, name="Unwind")
     wait(qtbot, w, w.open_scan(scan))
     _connect(qtbot, w, srv.address, str(token_file))  # a token file is read
-    assert w.server is not None and "SERVING" in w.backend_info.text(), w.status.text()
+    assert w.server is not None and "SERVING" in w.scan_step.backend_info.text(), w.status.text()
 
     wait(qtbot, w, w.segment())
     qtbot.waitUntil(lambda: w.idle, timeout=30_000)
@@ -139,7 +139,7 @@ def test_dock_on_a_server_exports_the_voxels_of_the_local_dock(make_napari_viewe
 
     remote = tmp_path / "remote.nrrd"
     wait(qtbot, w, w.export(remote), timeout=120_000)
-    assert viewer.layers[-1].name == "straight remote.nrrd" and "(server)" in w.export_info.text()
+    assert viewer.layers[-1].name == "straight remote.nrrd" and "(server)" in w.export_step.export_info.text()
 
     # Cancel of a server job that already started: the job is cancelled on the server (one worker, kept busy by a
     # skeleton job, so the export waits queued: the first record is its queued state, then the dock's Cancel)
@@ -164,7 +164,7 @@ def test_dock_on_a_server_exports_the_voxels_of_the_local_dock(make_napari_viewe
     assert w.model.undo() and w.model.deformation is d
 
     # the same deformation exported on this computer (switching backend forgets the server)
-    w.backend_combo.setCurrentIndex(w.backend_combo.findData("local"))
+    w.scan_step.backend_combo.setCurrentIndex(w.scan_step.backend_combo.findData("local"))
     assert w.server is None and w.model.deformation is d
     local = tmp_path / "local.nrrd"
     wait(qtbot, w, w.export(local), timeout=120_000)
@@ -196,17 +196,17 @@ def test_dock_segments_on_the_server_and_its_slider_simplifies_there(make_napari
     assert type(w.tree).__name__ == "_ServerTree" and "segmentation" in w._remote
     np.testing.assert_array_equal(w.features.labels, tree.simplify(5).labels)
     np.testing.assert_array_equal(np.asarray(w._features_layer.data), tree.simplify(5).labels)
-    assert w.count_slider.isEnabled() and w.count_slider.maximum() == min(100, tree.n_maxima)
-    assert w.table.rowCount() == 5
+    assert w.segment_step.count_slider.isEnabled() and w.segment_step.count_slider.maximum() == min(100, tree.n_maxima)
+    assert w.segment_step.table.rowCount() == 5
 
     # the slider simplifies on the server; during a drag only the latest value is asked for
     for k in (2, 4, 3):
-        w.count_slider.setValue(k)
+        w.segment_step.count_slider.setValue(k)
     qtbot.waitUntil(lambda: w.idle and w.features.k == 3, timeout=30_000)
     f3 = tree.simplify(3)
     np.testing.assert_array_equal(w.features.labels, f3.labels)
     np.testing.assert_array_equal(np.asarray(w._features_layer.data), f3.labels)
-    assert w.table.rowCount() == 3
+    assert w.segment_step.table.rowCount() == 3
 
     # a click picks the feature under it (the local tree's label there); shift-click adds another
     vox = fish_voxel(fish)
@@ -219,7 +219,8 @@ def test_dock_segments_on_the_server_and_its_slider_simplifies_there(make_napari
     at = np.asarray(other.max_position_full) * np.asarray(w.volume.spacing) + np.asarray(w.volume.origin)
     click(w._features_layer, at, shift=True, viewer=viewer)
     assert w.selected == sorted([fid, other.id])
-    selected_rows = {w.table.item(i.row(), 0).data(Qt.ItemDataRole.UserRole) for i in w.table.selectedItems()}
+    table = w.segment_step.table
+    selected_rows = {table.item(i.row(), 0).data(Qt.ItemDataRole.UserRole) for i in table.selectedItems()}
     assert selected_rows == {fid, other.id}
     click(w._features_layer, world, viewer=viewer)
     assert w.selected == [fid]
@@ -268,13 +269,13 @@ def test_dock_registers_a_scan_the_server_holds_instead_of_uploading_it(make_nap
     wait(qtbot, w, w.open_scan(scan))  # this computer opens the same file for display
     _connect(qtbot, w, srv.address, str(token_file))
 
-    w.server_path.setText("scans/half.nrrd")  # not this scan: refused in one line
+    w.scan_step.server_path.setText("scans/half.nrrd")  # not this scan: refused in one line
     job = w.segment()
     qtbot.waitUntil(lambda: job.done, timeout=30_000)
     text = w.status.text()
     assert text.startswith("error: the server's scans/half.nrrd holds (40,") and "\n" not in text, text
 
-    w.server_path.setText("scans/fish_reg.nrrd")
+    w.scan_step.server_path.setText("scans/fish_reg.nrrd")
     wait(qtbot, w, w.segment())
     qtbot.waitUntil(lambda: w.idle, timeout=30_000)
     with w.server.client() as c:

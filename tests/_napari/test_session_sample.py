@@ -53,7 +53,7 @@ def test_a_session_saved_from_the_sample_tank_reopens(make_napari_viewer, qtbot,
     wait(qtbot, w, w.save_session(session))
     scan_file = tmp_path / "tank fish.scan.ome.zarr"
     assert session.exists() and scan_file.is_dir(), sorted(p.name for p in tmp_path.iterdir())
-    assert "tank fish.scan.ome.zarr" in w.session_info.text()
+    assert "tank fish.scan.ome.zarr" in w.session_step.session_info.text()
     recorded = load_session(session)
     assert recorded.source.path == str(scan_file.absolute())
     written = open_volume(scan_file)

@@ -77,7 +77,7 @@ def test_no_long_stall_during_skeleton_and_export(make_napari_viewer, qtbot, tmp
 
     skeleton, shown1, n1 = longest_stall(qtbot, w.run_skeleton)
     assert w.model.deformation is not None, w.status.text()
-    w.spacing_box.setValue(0.5)  # 8 times the voxels of the default spacing: a longer export
+    w.export_step.spacing_box.setValue(0.5)  # 8 times the voxels of the default spacing: a longer export
     export, shown2, n2 = longest_stall(qtbot, lambda: w.export(tmp_path / "straight.ome.zarr"))
     assert w.exported is not None, w.status.text()
     print(f"\nlongest UI stall: skeleton solve {1000 * skeleton:.0f} ms ({n1} ticks; showing the result "

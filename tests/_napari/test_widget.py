@@ -67,29 +67,30 @@ def test_scan_step_lists_layers_and_warns_of_missing_spacing(make_napari_viewer)
     w = UnwindWidget(viewer)
     plain = viewer.add_image(rod(), name="plain")
     scaled = viewer.add_image(rod(), name="scaled", scale=(1.5, 1.0, 1.0), units="micrometer")
-    names = [w.layer_combo.itemText(i) for i in range(w.layer_combo.count())]
+    names = [w.scan_step.layer_combo.itemText(i) for i in range(w.scan_step.layer_combo.count())]
     assert names[1:] == ["plain", "scaled"]
-    w.layer_combo.setCurrentIndex(1)
-    w.layer_combo.activated.emit(1)
-    assert w.scan_layer is plain and not w.scan_warning.isHidden()
-    assert "Spacing missing" in w.scan_warning.text()
+    w.scan_step.layer_combo.setCurrentIndex(1)
+    w.scan_step.layer_combo.activated.emit(1)
+    assert w.scan_layer is plain and not w.scan_step.scan_warning.isHidden()
+    assert "Spacing missing" in w.scan_step.scan_warning.text()
     w.use_layer(scaled)
-    assert w.scan_layer is scaled and w.scan_warning.isHidden()
-    assert "1.5 x 1 x 1" in w.scan_info.text()
+    assert w.scan_layer is scaled and w.scan_step.scan_warning.isHidden()
+    assert "1.5 x 1 x 1" in w.scan_step.scan_info.text()
     viewer.layers.remove(plain)
-    names = [w.layer_combo.itemText(i) for i in range(w.layer_combo.count())]
+    names = [w.scan_step.layer_combo.itemText(i) for i in range(w.scan_step.layer_combo.count())]
     assert names[1:] == ["scaled"]
 
 
 def test_every_step_says_what_it_needs(make_napari_viewer):
     viewer = make_napari_viewer()
     w = UnwindWidget(viewer)
-    assert "Needs a scan" in w.segment_need.text() and not w.segment_button.isEnabled()
-    assert "Needs a selected feature" in w.ends_need.text() and not w.suggest_button.isEnabled()
-    assert "Needs a scan and a deformation" in w.export_need.text() and not w.export_button.isEnabled()
+    assert "Needs a scan" in w.segment_step.segment_need.text() and not w.segment_step.segment_button.isEnabled()
+    assert "Needs a selected feature" in w.ends_step.ends_need.text() and not w.ends_step.suggest_button.isEnabled()
+    export = w.export_step
+    assert "Needs a scan and a deformation" in export.export_need.text() and not export.export_button.isEnabled()
     w.export("somewhere.nrrd")
     assert w.status.text() == "error: there is no scan yet: pick an Image layer or open a file (step 1)"
-    rows = [w.shortcuts_table.item(i, 0).text() for i in range(w.shortcuts_table.rowCount())]
+    rows = [w.shortcuts_step.table.item(i, 0).text() for i in range(w.shortcuts_step.table.rowCount())]
     assert rows[: len(DOCK_SHORTCUTS)] == [k for k, _ in DOCK_SHORTCUTS]
 
 
@@ -128,11 +129,11 @@ def test_cancel_stops_the_skeleton(rod_dock, qtbot):
     qtbot.waitUntil(lambda: w.idle, timeout=30_000)
     w.select_features([int(w.features.labels[24, 21, 16])])
     job = w.run_skeleton()
-    assert w.skeleton_cancel.isEnabled()
+    assert w.skeleton_step.skeleton_cancel.isEnabled()
     w.cancel()
     wait(qtbot, job)
     assert w.status.text() == "computing the skeleton was cancelled"
-    assert w.model.deformation is None and not w.skeleton_cancel.isEnabled()
+    assert w.model.deformation is None and not w.skeleton_step.skeleton_cancel.isEnabled()
 
 
 def test_saving_a_session_of_a_scan_in_memory_writes_the_scan_beside_it(make_napari_viewer, qtbot, tmp_path):

@@ -75,20 +75,20 @@ def test_whole_workflow(make_napari_viewer, qtbot, tmp_path, fish, scan_path):
     wait(qtbot, w, w.open_scan(scan_path))
     assert w.volume.shape == fish.volume.shape
     assert w.volume.spacing == pytest.approx(fish.spacing)
-    assert "micrometer" in w.scan_info.text() and w.scan_warning.isHidden()
+    assert "micrometer" in w.scan_step.scan_info.text() and w.scan_step.scan_warning.isHidden()
 
     # segment: the tree once, then live re-simplification (the same tree)
     wait(qtbot, w, w.segment())
     qtbot.waitUntil(lambda: w.idle, timeout=30_000)
     tree = w.tree
-    w.count_slider.setValue(2)
+    w.segment_step.count_slider.setValue(2)
     qtbot.waitUntil(lambda: w.idle and w.features.k == 2, timeout=30_000)
     assert w.tree is tree
     for k in (3, 4, 5):  # a slider drag: only the latest value needs computing
-        w.count_slider.setValue(k)
+        w.segment_step.count_slider.setValue(k)
     qtbot.waitUntil(lambda: w.idle and w.features.k == 5, timeout=30_000)
     assert w.tree is tree
-    assert w.table.rowCount() == 5
+    assert w.segment_step.table.rowCount() == 5
 
     # pick the fish in 3D (a ray along axis0 through a fish voxel), then in 2D; shift-click adds
     vox = fish_voxel(fish)
@@ -127,7 +127,7 @@ def test_whole_workflow(make_napari_viewer, qtbot, tmp_path, fish, scan_path):
     d0 = w.model.deformation
     assert d0 is not None
     assert abs(d0.length - fish.length) < 0.2 * fish.length
-    assert "min Jacobian" in w.skeleton_report.toPlainText()
+    assert "min Jacobian" in w.skeleton_step.skeleton_report.toPlainText()
 
     # an edit through the model moves the keyframe by the amount, in its own frame; undo restores bit for bit
     w.model.select_keyframe(1)
