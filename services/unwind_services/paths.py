@@ -12,7 +12,7 @@ import os
 import re
 from pathlib import Path, PurePosixPath
 
-from napari_unwind.errors import InvalidInputError
+from napari_unwind.errors import InvalidInputError, UnwindError
 
 from .errors import PermissionDeniedError
 
@@ -91,3 +91,77 @@ class DataRoot:
     def scrub(self, message: str) -> str:
         """A message without the server's absolute paths (clients see paths relative to the data root)."""
         return message.replace(str(self.root) + os.sep, "").replace(str(self.root), ".")
+
+
+class RootLock:
+    """One server per data root: an exclusive ``flock`` on ``<root>/.unwind/server.lock``, taken before the server
+    touches its database or its jobs, held for the server's life and released by the kernel when the process ends
+    however it ends (``kill -9`` included). The file names the holder (pid, host, address, start time) so that a
+    second server refuses in one line that says who holds the root.
+
+    A forked child (a job worker) drops its copy of the descriptor at once, so a worker that outlives the server
+    for a moment never holds the root for it.
+    """
+
+    NAME = "server.lock"
+
+    def __init__(self, root: DataRoot):
+        import fcntl
+        import json
+        import socket
+        import time
+
+        self.path = root.private / self.NAME
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                holder = json.loads(os.pread(fd, 4096, 0) or b"{}")
+            except (ValueError, OSError):
+                holder = {}
+            os.close(fd)
+            who = ", ".join(f"{k} {holder[k]}" for k in ("pid", "host", "address", "since") if holder.get(k))
+            raise UnwindError(f"another napari-unwind server ({who or 'holder unknown'}) serves the data root "
+                              f"{root.root}: stop it first, or give this one another --data-root") from None
+        except BaseException:
+            os.close(fd)
+            raise
+        self._fd: int | None = fd
+        self._holder = {"pid": os.getpid(), "host": socket.gethostname(),
+                        "since": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+        self._write()
+        os.register_at_fork(after_in_child=self._forget)
+
+    def _write(self) -> None:
+        import json
+
+        if self._fd is None:
+            return
+        data = json.dumps(self._holder).encode() + b"\n"
+        os.ftruncate(self._fd, 0)
+        os.pwrite(self._fd, data, 0)
+
+    def describe(self, address: str) -> None:
+        """Record the address the server listens on (after it is bound)."""
+        self._holder["address"] = address
+        self._write()
+
+    def _forget(self) -> None:
+        if self._fd is not None:
+            try:
+                os.close(self._fd)
+            except OSError:
+                pass
+            self._fd = None
+
+    def release(self) -> None:
+        """Give the root up (the server stopped); the file stays, empty of a holder."""
+        if self._fd is None:
+            return
+        try:
+            os.ftruncate(self._fd, 0)
+        except OSError:
+            pass
+        self._forget()
+

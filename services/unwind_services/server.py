@@ -23,7 +23,7 @@ from .auth import TokenAuth
 from .catalog import Catalog, Limits
 from .interceptor import ServiceInterceptor
 from .jobs import JobManager
-from .paths import DataRoot
+from .paths import DataRoot, RootLock
 from .servicers import SERVICES
 from .store import Store
 
@@ -135,40 +135,47 @@ class UnwindServer:
             raise InvalidInputError(f"listening on {config.listen} (beyond this machine) needs --tokens FILE: "
                                     "without tokens anyone who reaches the port could use the server")
         self.root = DataRoot(config.data_root)
-        self.store = Store(self.root.database)
-        self.catalog = Catalog(self.store, self.root, config.limits)
-        self.auth = TokenAuth(config.tokens)
-        self.jobs = JobManager(self.catalog, workers=config.workers, scheduler=config.scheduler,
-                               imports=config.imports or None)
-        size = config.limits.max_message_bytes or 64 * 1024**2
-        self.server = grpc.server(
-            ThreadPoolExecutor(max_workers=config.grpc_threads, thread_name_prefix="unwind-rpc"),
-            interceptors=[ServiceInterceptor(self.auth, self.root)],
-            options=[("grpc.max_receive_message_length", size), ("grpc.max_send_message_length", size),
-                     ("grpc.so_reuseport", 0)],
-            maximum_concurrent_rpcs=config.grpc_threads * 4,
-        )
-        self.health = health.HealthServicer(experimental_non_blocking=True)
-        health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
-        full_names = []
-        for name in names:
-            full, factory, add = SERVICES[name]
-            add(factory(self.catalog, self.jobs), self.server)
-            full_names.append(full)
-        self.service_names = full_names
-        reflection.enable_server_reflection(
-            full_names + [health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME],
-            self.server)
-        address = f"{config.listen}:{config.port}" if ":" not in config.listen else f"[{config.listen}]:{config.port}"
-        if config.tls_cert is not None:
-            creds = grpc.ssl_server_credentials([(Path(config.tls_key).read_bytes(),
-                                                  Path(config.tls_cert).read_bytes())])
-            self.port = self.server.add_secure_port(address, creds)
-        else:
-            self.port = self.server.add_insecure_port(address)
-        if not self.port:
-            raise InvalidInputError(f"cannot listen on {address} (in use, or not an address of this machine)")
-        self.address = f"{config.listen}:{self.port}"
+        self.lock = RootLock(self.root)  # before the database: a second server must not touch the jobs
+        try:
+            self.store = Store(self.root.database)
+            self.catalog = Catalog(self.store, self.root, config.limits)
+            self.auth = TokenAuth(config.tokens)
+            self.jobs = JobManager(self.catalog, workers=config.workers, scheduler=config.scheduler,
+                                   imports=config.imports or None)
+            size = config.limits.max_message_bytes or 64 * 1024**2
+            self.server = grpc.server(
+                ThreadPoolExecutor(max_workers=config.grpc_threads, thread_name_prefix="unwind-rpc"),
+                interceptors=[ServiceInterceptor(self.auth, self.root)],
+                options=[("grpc.max_receive_message_length", size), ("grpc.max_send_message_length", size),
+                         ("grpc.so_reuseport", 0)],
+                maximum_concurrent_rpcs=config.grpc_threads * 4,
+            )
+            self.health = health.HealthServicer(experimental_non_blocking=True)
+            health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
+            full_names = []
+            for name in names:
+                full, factory, add = SERVICES[name]
+                add(factory(self.catalog, self.jobs), self.server)
+                full_names.append(full)
+            self.service_names = full_names
+            reflection.enable_server_reflection(
+                full_names + [health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME],
+                self.server)
+            host = config.listen if ":" not in config.listen else f"[{config.listen}]"
+            address = f"{host}:{config.port}"
+            if config.tls_cert is not None:
+                creds = grpc.ssl_server_credentials([(Path(config.tls_key).read_bytes(),
+                                                      Path(config.tls_cert).read_bytes())])
+                self.port = self.server.add_secure_port(address, creds)
+            else:
+                self.port = self.server.add_insecure_port(address)
+            if not self.port:
+                raise InvalidInputError(f"cannot listen on {address} (in use, or not an address of this machine)")
+            self.address = f"{config.listen}:{self.port}"
+            self.lock.describe(self.address)
+        except BaseException:
+            self.lock.release()
+            raise
         self.dask: LocalDask | None = None
         self._stopped = threading.Event()
 
@@ -200,6 +207,7 @@ class UnwindServer:
             self.jobs.start()
         except BaseException:
             self._close_scheduler()
+            self.lock.release()
             raise
         self.server.start()
         for name in ["", *self.service_names]:
@@ -217,6 +225,7 @@ class UnwindServer:
         stopping.wait()
         self._close_scheduler()
         self.store.close()
+        self.lock.release()
         self._stopped.set()
 
     def _close_scheduler(self) -> None:
