@@ -9,11 +9,10 @@ import subprocess
 import sys
 
 import pytest
+from _servers import ROOT, ServerProcess
 
 from napari_unwind.client import Client
 from napari_unwind.errors import UnwindError
-
-from _servers import ROOT, ServerProcess
 
 
 def _serve(root, timeout=120):
