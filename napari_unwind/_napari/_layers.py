@@ -1,6 +1,6 @@
 """Volumes as napari layer-data tuples (plain data and dicts, no napari import at module level: the core stays
-Qt-free), the 3D stand-in of a Labels layer (:class:`LabelsIn3D`), and where the straight specimen is placed and
-framed (:func:`beside`, :func:`frame_side_view`)."""
+Qt-free), the 3D stand-ins of a Labels layer (:class:`LabelsIn3D`) and of a large Image (:class:`ImageIn3D`), and
+where the straight specimen is placed and framed (:func:`beside`, :func:`frame_side_view`)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ import numpy as np
 
 from ..io import Volume
 
-__all__ = ["image_layer", "labels_layer", "labels_surface", "LabelsIn3D", "labels_in_3d", "in_3d"]
+__all__ = ["image_layer", "labels_layer", "labels_surface", "LabelsIn3D", "labels_in_3d", "ImageIn3D", "image_in_3d",
+           "block_reduce", "coarse_step", "in_3d"]
 
 
 def _geometry(spacing: Any, unit: str | None, origin: Any = (0.0, 0.0, 0.0)) -> dict[str, Any]:
@@ -240,13 +241,180 @@ def labels_in_3d(viewer: Any, layer: Any, *, step: int = SURFACE_3D_STEP) -> Lab
     return helper
 
 
+# -- a large Image in 3D: napari's ray caster on a block-reduced copy -----------------------------------------------
+# On Mesa llvmpipe a ray-cast frame costs (pixels covered) x (samples along a ray): the samples follow the texture's
+# side along the view (napari's first 3D view looks along axis0, the tank's long side), and the texture's size
+# matters far less (an 8x smaller copy of the tank at the same samples per ray draws no faster). So the copy is
+# bounded by its longest side, IMAGE_3D_MAX_SIDE samples (about a 128^3 cube, also the texture napari's
+# interactive examples ray cast), and the stand-in starts above IMAGE_3D_MIN_VOXELS (2M voxels, that cube) so
+# images small enough to ray cast fast stay exactly as napari draws them. The sample tank's scan (440 x 148 x 148,
+# 9.6M voxels) took ~4 s to switch and 1.2 s a frame; its copy at step 4 (110 x 37 x 37) see benchmarks/RESULTS.md.
+IMAGE_3D_MIN_VOXELS = 2_000_000
+IMAGE_3D_MAX_SIDE = 128
+
+
+def coarse_step(shape: Any, min_voxels: int = IMAGE_3D_MIN_VOXELS, max_side: int = IMAGE_3D_MAX_SIDE) -> int:
+    """The block side of the 3D copy of a volume of ``shape``: 1 (none) when it has at most ``min_voxels`` voxels,
+    else the smallest integer step that brings the copy's longest side to ``max_side`` or less and its voxel count
+    to ``min_voxels`` or less (the same step on every axis)."""
+    shape = [max(int(n), 1) for n in shape]
+    if int(np.prod(shape, dtype=np.int64)) <= min_voxels:
+        return 1
+    step = max(2, -(-max(shape) // max(int(max_side), 1)))
+    while int(np.prod([-(-n // step) for n in shape], dtype=np.int64)) > min_voxels and step < max(shape):
+        step += 1
+    return step
+
+
+def block_reduce(data: Any, step: int, how: str = "mean") -> np.ndarray:
+    """``data`` reduced over ``step``-sided blocks (``how``: "mean", "max" or "min"); the last block on an axis is
+    the partial one that is left (no padding), and the result keeps the data's dtype."""
+    out = np.asarray(data)
+    dtype = out.dtype
+    if step <= 1:
+        return out
+    for axis, n in enumerate(out.shape):
+        starts = np.arange(0, n, step)
+        if how == "max":
+            out = np.maximum.reduceat(out, starts, axis=axis)
+        elif how == "min":
+            out = np.minimum.reduceat(out, starts, axis=axis)
+        else:
+            acc = np.float32 if dtype.kind == "f" and dtype.itemsize <= 4 else np.float64
+            sums = np.add.reduceat(out.astype(acc, copy=False), starts, axis=axis)
+            counts = np.diff(np.append(starts, n)).astype(acc)
+            out = sums / counts.reshape([-1 if a == axis else 1 for a in range(out.ndim)])
+    if how == "mean" and dtype.kind in "iub":
+        info = np.iinfo(dtype) if dtype.kind != "b" else None
+        out = np.rint(out)
+        if info is not None:
+            out = np.clip(out, info.min, info.max)
+    return out.astype(dtype, copy=False)
+
+
+# what stands for a block, by rendering: its maximum where napari shows a maximum intensity projection (thin bright
+# structures stay), its minimum for the minimum one, its mean otherwise (iso surfaces, translucent, average)
+_REDUCE_BY_RENDERING = {"mip": "max", "attenuated_mip": "max", "minip": "min"}
+
+
+class ImageIn3D:
+    """Draws a large 3D Image layer in 3D from a block-reduced copy, with napari's own ray caster.
+
+    napari ray casts an Image layer's whole volume in 3D; on software GL (Mesa llvmpipe) the sample tank's scan
+    (440 x 148 x 148) took about 4 s to switch to 3D and 1.2 s a frame. Here, while the layer is shown in 3D and
+    its 3D slice has more than ``min_voxels`` voxels, napari's volume node is given a copy reduced over
+    ``step``-sided blocks (:func:`coarse_step`: at most ``max_side`` voxels a side; :func:`block_reduce`: the
+    block's maximum for the MIP renderings, its minimum for minip, its mean otherwise), and the layer's
+    ``tile2data`` transform scales it by ``step`` with the block centres where they belong
+    (``_private.coarse_3d_texture``). No layer is added: the layer's contrast limits, colormap, gamma, rendering,
+    opacity, blending, visibility, attenuation, iso threshold, scale and translate apply to the copy through
+    napari itself, the selection and the layer list are untouched, and clicks read the layer's full data
+    (napari's ``get_value`` reads the slice, not the texture). In 2D napari draws the layer exactly as before
+    (each new slice resets ``tile2data``). Multiscale layers are left alone (napari draws their coarsest level).
+
+    Known differences from the full volume: attenuated MIP attenuates per sample, so fewer samples attenuate less;
+    a bounding-box overlay of the layer is drawn in the copy's frame. ``close()`` (also when the layer is removed)
+    gives napari its own upload back.
+    """
+
+    def __init__(self, viewer: Any, layer: Any, *, min_voxels: int = IMAGE_3D_MIN_VOXELS,
+                 max_side: int = IMAGE_3D_MAX_SIDE) -> None:
+        from . import _private
+
+        self.viewer = viewer
+        self.layer = layer
+        self.min_voxels = int(min_voxels)
+        self.max_side = int(max_side)
+        self.builds = 0                 # block reductions run (tests)
+        self.step = 1                   # the step of the copy last uploaded (1: the full slice)
+        self._cache: tuple[Any, int, str, np.ndarray] | None = None
+        self._closed = False
+        self._vl = _private.coarse_3d_texture(viewer, layer, self._coarsen)
+        layer.events.rendering.connect(self._on_rendering)
+        viewer.layers.events.removed.connect(self._on_removed)
+
+    def _how(self) -> str:
+        return _REDUCE_BY_RENDERING.get(str(getattr(self.layer.rendering, "value", self.layer.rendering)), "mean")
+
+    def _coarsen(self, data: Any) -> tuple[np.ndarray, tuple[int, ...]] | None:
+        step = coarse_step(data.shape, self.min_voxels, self.max_side)
+        if step <= 1 or self._closed:
+            self.step = 1
+            return None
+        how = self._how()
+        cache = self._cache
+        if cache is not None and cache[0] is data and cache[1] == step and cache[2] == how:
+            small = cache[3]
+        else:
+            small = block_reduce(data, step, how)
+            self.builds += 1
+            self._cache = (data, step, how, small)
+        self.step = step
+        return small, (step,) * 3
+
+    @property
+    def active(self) -> bool:
+        """napari draws the layer from the coarse copy (in 3D, over the budget)."""
+        from . import _private
+
+        return not self._closed and self.step > 1 and _private.ndisplay_of(self.layer) == 3
+
+    def _on_rendering(self, event: Any = None) -> None:
+        cache = self._cache
+        if self.active and cache is not None and cache[2] != self._how():
+            from . import _private
+
+            _private.refresh_3d_texture(self._vl)
+
+    def _on_removed(self, event: Any) -> None:
+        if event.value is self.layer:
+            self.close()
+
+    def close(self) -> None:
+        """Disconnect; napari uploads the layer's full slice again (at once when it is shown in 3D)."""
+        if self._closed:
+            return
+        self._closed = True
+        self.layer.events.rendering.disconnect(self._on_rendering)
+        self.viewer.layers.events.removed.disconnect(self._on_removed)
+        self._cache = None
+        self.step = 1
+        from . import _private
+
+        if self.layer in self.viewer.layers:
+            _private.restore_3d_texture(self._vl)
+        else:
+            self._vl.__dict__.pop("downsample_texture", None)
+
+
+def image_in_3d(viewer: Any, layer: Any, *, min_voxels: int = IMAGE_3D_MIN_VOXELS,
+                max_side: int = IMAGE_3D_MAX_SIDE) -> ImageIn3D | None:
+    """The hook for a 3D grey-value Image layer: an :class:`ImageIn3D` for it (None for RGB, multiscale or 2D
+    layers, and on a viewer without a canvas); calling it again for the same layer returns the first one."""
+    if getattr(layer, "rgb", False) or getattr(layer, "multiscale", False) or getattr(layer, "ndim", 0) < 3:
+        return None
+    existing = getattr(layer, "_napari_unwind_3d", None)
+    if isinstance(existing, ImageIn3D) and not existing._closed:
+        return existing
+    try:
+        helper = ImageIn3D(viewer, layer, min_voxels=min_voxels, max_side=max_side)
+    except (KeyError, AttributeError):
+        return None  # not on a canvas (a headless viewer): nothing is ray cast
+    object.__setattr__(layer, "_napari_unwind_3d", helper)
+    return helper
+
+
 def in_3d(viewer: Any, layer: Any) -> Any:
     """The hook the dock calls for each layer it adds or takes as the scan: a 3D stand-in where napari's own 3D
-    drawing is too slow on software GL (Labels: :func:`labels_in_3d`); None for a layer drawn as it is."""
-    from napari.layers import Labels
+    drawing is too slow on software GL (Labels: :func:`labels_in_3d`; a 3D grey-value Image: :func:`image_in_3d`,
+    which draws from a coarse copy when the volume has more than ``IMAGE_3D_MIN_VOXELS`` voxels); None for a layer
+    drawn as it is."""
+    from napari.layers import Image, Labels
 
     if isinstance(layer, Labels):
         return labels_in_3d(viewer, layer)
+    if isinstance(layer, Image):
+        return image_in_3d(viewer, layer)
     return None
 
 

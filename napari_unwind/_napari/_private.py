@@ -184,3 +184,72 @@ def _fix_uniform_arrays(node: VolumeVisual) -> None:
             glir_program = objects.get(program.id)
             if glir_program is not None:
                 glir_program._handles.pop(name, None)
+
+
+# -- a coarse 3D texture for a large Image layer (``_layers.ImageIn3D``) -------------------------------------------
+# napari's vispy layer hands the layer's 3D slice to ``downsample_texture(data, max_size)`` just before it uploads it
+# to the volume node; napari itself strides there when a side exceeds GL_MAX_3D_TEXTURE_SIZE and records the stride
+# in the layer's ``tile2data`` transform (which each new slice resets to the identity, so 2D is untouched). The
+# names used: ``canvas.layer_to_visual[layer]``, its ``downsample_texture`` and ``_on_matrix_change`` /
+# ``_on_data_change``, and ``layer._transforms['tile2data']`` (an Affine), ``layer._slice_input``.
+def vispy_layer(viewer: Any, layer: Any) -> Any:
+    """napari's vispy layer of ``layer`` (KeyError / AttributeError when the viewer has no canvas for it)."""
+    return viewer.window._qt_viewer.canvas.layer_to_visual[layer]
+
+
+def ndisplay_of(layer: Any) -> int:
+    """The number of displayed dimensions of the layer's current slice (napari's own, not the viewer's dims)."""
+    return int(layer._slice_input.ndisplay)
+
+
+def coarse_3d_texture(viewer: Any, layer: Any, coarsen: Any) -> Any:
+    """From now on napari uploads ``coarsen(data)`` to ``layer``'s 3D volume node instead of its 3D slice ``data``.
+
+    ``coarsen(data)`` returns ``(small, steps)`` -- ``small[i]`` stands for the block ``data[i*s:(i+1)*s]`` on each
+    axis (``steps`` per axis of ``data``) -- or None to upload ``data`` as napari would. The layer's ``tile2data``
+    transform gets scale ``steps`` and translate ``(steps - 1) / 2`` (a block's centre), so napari places and
+    clips the coarse volume itself and every layer property (contrast limits, colormap, rendering, ...) applies as
+    before. The layer's data, its slice and its picking (``get_value`` reads the slice) are untouched; 2D slices
+    reset ``tile2data`` to the identity. Returns the vispy layer; :func:`restore_3d_texture` undoes this.
+    """
+    vl = vispy_layer(viewer, layer)
+    original = type(vl).downsample_texture.__get__(vl)
+
+    def downsample_texture(data: Any, max_texture_size: Any) -> Any:
+        if ndisplay_of(layer) == 3 and not layer.multiscale and getattr(data, "ndim", 0) == 3:
+            out = coarsen(data)
+            if out is not None:
+                small, steps = out
+                displayed = list(layer._slice_input.displayed)
+                scale = np.ones(layer.ndim)
+                translate = np.zeros(layer.ndim)
+                for i, d in enumerate(displayed):
+                    scale[d] = float(steps[i])
+                    translate[d] = (float(steps[i]) - 1.0) / 2.0
+                tile2data = layer._transforms["tile2data"]
+                tile2data.scale = scale
+                tile2data.translate = translate
+                vl._on_matrix_change()
+                data = small
+        return original(data, max_texture_size)
+
+    _set(vl, "downsample_texture", downsample_texture)
+    refresh_3d_texture(vl)
+    return vl
+
+
+def restore_3d_texture(vl: Any) -> None:
+    """Undo :func:`coarse_3d_texture`: napari's own ``downsample_texture`` again (the full slice on the next draw)."""
+    if "downsample_texture" in vl.__dict__:
+        object.__delattr__(vl, "downsample_texture")
+        refresh_3d_texture(vl)
+
+
+def refresh_3d_texture(vl: Any) -> None:
+    """Upload the layer's 3D slice again (through ``downsample_texture``) when it is shown in 3D."""
+    layer = vl.layer
+    if ndisplay_of(layer) == 3:
+        if not layer.multiscale:
+            layer._transforms["tile2data"].scale = np.ones(layer.ndim)
+            layer._transforms["tile2data"].translate = np.zeros(layer.ndim)
+        vl._on_data_change()

@@ -227,3 +227,184 @@ def test_the_live_straight_view_is_seen_from_its_side_and_framed(make_napari_vie
     assert abs(np.degrees(np.arccos(abs(view @ long_axis) / np.linalg.norm(view))) - 90) <= 10
     img = shot(viewer)
     assert img.max() > 0
+
+
+# -- a large Image in 3D: napari's ray caster on a block-reduced copy (ImageIn3D) ----------------------------------
+BIG = (152, 128, 120)      # 2.33M voxels: over IMAGE_3D_MIN_VOXELS
+BLOBS = [((33.5, 41.5, 61.5), 9.0, 1.0), ((97.5, 81.5, 45.5), 7.0, 0.7), ((121.5, 33.5, 81.5), 5.0, 0.85)]
+
+
+def blobs(shape=BIG):
+    """Bright balls on a dark ground, each centred on a corner shared by 4-voxel blocks (centre = 4k + 1.5), so a
+    block reduction keeps it symmetric about its centre and a misplaced copy shows as a shifted ball."""
+    idx = np.indices(shape, dtype=np.float32)
+    vol = np.zeros(shape, np.float32)
+    for centre, radius, value in BLOBS:
+        r2 = sum((idx[a] - centre[a]) ** 2 for a in range(3))
+        vol = np.maximum(vol, value * np.clip(1.5 - np.sqrt(r2) / radius, 0.0, 1.0))
+    return vol
+
+
+def look_along_axis2(viewer, shape, scale, translate, zoom):
+    """Orthographic view along axis2 (rows = axis1 downwards, columns = axis0), centred on the volume."""
+    camera = viewer.scene.camera
+    camera.perspective = 0
+    camera.set_view_direction((0.0, 0.0, 1.0), up_direction=(0.0, -1.0, 0.0))
+    centre = np.asarray(translate) + (np.asarray(shape) - 1) / 2 * np.asarray(scale)
+    camera.center = tuple(centre)
+    camera.zoom = zoom
+    return centre
+
+
+def ball_centres(img, centre, zoom, scale, translate):
+    """Intensity-weighted centre (in data voxels along axis0, axis1) of each BLOBS ball in a screenshot's grey
+    values, each over a window around where the ball should be."""
+    grey = img.mean(axis=2)
+    h, w = grey.shape
+    out = []
+    for (c0, c1, _), radius, _ in BLOBS:
+        col = (translate[0] + c0 * scale[0] - centre[0]) * zoom + w / 2 - 0.5
+        row = (translate[1] + c1 * scale[1] - centre[1]) * zoom + h / 2 - 0.5
+        half = 2.0 * radius * max(scale[:2]) * zoom
+        r0, r1 = int(max(row - half, 0)), int(min(row + half, h))
+        q0, q1 = int(max(col - half, 0)), int(min(col + half, w))
+        win = grey[r0:r1, q0:q1]
+        rows, cols = np.mgrid[r0:r1, q0:q1]
+        m = win.sum()
+        rc, cc = (rows * win).sum() / m, (cols * win).sum() / m
+        out.append((((cc + 0.5 - w / 2) / zoom + centre[0] - translate[0]) / scale[0],
+                    ((rc + 0.5 - h / 2) / zoom + centre[1] - translate[1]) / scale[1]))
+    return np.asarray(out)
+
+
+def test_a_large_image_is_ray_cast_from_a_coarse_copy_that_looks_like_the_full_volume(make_napari_viewer, qtbot):
+    from napari_unwind._napari import _private
+    from napari_unwind._napari._layers import ImageIn3D, image_in_3d, in_3d
+
+    viewer = _viewer(make_napari_viewer)
+    vol = blobs()
+    scale, translate = (1.5, 1.0, 1.0), (5.0, -3.0, 2.0)
+    layer = viewer.add_image(vol, name="scan", scale=scale, translate=translate, contrast_limits=(0.0, 1.0),
+                             colormap="gray")
+    other = viewer.add_labels(np.zeros((8, 8, 8), np.uint8), name="other")
+    viewer.layers.selection.active = layer
+    names = [x.name for x in viewer.layers]
+
+    # the full volume, napari's own drawing, as the reference
+    viewer.dims.ndisplay = 3
+    zoom = 2.5
+    centre = look_along_axis2(viewer, BIG, scale, translate, zoom)
+    full = shot(viewer)
+    node = _private.volume_node(viewer, layer)
+    assert node._last_data.shape == BIG
+
+    # a step-4 copy (max_side 40): 38 x 32 x 30 voxels, placed by napari through the layer's tile2data
+    hook = image_in_3d(viewer, layer, max_side=40)
+    assert isinstance(hook, ImageIn3D) and in_3d(viewer, layer) is hook
+    assert hook.active and hook.step == 4
+    assert node._last_data.shape == (38, 32, 30)
+    coarse = shot(viewer)
+    assert [x.name for x in viewer.layers] == names                  # no layer added
+    assert viewer.layers.selection.active is layer and set(viewer.layers.selection) == {layer}
+    grey_full, grey_coarse = full.mean(axis=2), coarse.mean(axis=2)
+    assert grey_full.max() > 200
+    corr = np.corrcoef(grey_full.ravel(), grey_coarse.ravel())[0, 1]
+    assert corr > 0.9, corr
+    # each ball where napari draws it from the full volume (to a fifth of a block), and where the data has it
+    got, ref = ball_centres(coarse, centre, zoom, scale, translate), ball_centres(full, centre, zoom, scale, translate)
+    np.testing.assert_allclose(got, ref, atol=0.8)
+    np.testing.assert_allclose(ref, [b[0][:2] for b in BLOBS], atol=0.5)
+    # clicks read the full data, not the copy
+    world = np.asarray(translate) + np.asarray(BLOBS[2][0]) * np.asarray(scale)
+    assert layer.get_value(tuple(world), view_direction=(0.0, 0.0, 1.0), dims_displayed=[0, 1, 2],
+                           world=True) == pytest.approx(vol[121, 33, 81].item())
+    assert layer.data is vol
+
+    # the layer's properties apply to the copy (napari's own node draws it)
+    layer.colormap = "red"
+    red = shot(viewer)
+    assert red[..., 0].max() > 200 and red[..., 1:].max() < 30
+    layer.colormap = "gray"
+    layer.contrast_limits = (0.0, 4.0)
+    dim = shot(viewer).mean(axis=2)
+    assert 0.15 < dim.max() / grey_coarse.max() < 0.35
+    layer.contrast_limits = (0.0, 1.0)
+    layer.visible = False
+    assert shot(viewer).max() < 10
+    layer.visible = True
+    assert node._last_data.shape == (38, 32, 30) and hook.active
+    # a rendering that averages along the ray takes the blocks' means (the maximum only for the MIP ones)
+    builds = hook.builds
+    layer.rendering = "average"
+    blocks = vol.reshape(38, 4, 32, 4, 30, 4)
+    assert hook.builds == builds + 1
+    np.testing.assert_allclose(node._last_data, blocks.mean(axis=(1, 3, 5)), rtol=1e-5, atol=1e-6)
+    layer.rendering = "mip"
+    assert hook.builds == builds + 2
+    np.testing.assert_array_equal(node._last_data, blocks.max(axis=(1, 3, 5)))
+
+    # back to 2D: napari's 2D drawing of the full data, exactly as before; the same layers and selection
+    viewer.dims.ndisplay = 2
+    assert not hook.active
+    np.testing.assert_allclose(np.asarray(layer._transforms["tile2data"].scale), 1.0)
+    np.testing.assert_allclose(np.asarray(layer._transforms["tile2data"].translate), 0.0)
+    viewer.dims.set_point(0, translate[0] + 33 * scale[0])           # through the first ball
+    viewer.reset_view()
+    vispy_2d = _private.vispy_layer(viewer, layer)
+    plane = int(round((viewer.dims.point[0] - translate[0]) / scale[0]))
+    np.testing.assert_array_equal(vispy_2d.node._data, vol[plane])   # the full slice
+    np.testing.assert_allclose(vispy_2d.scale[:2], scale[1:][::-1])
+    assert shot(viewer).max() > 200
+    assert [x.name for x in viewer.layers] == names and viewer.layers.selection.active is layer
+    # and to 3D again: the copy again
+    viewer.dims.ndisplay = 3
+    assert hook.active and node._last_data.shape == (38, 32, 30)
+
+    # close(): napari's own upload of the full volume, at once
+    hook.close()
+    assert node._last_data.shape == BIG and not hook.active
+    assert in_3d(viewer, layer) is not hook                            # a fresh hook (default budget: step 2)
+    assert layer._napari_unwind_3d.step == 2 and node._last_data.shape == (76, 64, 60)
+    # removing the layer closes the hook and leaves napari's vispy layer as it was
+    fresh = layer._napari_unwind_3d
+    vispy_layer = _private.vispy_layer(viewer, layer)
+    viewer.layers.remove(layer)
+    assert fresh._closed and "downsample_texture" not in vispy_layer.__dict__
+    assert [x.name for x in viewer.layers] == ["other"]
+    assert other in viewer.layers
+
+
+def test_small_rgb_and_multiscale_images_are_drawn_as_napari_draws_them(make_napari_viewer, qtbot):
+    from napari_unwind._napari import _private
+    from napari_unwind._napari._layers import IMAGE_3D_MIN_VOXELS, coarse_step, in_3d
+
+    viewer = _viewer(make_napari_viewer)
+    small_shape = (120, 120, 120)                                     # 1.73M voxels: under the budget
+    assert np.prod(small_shape) <= IMAGE_3D_MIN_VOXELS and coarse_step(small_shape) == 1
+    small = viewer.add_image(np.random.default_rng(0).random(small_shape, dtype=np.float32), name="small")
+    hook = in_3d(viewer, small)
+    rgb = viewer.add_image(np.zeros((4, 64, 64, 3), np.uint8), rgb=True, name="rgb")
+    assert in_3d(viewer, rgb) is None
+    pyramid = [np.zeros((160, 128, 128), np.float32), np.zeros((80, 64, 64), np.float32)]
+    assert in_3d(viewer, viewer.add_image(pyramid, multiscale=True, name="pyramid")) is None
+    viewer.dims.ndisplay = 3
+    shot(viewer)
+    assert not hook.active and hook.step == 1 and hook.builds == 0
+    assert _private.volume_node(viewer, small)._last_data.shape == small_shape
+    np.testing.assert_allclose(np.asarray(small._transforms["tile2data"].scale), 1.0)
+    # a large one at the default budget: the tank's 440 x 148 x 148 takes step 4 (at most 128 a side)
+    assert coarse_step((440, 148, 148)) == 4 and coarse_step((300, 300, 300)) == 3
+
+
+def test_block_reduce_keeps_the_dtype_and_reduces_partial_blocks():
+    from napari_unwind._napari._layers import block_reduce
+
+    data = np.arange(5 * 3 * 2, dtype=np.uint16).reshape(5, 3, 2)
+    out = block_reduce(data, 2, "max")
+    assert out.shape == (3, 2, 1) and out.dtype == np.uint16
+    assert out[2, 1, 0] == data[4, 2, :].max() and out[0, 0, 0] == data[:2, :2, :2].max()
+    mean = block_reduce(data.astype(np.float32), 2, "mean")
+    assert mean[2, 1, 0] == pytest.approx(data[4, 2, :].mean()) and mean[0, 0, 0] == pytest.approx(
+        data[:2, :2, :2].mean())
+    assert block_reduce(data, 2, "min")[1, 0, 0] == data[2:4, :2, :2].min()
+    assert block_reduce(data, 2, "mean").dtype == np.uint16
