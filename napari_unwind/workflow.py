@@ -442,11 +442,12 @@ class Workflow:
         return count
 
     def mask_written(self, path: Any) -> None:
-        """The chosen mask (which had no file) now lies at ``path``: a session records it from here on."""
+        """The chosen mask (which had no file, or not these voxels) now lies at ``path``, its chosen voxels non-zero
+        and the rest zero: a session records that file, every label of it, from here on."""
         s = self.selection
         if s.mask is None:
             raise InvalidInputError("the selection is not a mask: there is no mask to record")
-        self.selection = replace(s, source=str(Path(path).absolute()))
+        self.selection = replace(s, source=str(Path(path).absolute()), label=None)
 
     def mask_file_task(self, path: Any, *, label: int | None = None) -> Task:
         """Open a mask file (any scan format on the scan's voxel grid; non-zero voxels are the mask) and make it,

@@ -230,9 +230,9 @@ class UnwindWidget(QWidget):
         """Make a Labels layer the selection: every labelled voxel, one ``label``, or the label under ``at``."""
         return self.segment_step.use_labels(layer, label=label, at=at)
 
-    def open_mask(self, path: str | os.PathLike) -> Job | None:
-        """Open a mask file as a Labels layer over the scan and make it the selection."""
-        return self.segment_step.open_mask(path)
+    def open_mask(self, path: str | os.PathLike, *, label: int | None = None) -> Job | None:
+        """Open a mask file as a Labels layer over the scan and make it (or its ``label``) the selection."""
+        return self.segment_step.open_mask(path, label=label)
 
     def mask(self) -> Any:
         """The selection at full resolution (lazy dask bool array): the chosen mask, or the selected features
@@ -365,6 +365,8 @@ class UnwindWidget(QWidget):
             self._ends_layer = layer
         if "selected" in meta and self._selection_layer is None:
             self._selection_layer = layer  # the reader's selection: the dock updates it rather than add another
+        if meta.get("selection_mask") and self.scan_layer is not None and not self.has_selection:
+            self.use_labels(layer, label=meta.get("mask_label"))  # a session whose selection was a mask file
         if self.scan_layer is None and "session_path" in meta and layer in self.scan_step.image_layers():
             self.use_layer(layer)
             seg = meta.get("segmentation")

@@ -148,3 +148,70 @@ def test_the_threshold_slider_grows_and_shrinks_the_selection(make_napari_viewer
                     timeout=60_000)  # a mask is taken as it is: no threshold
     assert count() == int((np.asarray(truth.data) > 0).sum())
     qtbot.waitUntil(lambda: w.idle, timeout=60_000)
+
+
+def test_a_mask_selection_is_saved_and_reopens_from_the_dock_and_file_open(make_napari_viewer, qtbot, tmp_path):
+    """Issue 21 items 3/5: a session whose selection is a mask. A Labels layer without a file (the sample's true
+    fish, one label) is written beside the session; a mask file opened in step 2 is recorded by its path and label.
+    Both reopen as that selection in a fresh dock, and through File > Open into a viewer with the dock.
+    Reference: the sample's own true labels, and the mask file read back with pynrrd."""
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    viewer.window.add_dock_widget(w, name="Unwind")
+    layers = viewer.open_sample("napari-unwind", "tank")
+    image = next(lyr for lyr in layers if lyr.name == "tank")
+    labels = next(lyr for lyr in layers if lyr.name == "tank true fish")
+    truth = np.asarray(labels.data) == 2
+    w.use_layer(image)
+    assert w.use_labels(labels, label=2) == int(truth.sum())
+    wait(qtbot, w, w.suggest_ends())
+    ends = w.endpoints()
+
+    session = tmp_path / "fish two.unwind.json"
+    wait(qtbot, w, w.save_session(session))
+    mask_file = tmp_path / "fish two.mask.ome.zarr"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fish two.mask.ome.zarr", "fish two.scan.ome.zarr",
+                                                          "fish two.unwind.json"]
+    assert "fish two.mask.ome.zarr" in w.session_step.session_info.text()
+    from napari_unwind.session import load_session
+
+    seg = load_session(session).segmentation
+    assert seg.mask == str(mask_file.absolute()) and seg.mask_label is None
+
+    fresh = UnwindWidget(make_napari_viewer())
+    wait(qtbot, fresh, fresh.load_session(session))
+    qtbot.waitUntil(lambda: fresh.idle and fresh.mask_choice is not None, timeout=60_000)
+    np.testing.assert_array_equal(np.asarray(fresh.mask()), truth)
+    assert fresh.endpoints() == ends
+
+    viewer3 = make_napari_viewer()
+    w3 = UnwindWidget(viewer3)
+    viewer3.window.add_dock_widget(w3, name="Unwind")
+    viewer3.open(str(session), plugin="napari-unwind")
+    qtbot.waitUntil(lambda: w3.idle and w3.mask_choice is not None, timeout=60_000)
+    np.testing.assert_array_equal(np.asarray(w3.mask()), truth)
+
+    # a mask file with several labels, one chosen: the session records the file and the label, writes nothing
+    nrrd.write(str(tmp_path / "expert.nrrd"), np.asarray(labels.data), index_order="C")
+    wait(qtbot, fresh, fresh.open_mask(tmp_path / "expert.nrrd", label=3))
+    np.testing.assert_array_equal(np.asarray(fresh.mask()), np.asarray(labels.data) == 3)
+    second = tmp_path / "fish three.unwind.json"
+    wait(qtbot, fresh, fresh.save_session(second))
+    assert not (tmp_path / "fish three.mask.ome.zarr").exists()
+    seg = load_session(second).segmentation
+    assert seg.mask == str((tmp_path / "expert.nrrd").absolute()) and seg.mask_label == 3
+    again = UnwindWidget(make_napari_viewer())
+    wait(qtbot, again, again.load_session(second))
+    qtbot.waitUntil(lambda: again.idle and again.mask_choice is not None, timeout=60_000)
+    np.testing.assert_array_equal(np.asarray(again.mask()), np.asarray(labels.data) == 3)
+    # painted after it was chosen: the file no longer holds the selection, so the voxels are written
+    layer = again.mask_choice[0]
+    edited = np.asarray(layer.data).copy()
+    edited[np.argwhere(edited == 3)[0][0]] = 0
+    layer.data = edited
+    again.use_labels(layer, label=3)
+    third = tmp_path / "fish four.unwind.json"
+    wait(qtbot, again, again.save_session(third))
+    assert load_session(third).segmentation.mask == str((tmp_path / "fish four.mask.ome.zarr").absolute())
+    for dock in (w, fresh, w3, again):
+        qtbot.waitUntil(lambda dock=dock: dock.idle, timeout=60_000)

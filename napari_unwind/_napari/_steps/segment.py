@@ -3,8 +3,8 @@ or a mask (a Labels layer or a mask file) as the selection."""
 
 from __future__ import annotations
 
+import hashlib
 import os
-from collections.abc import Generator
 from pathlib import Path
 from typing import Any
 
@@ -26,8 +26,6 @@ from qtpy.QtWidgets import (
 )
 
 from ...errors import InvalidInputError, UnwindError
-from ...io import open_volume
-from ...progress import Progress
 from ...progress import run as run_progress
 from .._workers import Job, prewarm
 from ._base import SKELETON, Step, fmt, on_click
@@ -477,8 +475,11 @@ class SegmentStep(Step):
             if not np.count_nonzero(data == label if label else data):
                 what = f"label {label}" if label else "any label"
                 raise InvalidInputError(f"the mask {layer.name!r} holds no voxel of {what}: pick another label")
-            count = self.workflow.use_mask(data, label=label or None,
-                                           key=(id(layer), label, hash(data.tobytes())))
+            meta = (layer.metadata or {}).get("napari_unwind", {})
+            source = meta.get("source") or getattr(getattr(layer, "source", None), "path", None)
+            # the key tells the server's cached upload apart from an edited mask; a digest, not a copy of the voxels
+            digest = hashlib.blake2b(memoryview(np.ascontiguousarray(data)).cast("B"), digest_size=16).hexdigest()
+            count = self.workflow.use_mask(data, label=label or None, key=(id(layer), label, digest), source=source)
         except UnwindError as exc:
             self._fail(exc)
             return 0
@@ -503,32 +504,24 @@ class SegmentStep(Step):
         if choice is not None and choice[0] is layer:
             self.use_labels(layer, at=event.position)
 
-    def open_mask(self, path: str | os.PathLike) -> Job | None:
+    def open_mask(self, path: str | os.PathLike, *, label: int | None = None) -> Job | None:
         """Open a mask file (any scan format; non-zero voxels are the mask) as a Labels layer over the scan and
-        make it the selection."""
+        make it (or its ``label``) the selection; a session records the file."""
         volume = self.dock.volume
-        if volume is None:
-            self._fail(InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)"))
+        try:
+            task = self.workflow.mask_file_task(path, label=label)  # the reading and the grid check
+        except UnwindError as exc:
+            self._fail(exc)
             return None
-
-        def make() -> Generator[Progress, None, np.ndarray]:
-            yield Progress("open", 0, 1, str(path))
-            mask = open_volume(path)
-            if tuple(mask.shape) != tuple(volume.shape):
-                raise InvalidInputError(f"the mask {path} has {fmt(mask.shape, 6)} voxels, the scan "
-                                        f"{fmt(volume.shape, 6)}: a mask must lie on the scan's voxel grid")
-            data = np.asarray(mask.data)
-            if not (np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_):
-                data = data != 0
-            yield Progress("open", 1, 1)
-            return data.astype(np.uint8) if data.dtype == np.bool_ else data
+        make = task.make
 
         def done(data: np.ndarray) -> None:
             from .._layers import in_3d, labels_layer
 
-            layer = self.dock._add_layer(labels_layer(data, spacing=volume.spacing, unit=volume.unit,
-                                                      name=Path(path).name, translate=tuple(volume.origin)))
+            layer = self.dock._add_layer(labels_layer(
+                data, spacing=volume.spacing, unit=volume.unit, name=Path(path).name, translate=tuple(volume.origin),
+                metadata={"napari_unwind": {"source": str(Path(path).absolute())}}))
             in_3d(self.viewer, layer)
-            self.use_labels(layer)
+            self.use_labels(layer, label=label)
 
         return self.dock._start(make, "opening the mask", done)

@@ -66,6 +66,10 @@ class SessionStep(Step):
         A session records the scan's file. A scan that has none (File > Open Sample, a layer made in napari) is
         written first, beside the session, as ``<name>.scan.ome.zarr``, and the session records that file: it
         opens again from the dock and from File > Open. The dock then works on that file.
+
+        A mask chosen as the selection is recorded by its file when that file holds the chosen voxels (a mask file
+        opened in step 2, a Labels layer read from a file and not painted since); otherwise the chosen voxels are
+        written beside the session as ``<name>.mask.ome.zarr`` and the session records that.
         """
         from ...session import SESSION_SUFFIX, SourceInfo, save_session
 
@@ -89,10 +93,36 @@ class SessionStep(Step):
             self._fail(exc)
             return None
         known = workflow.source_info if scan_file is None else None
+        selection = workflow.selection
+        stem = path.name[:-len(SESSION_SUFFIX)] if path.name.endswith(SESSION_SUFFIX) else path.stem
+        mask_target = path.with_name(f"{stem}.mask.ome.zarr")
+
+        def write_mask() -> Generator[Progress, None, Path | None]:
+            """The chosen mask's file: None when the recorded one holds the chosen voxels, else written beside."""
+            if selection.mask is None:
+                return None
+            if selection.source is not None and Path(selection.source).exists():
+                try:
+                    recorded = np.asarray(open_volume(selection.source).data)
+                    if recorded.shape == selection.mask.shape and np.array_equal(
+                            recorded == selection.label if selection.label else recorded != 0, selection.mask):
+                        return None
+                except UnwindError:
+                    pass  # not readable as a mask: write the chosen voxels instead
+            if mask_target.exists():
+                raise InvalidInputError(f"the mask has no file holding its voxels, and the session would write it "
+                                        f"to {mask_target}, which exists: choose another session name, or move "
+                                        "that file away")
+            from ...io import write_volume_iter
+
+            return (yield from write_volume_iter(np.asarray(selection.mask, dtype=np.uint8), mask_target,
+                                                 spacing=volume.spacing, unit=volume.unit, origin=volume.origin,
+                                                 labels=True))
 
         def make() -> Generator[Progress, None, Any]:
+            mask_file = yield from write_mask()
             if known is not None:
-                return known, volume
+                return known, volume, mask_file
             scan = volume
             if scan_file is not None:
                 from ...io import write_volume_iter
@@ -102,11 +132,13 @@ class SessionStep(Step):
             yield Progress("checksum", 0, 1, scan.source)
             info = SourceInfo.from_path(scan.source, volume=scan)  # reads every byte once
             yield Progress("checksum", 1, 1)
-            return info, scan
+            return info, scan, mask_file
 
         def done(result: Any) -> None:
-            source, scan = result
+            source, scan, mask_file = result
             workflow.source_info = source
+            if mask_file is not None and workflow.selection is selection:
+                workflow.mask_written(mask_file)
             if scan is not volume:
                 workflow.volume = scan  # the dock now works on the file the session records (same voxels)
                 meta = dict(dock.scan_layer.metadata or {})
@@ -115,9 +147,8 @@ class SessionStep(Step):
                 dock.scan_layer.metadata = meta
             written = save_session(workflow.session(source), path)
             saved_scan = f" with its scan {scan.source}" if scan is not volume else ""
-            if dock.mask_choice is not None:
-                saved_scan += (" (a session records a selection of features, not a mask layer: after reopening, "
-                               "choose the mask again in step 2)")
+            if mask_file is not None:
+                saved_scan += f"{' and' if saved_scan else ' with'} its mask {mask_file}"
             self.session_info.setText(f"saved: {written}{saved_scan}")
             self._say(f"session saved to {written}{saved_scan}")
 
@@ -125,7 +156,7 @@ class SessionStep(Step):
 
     def load_session(self, path: str | os.PathLike) -> Job | None:
         """Open a session: its scan (a layer), the ends, the deformation, and the selection (the join tree is
-        rebuilt in a worker, then the recorded features are selected)."""
+        rebuilt in a worker, then the recorded features are selected; or the recorded mask file is opened)."""
         from ...session import load_session
 
         try:
@@ -162,7 +193,10 @@ class SessionStep(Step):
             if session.deformation is not None:
                 self.workflow.edit.set_deformation(session.deformation)
             seg = session.segmentation
-            if seg is not None and seg.k is not None and (seg.selected or seg.seeds):
+            if seg is not None and seg.mask is not None:
+                dock.job = None
+                dock.segment_step.open_mask(seg.mask, label=seg.mask_label)
+            elif seg is not None and seg.k is not None and (seg.selected or seg.seeds):
                 dock.job = None
                 dock.segment_step.resume(seg)
             self.session_info.setText(f"opened: {Path(path).absolute()}")
