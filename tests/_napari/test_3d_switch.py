@@ -139,6 +139,36 @@ def test_labels_are_a_coarse_surface_in_3d_and_themselves_in_2d(make_napari_view
     assert "draw" not in node.__dict__
 
 
+def test_the_mesh_is_built_ahead_in_2d_and_empty_labels_add_no_layer(make_napari_viewer, qtbot):
+    """The switch to 3D finds the surface of the labels already made (in a background thread while in 2D), the same
+    as made on the spot; a Labels layer with no label (an empty selection) gets no stand-in layer at all."""
+    from napari_unwind._napari._layers import SURFACE_3D_SUFFIX, labels_in_3d, labels_surface
+
+    viewer = _viewer(make_napari_viewer)
+    labels = specimen()
+    layer = viewer.add_labels(np.zeros_like(labels), name="features")
+    empty = viewer.add_labels(np.zeros(SHAPE, np.uint8), name="selection")
+    hook, none = labels_in_3d(viewer, layer), labels_in_3d(viewer, empty)
+    layer.data = labels                          # new features while in 2D: their mesh is made in the background
+    qtbot.waitUntil(lambda: hook._ahead is not None and hook._ahead[1].done(), timeout=30_000)
+    names = [x.name for x in viewer.layers]
+    viewer.dims.ndisplay = 3
+    assert hook.builds == 0 and hook.prefetches >= 1      # nothing made on the UI thread at the switch
+    reference = labels_surface(labels)                      # made here, independently of the hook
+    for got, want in zip(hook.surface.data, reference):
+        np.testing.assert_array_equal(got, want)
+    assert [x.name for x in viewer.layers] == ["features", "features" + SURFACE_3D_SUFFIX, "selection"]
+    assert not none.active and none.builds + none.prefetches >= 1
+    viewer.dims.ndisplay = 2
+    assert [x.name for x in viewer.layers] == names
+    # labels drawn later in the empty layer, in 3D: its surface appears
+    viewer.dims.ndisplay = 3
+    empty.data = (labels == FID).astype(np.uint8)
+    assert none.active and "selection" + SURFACE_3D_SUFFIX in viewer.layers
+    hook.close()
+    none.close()
+
+
 def cy_at(z):
     return 14 + 20 * ((z - 45) / 45) ** 2
 
