@@ -237,6 +237,13 @@ def _companions(path: Path) -> list[Path]:
     return []
 
 
+def scan_members(path: str | os.PathLike) -> list[Path]:
+    """The other files a scan file brings with it (as they are named, not resolved): an NRRD header's data files,
+    a ``.dat`` header's raw file (or a raw file's header), a stack's numbered siblings, a DICOM series' files.
+    Empty for a file that names no other."""
+    return [Path(p) for p in _companions(Path(path).expanduser())]
+
+
 def _source_files(path: str | os.PathLike) -> tuple[list[tuple[str, Path, int]], bool]:
     """The files making up a scan as ``(relative name, path, size)``, sorted, and whether a manifest is hashed."""
     path = Path(path).expanduser()

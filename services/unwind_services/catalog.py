@@ -51,10 +51,22 @@ class Catalog:
 
     def volume(self, owner: str, volume_id: str) -> tuple[ObjectRow, Volume]:
         row = self.store.get_object(owner, volume_id, "volume")
-        return row, open_volume(self.path(row))
+        path = self.path(row)
+        self.check(owner, row, path)
+        return row, open_volume(path)
+
+    def check(self, owner: str, row: ObjectRow, path: Path) -> None:
+        """Every file the volume reads is where it may be, checked at each open (a registered file may have been
+        changed since): a registered scan inside the data root outside the server's folder, what the server
+        wrote for a user (uploads, job outputs) inside that user's folder."""
+        own = self.root.private / "users" / owner
+        registered = row.meta.get("origin") == "register"
+        self.root.check_scan(path, within=None if registered else own)
 
     def add_volume(self, owner: str, path: Path, name: str, origin: str, job_id: str = "",
                    object_id: str | None = None) -> tuple[ObjectRow, Volume]:
+        if origin != "register":  # the server wrote it, in the owner's folder (Register checks before this)
+            self.root.check_scan(path, within=self.root.private / "users" / owner)
         volume = open_volume(path)
         self.limits.check_voxels(volume.shape, f"the volume {name!r}")
         row = self.store.add_object(owner, "volume", name, self.root.relative(path), {"origin": origin}, job_id,

@@ -78,6 +78,46 @@ class DataRoot:
             raise PermissionDeniedError(f"{rel!r} is inside the server's own folder {self.PRIVATE}/")
         return full
 
+    def check_scan(self, path: Path, *, within: Path | None = None) -> None:
+        """Refuse (:class:`PermissionDeniedError`) a scan that would make the server read outside where it may:
+        every file the scan consists of is resolved (symbolic links at any depth) and must lie inside ``within``
+        (a user's own folder) or, by default, inside the data root and outside the server's own folder.
+
+        What a scan consists of: a folder (an OME-Zarr store, a DICOM series, a slice stack) is walked whole,
+        following links to folders (each walked once); a file brings the files its header names (an NRRD's
+        ``data file`` entries, a ``.dat``'s ``ObjectFileName``, a stack's numbered siblings, a DICOM series' files).
+        The message never names a path outside the root.
+        """
+        from napari_unwind.session import scan_members
+
+        base = os.path.realpath(within or self.root)
+        private = os.path.realpath(self.private)
+        where = "your own folder of the server's data root" if within is not None else "the server's data root"
+
+        def check(p: Path, what: str) -> None:
+            real = os.path.realpath(p)
+            if os.path.commonpath([real, base]) != base or (
+                    within is None and os.path.commonpath([real, private]) == private):
+                raise PermissionDeniedError(f"{what} lies outside {where} (through a header's file name or a "
+                                            "symbolic link): the server reads nothing there")
+
+        path = Path(path)
+        check(path, "the scan")
+        if path.is_dir():
+            seen: set[str] = set()
+            for folder, dirs, files in os.walk(path, followlinks=True):
+                real = os.path.realpath(folder)
+                if real in seen:  # a link back to a folder already walked
+                    dirs[:] = []
+                    continue
+                seen.add(real)
+                check(Path(folder), "a folder of the scan")
+                for name in files:
+                    check(Path(folder) / name, "a file of the scan")
+            return
+        for member in scan_members(path):
+            check(member, "a file the scan's header names")
+
     def relative(self, path: Path) -> str:
         return os.path.relpath(path, self.root)
 

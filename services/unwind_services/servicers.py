@@ -118,6 +118,7 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
         path = self.catalog.root.resolve_client_path(request.path)
         if not path.exists():
             raise FileNotFoundError(f"{request.path} does not exist under the server's data root")
+        self.catalog.root.check_scan(path)  # every file it reads, not only the path given
         name = check_file_name(request.name or path.name, "the volume's name")
         row, vol = self.catalog.add_volume(owner, path, name, "register")
         return convert.volume_info(row, vol)
