@@ -56,12 +56,15 @@ class Catalog:
         return row, open_volume(path)
 
     def check(self, owner: str, row: ObjectRow, path: Path) -> None:
-        """Every file the volume reads is where it may be, checked at each open (a registered file may have been
-        changed since): a registered scan inside the data root outside the server's folder, what the server
-        wrote for a user (uploads, job outputs) inside that user's folder."""
+        """Every file a registered volume reads is where it may be, checked at each open (a registered file may
+        have been changed since by whoever can write the data root). What the server wrote for a user (uploads,
+        job outputs: checked whole when added) lies in that user's folder, which no client writes into: only its
+        path is checked here, so that listing many volumes does not walk every store."""
         own = self.root.private / "users" / owner
-        registered = row.meta.get("origin") == "register"
-        self.root.check_scan(path, within=None if registered else own)
+        if row.meta.get("origin") == "register":
+            self.root.check_scan(path)
+        else:
+            self.root.check_path(path, within=own)
 
     def add_volume(self, owner: str, path: Path, name: str, origin: str, job_id: str = "",
                    object_id: str | None = None) -> tuple[ObjectRow, Volume]:

@@ -103,6 +103,8 @@ class DataRoot:
 
         path = Path(path)
         check(path, "the scan")
+        if not path.exists():
+            return  # nothing to read; the reader says it is missing
         if path.is_dir():
             seen: set[str] = set()
             for folder, dirs, files in os.walk(path, followlinks=True):
@@ -117,6 +119,12 @@ class DataRoot:
             return
         for member in scan_members(path):
             check(member, "a file the scan's header names")
+
+    def check_path(self, path: Path, *, within: Path) -> None:
+        """The path itself (resolved) lies inside ``within``, else :class:`PermissionDeniedError`."""
+        base, real = os.path.realpath(within), os.path.realpath(path)
+        if os.path.commonpath([real, base]) != base:
+            raise PermissionDeniedError("the volume lies outside your own folder of the server's data root")
 
     def relative(self, path: Path) -> str:
         return os.path.relpath(path, self.root)
