@@ -36,7 +36,7 @@ from .errors import InvalidInputError
 from .pipeline import ExportOptions, PipelineOptions, SkeletonOptions
 from .progress import Progress
 
-__all__ = ["Backend", "LocalBackend", "ServerBackend", "Selection", "Task", "Workflow"]
+__all__ = ["Backend", "LocalBackend", "ServerBackend", "Selection", "Task", "Workflow", "mask_labels"]
 
 #: The skeleton step run by name in a child process (its module imports the solver while the child waits).
 SKELETON = "napari_unwind._steps:skeleton"
@@ -52,6 +52,15 @@ class Task:
     label: str
     make: Callable[[], Generator[Progress, None, Any]]
     apply: Callable[[Any], Any]
+
+
+def mask_labels(mask: Any) -> np.ndarray:
+    """The voxels of a mask (a Volume or an array) as labels for a Labels layer: integers as they are, anything
+    else non-zero as 1 (uint8)."""
+    data = np.asarray(getattr(mask, "data", mask))
+    if not (np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_):
+        data = data != 0
+    return data.astype(np.uint8) if data.dtype == np.bool_ else data
 
 
 @dataclass(frozen=True)
@@ -466,11 +475,9 @@ class Workflow:
             if tuple(mask.shape) != tuple(volume.shape):
                 raise InvalidInputError(f"the mask {path.name} has {tuple(mask.shape)} voxels, the scan "
                                         f"{tuple(volume.shape)}: a mask must lie on the scan's voxel grid")
-            data = np.asarray(mask.data)
-            if not (np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_):
-                data = data != 0
+            data = mask_labels(mask)
             yield Progress("open", 1, 1)
-            return data.astype(np.uint8) if data.dtype == np.bool_ else data
+            return data
 
         def apply(data: Any) -> None:
             self.use_mask(data, label=label, key=("file", str(path.absolute()), label), source=path)

@@ -292,10 +292,9 @@ def _mask_layer(volume: Any, seg: Any, named: str, spacing: np.ndarray, origin: 
     if tuple(mask.shape) != tuple(volume.shape):
         raise SourceChangedError(f"the mask at {path} holds {tuple(mask.shape)} voxels, the scan of {named} "
                                  f"{tuple(volume.shape)}: it is not the mask the session was made with")
-    data = np.asarray(mask.data)
-    if not (np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_):
-        data = data != 0
-    data = data.astype(np.uint8) if data.dtype == np.bool_ else data
+    from ..workflow import mask_labels
+
+    data = mask_labels(mask)
     meta = {"name": path.name, "scale": tuple(spacing), "translate": tuple(origin), "opacity": 0.5,
             "metadata": {"napari_unwind": {**common, "source": str(path), "mask_label": seg.mask_label,
                                            "selection_mask": True}}, **units}
