@@ -36,7 +36,7 @@ from .errors import InvalidInputError
 from .pipeline import ExportOptions, PipelineOptions, SkeletonOptions
 from .progress import Progress
 
-__all__ = ["Backend", "LocalBackend", "ServerBackend", "Selection", "Task", "Workflow", "mask_labels"]
+__all__ = ["Backend", "LocalBackend", "ServerBackend", "Selection", "Task", "Workflow", "mask_labels", "read_mask"]
 
 #: The skeleton step run by name in a child process (its module imports the solver while the child waits).
 SKELETON = "napari_unwind._steps:skeleton"
@@ -61,6 +61,27 @@ def mask_labels(mask: Any) -> np.ndarray:
     if not (np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_):
         data = data != 0
     return data.astype(np.uint8) if data.dtype == np.bool_ else data
+
+
+def read_mask(path: Any, shape: Any, *, session: str | None = None) -> np.ndarray:
+    """The voxels of the mask file at ``path`` as labels (:func:`mask_labels`), checked to lie on a scan of
+    ``shape``. ``session`` names the session that recorded the file (its errors then say how to mend the session;
+    the mask is then expected to be the one the session was made with)."""
+    from .io import open_volume
+    from .session import SourceChangedError, SourceMissingError
+
+    path = Path(path)
+    if not path.exists():
+        mend = ('correct "segmentation" -> "mask" in the session file' if session else "choose the mask again")
+        raise SourceMissingError(f"the mask {f'of {session}' if session else 'file'} is missing: expected at {path}; "
+                                 f"put it back there, or {mend}")
+    mask = open_volume(path)
+    if tuple(mask.shape) != tuple(shape):
+        head = f"the mask {path.name} has {tuple(mask.shape)} voxels, the scan{f' of {session}' if session else ''} "
+        if session:
+            raise SourceChangedError(f"{head}{tuple(shape)}: it is not the mask the session was made with")
+        raise InvalidInputError(f"{head}{tuple(shape)}: a mask must lie on the scan's voxel grid")
+    return mask_labels(mask)
 
 
 @dataclass(frozen=True)
@@ -465,17 +486,8 @@ class Workflow:
         path = Path(path)
 
         def make() -> Generator[Progress, None, Any]:
-            from .io import open_volume
-
             yield Progress("open", 0, 1, str(path))
-            if not path.exists():
-                raise InvalidInputError(f"the mask file is missing: expected at {path}; put it back, or choose the "
-                                        "mask again")
-            mask = open_volume(path)
-            if tuple(mask.shape) != tuple(volume.shape):
-                raise InvalidInputError(f"the mask {path.name} has {tuple(mask.shape)} voxels, the scan "
-                                        f"{tuple(volume.shape)}: a mask must lie on the scan's voxel grid")
-            data = mask_labels(mask)
+            data = read_mask(path, volume.shape)
             yield Progress("open", 1, 1)
             return data
 

@@ -99,7 +99,46 @@ def labels_surface(labels: Any, *, step: int = SURFACE_3D_STEP, min_voxels: int 
     return np.concatenate(verts).astype(np.float32), np.concatenate(faces), np.concatenate(values)
 
 
-class LabelsIn3D:
+class _In3D:
+    """What both 3D stand-ins share: the layer they draw, and closing when it leaves the viewer.
+
+    A subclass connects its own events in ``__init__`` (after ``super().__init__``) and undoes them in
+    ``_release``; ``close()`` runs that once.
+    """
+
+    def __init__(self, viewer: Any, layer: Any) -> None:
+        self.viewer = viewer
+        self.layer = layer
+        self._closed = False
+        viewer.layers.events.removed.connect(self._on_removed)
+
+    def _on_removed(self, event: Any) -> None:
+        if event.value is self.layer:
+            self.close()
+
+    def _release(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Disconnect and give napari its own 3D drawing of the layer back."""
+        if self._closed:
+            return
+        self._closed = True
+        self.viewer.layers.events.removed.disconnect(self._on_removed)
+        self._release()
+
+    @classmethod
+    def attach(cls, viewer: Any, layer: Any, **kwargs: Any) -> Any:
+        """The stand-in of ``layer`` (made on the first call; the viewer's and the layer's events keep it alive)."""
+        existing = getattr(layer, "_napari_unwind_3d", None)
+        if isinstance(existing, cls) and not existing._closed:
+            return existing
+        helper = cls(viewer, layer, **kwargs)
+        object.__setattr__(layer, "_napari_unwind_3d", helper)
+        return helper
+
+
+class LabelsIn3D(_In3D):
     """Draws a Labels layer in 3D as a Surface layer (``"<name> (3D)"``) instead of napari's volume ray caster.
 
     napari draws a Labels layer in 3D by ray casting its whole volume; on software GL (Mesa llvmpipe) one frame of
@@ -114,21 +153,18 @@ class LabelsIn3D:
     """
 
     def __init__(self, viewer: Any, layer: Any, *, step: int = SURFACE_3D_STEP) -> None:
-        self.viewer = viewer
-        self.layer = layer
+        super().__init__(viewer, layer)
         self.step = int(step)
         self.surface: Any = None
         self.builds = 0                    # marching-cubes runs on the UI thread (tests: data edits in 2D cost none)
         self.prefetches = 0                # marching-cubes runs in the background while in 2D
         self._key: Any = None
         self._node: Any = None
-        self._closed = False
         self._ahead: tuple[Any, Any] | None = None   # (key, Future) of the mesh built ahead in the background
         self._mesh_data: Any = None
         viewer.dims.events.ndisplay.connect(self._sync)
         for name in ("data", "visible", "opacity", "blending", "scale", "translate"):
             getattr(layer.events, name).connect(self._sync)
-        viewer.layers.events.removed.connect(self._on_removed)
         self._sync()
 
     def _data_key(self) -> Any:
@@ -242,19 +278,11 @@ class LabelsIn3D:
                 layers.selection.active = active
         self.surface = None
 
-    def _on_removed(self, event: Any) -> None:
-        if event.value is self.layer:
-            self.close()
-
-    def close(self) -> None:
-        """Disconnect; remove the stand-in; the layer is ray cast in 3D again."""
-        if self._closed:
-            return
-        self._closed = True
+    def _release(self) -> None:
+        """Remove the stand-in; the layer is ray cast in 3D again."""
         self.viewer.dims.events.ndisplay.disconnect(self._sync)
         for name in ("data", "visible", "opacity", "blending", "scale", "translate"):
             getattr(self.layer.events, name).disconnect(self._sync)
-        self.viewer.layers.events.removed.disconnect(self._on_removed)
         self._remove_surface()
         self._restore_volume()
 
@@ -275,12 +303,7 @@ def _mesh_pool() -> Any:
 def labels_in_3d(viewer: Any, layer: Any, *, step: int = SURFACE_3D_STEP) -> LabelsIn3D:
     """The hook the dock calls once per Labels layer it adds: a :class:`LabelsIn3D` for it (the viewer's and the
     layer's events keep it alive); calling it again for the same layer returns the first one."""
-    existing = getattr(layer, "_napari_unwind_3d", None)
-    if isinstance(existing, LabelsIn3D) and not existing._closed:
-        return existing
-    helper = LabelsIn3D(viewer, layer, step=step)
-    object.__setattr__(layer, "_napari_unwind_3d", helper)
-    return helper
+    return LabelsIn3D.attach(viewer, layer, step=step)
 
 
 # -- a large Image in 3D: napari's ray caster on a block-reduced copy -----------------------------------------------
@@ -339,7 +362,7 @@ def block_reduce(data: Any, step: int, how: str = "mean") -> np.ndarray:
 _REDUCE_BY_RENDERING = {"mip": "max", "attenuated_mip": "max", "minip": "min"}
 
 
-class ImageIn3D:
+class ImageIn3D(_In3D):
     """Draws a large 3D Image layer in 3D from a block-reduced copy, with napari's own ray caster.
 
     napari ray casts an Image layer's whole volume in 3D; on software GL (Mesa llvmpipe) the sample tank's scan
@@ -363,17 +386,19 @@ class ImageIn3D:
                  max_side: int = IMAGE_3D_MAX_SIDE) -> None:
         from . import _private
 
-        self.viewer = viewer
-        self.layer = layer
         self.min_voxels = int(min_voxels)
         self.max_side = int(max_side)
         self.builds = 0                 # block reductions run (tests)
         self.step = 1                   # the step of the copy last uploaded (1: the full slice)
         self._cache: tuple[Any, int, str, np.ndarray] | None = None
-        self._closed = False
-        self._vl = _private.coarse_3d_texture(viewer, layer, self._coarsen)
+        super().__init__(viewer, layer)
+        try:
+            self._vl = _private.coarse_3d_texture(viewer, layer, self._coarsen)
+        except (KeyError, AttributeError):  # not on a canvas (a headless viewer)
+            self._closed = True
+            viewer.layers.events.removed.disconnect(self._on_removed)
+            raise
         layer.events.rendering.connect(self._on_rendering)
-        viewer.layers.events.removed.connect(self._on_removed)
 
     def _how(self) -> str:
         return _REDUCE_BY_RENDERING.get(str(getattr(self.layer.rendering, "value", self.layer.rendering)), "mean")
@@ -408,17 +433,9 @@ class ImageIn3D:
 
             _private.refresh_3d_texture(self._vl)
 
-    def _on_removed(self, event: Any) -> None:
-        if event.value is self.layer:
-            self.close()
-
-    def close(self) -> None:
-        """Disconnect; napari uploads the layer's full slice again (at once when it is shown in 3D)."""
-        if self._closed:
-            return
-        self._closed = True
+    def _release(self) -> None:
+        """napari uploads the layer's full slice again (at once when it is shown in 3D)."""
         self.layer.events.rendering.disconnect(self._on_rendering)
-        self.viewer.layers.events.removed.disconnect(self._on_removed)
         self._cache = None
         self.step = 1
         from . import _private
@@ -435,15 +452,10 @@ def image_in_3d(viewer: Any, layer: Any, *, min_voxels: int = IMAGE_3D_MIN_VOXEL
     layers, and on a viewer without a canvas); calling it again for the same layer returns the first one."""
     if getattr(layer, "rgb", False) or getattr(layer, "multiscale", False) or getattr(layer, "ndim", 0) < 3:
         return None
-    existing = getattr(layer, "_napari_unwind_3d", None)
-    if isinstance(existing, ImageIn3D) and not existing._closed:
-        return existing
     try:
-        helper = ImageIn3D(viewer, layer, min_voxels=min_voxels, max_side=max_side)
+        return ImageIn3D.attach(viewer, layer, min_voxels=min_voxels, max_side=max_side)
     except (KeyError, AttributeError):
         return None  # not on a canvas (a headless viewer): nothing is ray cast
-    object.__setattr__(layer, "_napari_unwind_3d", helper)
-    return helper
 
 
 def in_3d(viewer: Any, layer: Any) -> Any:

@@ -284,17 +284,10 @@ def session_layers(session: Session, *, session_path: str | Path | None = None, 
 def _mask_layer(volume: Any, seg: Any, named: str, spacing: np.ndarray, origin: np.ndarray, units: dict,
                 common: dict) -> tuple[Any, dict[str, Any], str]:
     """The mask file that was the selection, as a Labels layer on the scan (its metadata names the chosen label)."""
-    path = Path(seg.mask)
-    if not path.exists():
-        raise SourceMissingError(f"the mask of {named} is missing: expected at {path}. Put it back there, or "
-                                 "correct \"segmentation\" -> \"mask\" in the session file")
-    mask = open_volume(path)
-    if tuple(mask.shape) != tuple(volume.shape):
-        raise SourceChangedError(f"the mask at {path} holds {tuple(mask.shape)} voxels, the scan of {named} "
-                                 f"{tuple(volume.shape)}: it is not the mask the session was made with")
-    from ..workflow import mask_labels
+    from ..workflow import read_mask
 
-    data = mask_labels(mask)
+    path = Path(seg.mask)
+    data = read_mask(path, volume.shape, session=named)
     meta = {"name": path.name, "scale": tuple(spacing), "translate": tuple(origin), "opacity": 0.5,
             "metadata": {"napari_unwind": {**common, "source": str(path), "mask_label": seg.mask_label,
                                            "selection_mask": True}}, **units}
