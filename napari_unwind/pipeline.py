@@ -77,6 +77,30 @@ PICK_FEATURES = 5
 
 _DEFAULT = "default"  # ExportOptions.max_output: the warp's own DEFAULT_MAX_OUTPUT
 
+# The bounds of the options (every face refuses the same values: the command line, the dock and the server, whose
+# protos list them field by field). Generous, but finite: a value past them is a typo, not a bigger specimen, and
+# would hold a worker for hours.
+#: Highest pyramid level to segment.
+MAX_LEVEL = 64
+#: Largest Gaussian sigma of the segmentation, working voxels.
+MAX_SMOOTH = 1000.0
+#: Largest smallest elongation of a specimen.
+MAX_ELONGATION = 1e6
+#: Most level sets of the harmonic field.
+MAX_N_LEVELS = 10_000
+#: Most curve smoothing iterations.
+MAX_SMOOTHING_ITERATIONS = 100_000
+#: Largest distance in voxels (cage_radius, tolerance, snap_tolerance).
+MAX_VOXELS_DISTANCE = 1e6
+#: Largest length in physical units (half_extent, spacing).
+MAX_LENGTH = 1e9
+#: Largest relative cage margin.
+MAX_CAGE_MARGIN = 100.0
+#: Most extra slices at each end of the straight volume.
+MAX_PAD = 100_000
+#: Largest chunk side of the export.
+MAX_CHUNK = 4096
+
 
 # ------------------------------------------------------------------------------------------------------------------
 # validators
@@ -94,10 +118,12 @@ def _whole(name: str, value: Any, lo: int, hi: int | None = None) -> int:
     return int(value)
 
 
-def _positive(name: str, value: Any, *, zero: bool = False) -> float:
+def _positive(name: str, value: Any, *, zero: bool = False, hi: float | None = None) -> float:
     v = finite_number(name, value)
     if v < 0 or (v == 0 and not zero):
         raise InvalidInputError(f"{name} must be a {'non-negative' if zero else 'positive'} number, got {value!r}")
+    if hi is not None and v > hi:
+        raise InvalidInputError(f"{name} must be at most {hi:g}, got {value!r}")
     return v
 
 
@@ -114,9 +140,9 @@ class SegmentOptions:
         Features the join tree keeps, 1..100. None: :data:`PICK_FEATURES` (5) when the specimen is picked by
         points or ids; every feature above the noise level (at most 100) for :func:`run_all_iter`.
     level : int or None
-        Pyramid level to segment (None: the finest with every side <= 256).
+        Pyramid level to segment, 0..:data:`MAX_LEVEL` (None: the finest with every side <= 256).
     smooth : float
-        Gaussian sigma in working voxels (0: none).
+        Gaussian sigma in working voxels, 0..:data:`MAX_SMOOTH` (0: none).
     isovalue : float or None
         Full-resolution threshold of the mask. None: the one rule,
         :func:`napari_unwind.segmentation.default_isovalue` (the covered features' specimen_isovalue, from the scan).
@@ -137,15 +163,16 @@ class SegmentOptions:
         if self.features is not None:
             _whole("features", self.features, 1, 100)
         if self.level is not None:
-            _whole("level", self.level, 0)
-        object.__setattr__(self, "smooth", _positive("smooth", self.smooth, zero=True))
+            _whole("level", self.level, 0, MAX_LEVEL)
+        object.__setattr__(self, "smooth", _positive("smooth", self.smooth, zero=True, hi=MAX_SMOOTH))
         if self.isovalue is not None:
             object.__setattr__(self, "isovalue", finite_number("isovalue", self.isovalue))
         if not isinstance(self.fill_holes, bool):
             raise InvalidInputError(f"fill_holes must be True or False, got {self.fill_holes!r}")
         m = finite_number("min_elongation", self.min_elongation)
-        if m < 1:
-            raise InvalidInputError(f"min_elongation must be a number >= 1, got {self.min_elongation!r}")
+        if not 1 <= m <= MAX_ELONGATION:
+            raise InvalidInputError(f"min_elongation must be a number 1..{MAX_ELONGATION:g}, got "
+                                    f"{self.min_elongation!r}")
 
     @property
     def k(self) -> int:
@@ -168,15 +195,17 @@ class SkeletonOptions:
     smoothing_iterations : int
         Curve smoothing iterations (0..100000).
     cage_radius : float
-        Half size (voxels) of the box the keyframes must reproduce within ``tolerance``.
+        Half size (voxels, at most :data:`MAX_VOXELS_DISTANCE`) of the box the keyframes must reproduce
+        within ``tolerance``.
     tolerance : float
-        How far (voxels) the keyframed box may stray from the dense curve's.
+        How far (voxels, at most :data:`MAX_VOXELS_DISTANCE`) the keyframed box may stray from the dense curve's.
     snap_tolerance : float
         Ends outside the mask move onto it when within this many voxels.
     half_extent : tuple of 2 float or None
-        Cage half extents (u, v) for every keyframe, physical units (None: fitted per keyframe and side).
+        Cage half extents (u, v) for every keyframe, physical units, at most :data:`MAX_LENGTH`
+        (None: fitted per keyframe and side).
     cage_margin : float
-        Relative margin of the fitted cages (0.1: 10 %).
+        Relative margin of the fitted cages, 0..:data:`MAX_CAGE_MARGIN` (0.1: 10 %).
     """
 
     estimate_twist: bool = True
@@ -191,19 +220,21 @@ class SkeletonOptions:
     def __post_init__(self) -> None:
         if not isinstance(self.estimate_twist, bool):
             raise InvalidInputError(f"estimate_twist must be True or False, got {self.estimate_twist!r}")
-        _whole("n_levels", self.n_levels, 2, 10000)
-        _whole("smoothing_iterations", self.smoothing_iterations, 0, 100000)
+        _whole("n_levels", self.n_levels, 2, MAX_N_LEVELS)
+        _whole("smoothing_iterations", self.smoothing_iterations, 0, MAX_SMOOTHING_ITERATIONS)
         for name in ("cage_radius", "tolerance"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
-        object.__setattr__(self, "snap_tolerance", _positive("snap_tolerance", self.snap_tolerance, zero=True))
-        object.__setattr__(self, "cage_margin", _positive("cage_margin", self.cage_margin, zero=True))
+            object.__setattr__(self, name, _positive(name, getattr(self, name), hi=MAX_VOXELS_DISTANCE))
+        object.__setattr__(self, "snap_tolerance", _positive("snap_tolerance", self.snap_tolerance, zero=True,
+                                                             hi=MAX_VOXELS_DISTANCE))
+        object.__setattr__(self, "cage_margin", _positive("cage_margin", self.cage_margin, zero=True,
+                                                          hi=MAX_CAGE_MARGIN))
         if self.half_extent is not None:
             he = self.half_extent
             if isinstance(he, (int, float)) and not isinstance(he, bool):
                 he = (he, he)
             if not isinstance(he, (tuple, list)) or len(he) != 2:
                 raise InvalidInputError(f"half_extent must be two positive numbers (u, v), got {self.half_extent!r}")
-            object.__setattr__(self, "half_extent", tuple(_positive("half_extent", v) for v in he))
+            object.__setattr__(self, "half_extent", tuple(_positive("half_extent", v, hi=MAX_LENGTH) for v in he))
 
     def kwargs(self) -> dict[str, Any]:
         """The keywords of :func:`~napari_unwind.skeleton.estimate_deformation_iter`."""
@@ -221,9 +252,10 @@ class ExportOptions:
     spacing : float or None
         Output voxel size (None: the finest scan spacing).
     pad : int
-        Extra slices at both ends.
+        Extra slices at both ends, 0..:data:`MAX_PAD`.
     chunks : tuple of 3 int or None
-        Output chunk shape, computed and (OME-Zarr) stored; None: 64 x the cross-section.
+        Output chunk shape, each side 1..:data:`MAX_CHUNK`, computed and (OME-Zarr) stored; None: 64 x the
+        cross-section.
     max_output : float, None or "default"
         Refuse a larger output, bytes (None: no limit; "default": ``napari_unwind.warp.DEFAULT_MAX_OUTPUT``).
     allow_folds : bool
@@ -241,13 +273,13 @@ class ExportOptions:
         if self.order not in (0, 1, 3) or isinstance(self.order, bool):
             raise InvalidInputError(f"order must be 0, 1 or 3, got {self.order!r}")
         if self.spacing is not None:
-            object.__setattr__(self, "spacing", _positive("spacing", self.spacing))
-        _whole("pad", self.pad, 0)
+            object.__setattr__(self, "spacing", _positive("spacing", self.spacing, hi=MAX_LENGTH))
+        _whole("pad", self.pad, 0, MAX_PAD)
         if self.chunks is not None:
             c = tuple(self.chunks)
             if len(c) != 3:
                 raise InvalidInputError(f"chunks must be 3 sizes (axis0, axis1, axis2), got {list(c)}")
-            object.__setattr__(self, "chunks", tuple(_whole("chunks", v, 1) for v in c))
+            object.__setattr__(self, "chunks", tuple(_whole("chunks", v, 1, MAX_CHUNK) for v in c))
         if self.max_output not in (None, _DEFAULT):
             object.__setattr__(self, "max_output", _positive("max_output", self.max_output))
         if not isinstance(self.allow_folds, bool):

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import functools
+import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -12,8 +15,10 @@ from napari_unwind.errors import InvalidInputError
 from ._proto.unwind.v1 import common_pb2 as pb
 from ._proto.unwind.v1 import segmentation_pb2, skeleton_pb2, volume_pb2, warp_pb2
 
-__all__ = ["DTYPES", "dtype_of", "dtype_enum", "points", "point_msg", "endpoints", "volume_info", "feature_msg",
-           "skeleton_options", "skeleton_options_msg", "export_options", "export_options_msg",
+__all__ = ["Bound", "bounds", "check_request",
+           "DTYPES", "dtype_of", "dtype_enum", "points", "point_msg", "endpoints", "volume_info", "feature_msg",
+           "skeleton_options", "skeleton_options_msg", "export_options", "export_options_msg", "segment_options",
+           "pipeline_options", "order",
            "result_figures", "verdict_msg", "specimen_result", "STATUSES"]
 
 DTYPES = {
@@ -23,6 +28,174 @@ DTYPES = {
     pb.DTYPE_FLOAT32: np.dtype("float32"), pb.DTYPE_FLOAT64: np.dtype("float64"),
 }
 _ENUMS = {v: k for k, v in DTYPES.items()}
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# the bounds of every field of every request (the protos' comments list them; a test holds the two equal)
+# ------------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Bound:
+    """What a field accepts: numbers in ``lo..hi`` (doubles finite), text of at most ``max_bytes`` UTF-8 bytes
+    without NUL (a ``path``: each folder or file name at most 255 bytes), a repeated field of at most ``max_items``
+    items (or exactly one of the counts ``counts``), each item within ``lo..hi``."""
+
+    lo: float = -math.inf
+    hi: float = math.inf
+    max_bytes: int = 0
+    path: bool = False
+    max_items: int | None = None
+    counts: tuple[int, ...] = ()
+    say: str = ""  # what the field holds, in the refusal (default: its bounds)
+
+
+#: Longest id of an object or a job (the server's are 16 characters).
+MAX_ID_BYTES = 64
+#: Longest file name of an output or a volume (paths.check_file_name: 128 characters).
+MAX_NAME_BYTES = 128
+#: Longest path of a Register request, and its longest folder or file name (Linux PATH_MAX and NAME_MAX).
+MAX_PATH_BYTES, MAX_COMPONENT_BYTES = 4096, 255
+#: Longest job time limit: 30 days.
+MAX_TIMEOUT_SECONDS = 30 * 24 * 3600.0
+#: Largest coordinate of a point, voxels.
+MAX_COORDINATE = 1e9
+#: Most points of a selection or of MapPoints, and most parts of a chain.
+MAX_POINTS, MAX_MAP_POINTS, MAX_CHAIN = 10_000, 1_000_000, 1_000
+#: Largest `limit` of a listing (the server sends at most 1000) and `after_seq` of a watch.
+MAX_LIMIT, MAX_SEQ = 1_000_000, 2**53
+#: Largest side of an upload, voxels (the server's --max-voxels bounds the product).
+MAX_SIDE = 2**31 - 1
+
+
+@functools.lru_cache(maxsize=1)
+def bounds() -> dict[str, Bound]:
+    """``"Message.field"`` -> its :class:`Bound`, for every field of every request message (booleans, enums,
+    messages and the upload's bytes: :data:`ANY`). The options' bounds are the core's
+    (:mod:`napari_unwind.pipeline`), so the command line, the dock and the server refuse the same values."""
+    from napari_unwind import pipeline as P
+    from napari_unwind.segmentation._common import MAX_FEATURES
+
+    ident, name, anything = Bound(max_bytes=MAX_ID_BYTES), Bound(max_bytes=MAX_NAME_BYTES), Bound()
+    coordinate = Bound(-MAX_COORDINATE, MAX_COORDINATE)
+    finite = Bound()
+    table = {
+        "Point": dict(axis0=coordinate, axis1=coordinate, axis2=coordinate),
+        "SubmitRequest": dict(segment=anything, select=anything, estimate_deformation=anything, straighten=anything,
+                              bend=anything, pipeline=anything, request_id=name,
+                              timeout_seconds=Bound(0, MAX_TIMEOUT_SECONDS), name=Bound(max_bytes=255)),
+        "PipelineRequest": dict(volume_id=ident, select=Bound(max_items=MAX_POINTS),
+                                ids=Bound(1, MAX_FEATURES, max_items=MAX_FEATURES), segmentation_id=ident,
+                                mask_volume_id=ident, features=Bound(0, MAX_FEATURES), level=Bound(0, P.MAX_LEVEL),
+                                has_level=anything, isovalue=finite, has_isovalue=anything, fill_holes=anything,
+                                ends=anything, skeleton=anything, export=anything),
+        "JobRef": dict(job_id=ident),
+        "WatchRequest": dict(job_id=ident, after_seq=Bound(0, MAX_SEQ)),
+        "ListJobsRequest": dict(state=anything, limit=Bound(0, MAX_LIMIT)),
+        "SegmentRequest": dict(volume_id=ident, features=Bound(0, MAX_FEATURES), level=Bound(-1, P.MAX_LEVEL),
+                               has_level=anything, smooth=Bound(0, P.MAX_SMOOTH), has_smooth=anything),
+        "SegmentationRef": dict(segmentation_id=ident),
+        "SimplifyRequest": dict(segmentation_id=ident, features=Bound(1, MAX_FEATURES)),
+        "SelectRequest": dict(segmentation_id=ident, seeds=Bound(max_items=MAX_POINTS),
+                              ids=Bound(1, MAX_FEATURES, max_items=MAX_FEATURES), fill_holes=anything,
+                              isovalue=finite, has_isovalue=anything, output_name=name,
+                              features=Bound(0, MAX_FEATURES)),
+        "SuggestEndsRequest": dict(mask_volume_id=ident, volume_id=ident),
+        "PointPair": dict(start=anything, end=anything),
+        "Ends": dict(head=anything, tail=anything, chain=Bound(max_items=MAX_CHAIN)),
+        "SkeletonOptions": dict(no_twist=anything, levels=Bound(0, P.MAX_N_LEVELS),
+                                smoothing_iterations=Bound(0, P.MAX_SMOOTHING_ITERATIONS),
+                                has_smoothing_iterations=anything, cage_radius=Bound(0, P.MAX_VOXELS_DISTANCE),
+                                tolerance=Bound(0, P.MAX_VOXELS_DISTANCE),
+                                snap_tolerance=Bound(0, P.MAX_VOXELS_DISTANCE),
+                                half_extent=Bound(0, P.MAX_LENGTH, counts=(0, 2)),
+                                cage_margin=Bound(0, P.MAX_CAGE_MARGIN), has_cage_margin=anything),
+        "EstimateDeformationRequest": dict(mask_volume_id=ident, volume_id=ident, ends=anything, options=anything),
+        "UploadHeader": dict(name=name, shape=Bound(1, MAX_SIDE, counts=(3,),
+                                                    say="3 positive sizes (axis0, axis1, axis2)"), dtype=anything,
+                             spacing=Bound(0, P.MAX_LENGTH, counts=(0, 3)), unit=Bound(max_bytes=32),
+                             origin=Bound(-P.MAX_LENGTH, P.MAX_LENGTH, counts=(0, 3)), labels=anything),
+        "UploadRequest": dict(header=anything, chunk=anything),
+        "RegisterRequest": dict(path=Bound(max_bytes=MAX_PATH_BYTES, path=True), name=name),
+        "VolumeRef": dict(volume_id=ident),
+        "ListVolumesRequest": dict(limit=Bound(0, MAX_LIMIT)),
+        "DownloadRequest": dict(volume_id=ident, format=Bound(max_bytes=16), level=Bound(0, P.MAX_LEVEL)),
+        "ExportOptions": dict(order=Bound(0, 3), has_order=anything, spacing=Bound(0, P.MAX_LENGTH),
+                              pad=Bound(0, P.MAX_PAD), chunks=Bound(1, P.MAX_CHUNK, counts=(0, 3)),
+                              allow_folds=anything, output_name=name),
+        "StraightenRequest": dict(volume_id=ident, session_id=ident, options=anything),
+        "BendRequest": dict(volume_id=ident, session_id=ident, order=Bound(0, 3), has_order=anything,
+                            output_name=name),
+        "MapPointsRequest": dict(session_id=ident, points=Bound(max_items=MAX_MAP_POINTS), direction=anything,
+                                 spacing=Bound(0, P.MAX_LENGTH), pad=Bound(0, P.MAX_PAD)),
+    }
+    return {f"{m}.{f}": b for m, fs in table.items() for f, b in fs.items()}
+
+
+def _text_of(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
+
+
+def _range(b: Bound, fd: Any) -> str:
+    from google.protobuf.descriptor import FieldDescriptor as F
+
+    if b.say:
+        return b.say
+    finite = "a finite number" if fd.type in (F.TYPE_DOUBLE, F.TYPE_FLOAT) else "a whole number"
+    return f"{finite} in {_text_of(b.lo)}..{_text_of(b.hi)}" if math.isfinite(b.lo) else finite
+
+
+def _check_value(where: str, fd: Any, b: Bound, v: Any) -> None:
+    from google.protobuf.descriptor import FieldDescriptor as F
+
+    if fd.type == F.TYPE_STRING:
+        size = len(v.encode("utf-8", "surrogatepass"))
+        if b.max_bytes and size > b.max_bytes:
+            raise InvalidInputError(f"{where} is {size} bytes long; at most {b.max_bytes}")
+        if "\x00" in v:
+            raise InvalidInputError(f"{where} holds a NUL character")
+        if b.path:
+            longest = max((len(p.encode("utf-8", "surrogatepass")) for p in v.replace("\\", "/").split("/")),
+                          default=0)
+            if longest > MAX_COMPONENT_BYTES:
+                raise InvalidInputError(f"{where} holds a folder or file name of {longest} bytes; at most "
+                                        f"{MAX_COMPONENT_BYTES} each")
+    elif fd.type == F.TYPE_ENUM:
+        if fd.enum_type.values_by_number.get(v) is None:
+            raise InvalidInputError(f"{where} must be one of {', '.join(fd.enum_type.values_by_name)}, got {v}")
+    elif fd.type in (F.TYPE_DOUBLE, F.TYPE_FLOAT):
+        if not math.isfinite(v) or not b.lo <= v <= b.hi:
+            raise InvalidInputError(f"{where} must be {_range(b, fd)}, got {v!r}")
+    elif fd.type not in (F.TYPE_BOOL, F.TYPE_BYTES, F.TYPE_MESSAGE) and not b.lo <= v <= b.hi:
+        raise InvalidInputError(f"{where} must be {_range(b, fd)}, got {v}")
+
+
+def check_request(msg: Any, where: str = "") -> None:
+    """Refuse (:class:`InvalidInputError` naming the field) a request with a field out of its :func:`bounds`:
+    numbers out of range, NaN or infinity, text too long or holding NUL, too many items. Walks nested messages."""
+    from google.protobuf.descriptor import FieldDescriptor as F
+
+    table, name = bounds(), msg.DESCRIPTOR.name
+    where = where or name
+    for fd in msg.DESCRIPTOR.fields:
+        b = table.get(f"{name}.{fd.name}", Bound(max_bytes=MAX_PATH_BYTES))
+        here = f"{where}.{fd.name}"
+        value = getattr(msg, fd.name)
+        if fd.is_repeated:
+            n = len(value)
+            if b.counts and n not in b.counts:
+                raise InvalidInputError(f"{here} must hold {b.say or ' or '.join(map(str, b.counts)) + ' values'}, "
+                                        f"got {n} values")
+            if b.max_items is not None and n > b.max_items:
+                raise InvalidInputError(f"{here} holds {n} items; at most {b.max_items}")
+            for i, item in enumerate(value):
+                if fd.type == F.TYPE_MESSAGE:
+                    check_request(item, f"{here}[{i}]")
+                else:
+                    _check_value(f"{here}[{i}]", fd, b, item)
+        elif fd.type == F.TYPE_MESSAGE:
+            if msg.HasField(fd.name):
+                check_request(value, here)
+        else:
+            _check_value(here, fd, b, value)
 
 
 def dtype_of(value: int) -> np.dtype:
@@ -134,6 +307,39 @@ def export_options(msg: warp_pb2.ExportOptions):
     if len(msg.chunks):
         given["chunks"] = tuple(int(c) for c in msg.chunks)
     return ExportOptions(**given)
+
+
+def segment_options(msg: Any):
+    """A :class:`napari_unwind.pipeline.SegmentOptions` from a SegmentRequest, SelectRequest or PipelineRequest
+    (unset fields: the defaults)."""
+    from napari_unwind.pipeline import SegmentOptions
+
+    given: dict[str, Any] = {}
+    if msg.features:
+        given["features"] = int(msg.features)
+    if getattr(msg, "has_level", False) and msg.level >= 0:  # a SegmentRequest's -1: the default
+        given["level"] = int(msg.level)
+    if getattr(msg, "has_smooth", False):
+        given["smooth"] = float(msg.smooth)
+    if getattr(msg, "has_isovalue", False):
+        given["isovalue"] = float(msg.isovalue)
+    if hasattr(msg, "fill_holes"):
+        given["fill_holes"] = bool(msg.fill_holes)
+    return SegmentOptions(**given)
+
+
+def pipeline_options(msg: Any):
+    """The :class:`napari_unwind.pipeline.PipelineOptions` of a PipelineRequest."""
+    from napari_unwind.pipeline import PipelineOptions
+
+    return PipelineOptions(segment_options(msg), skeleton_options(msg.skeleton), export_options(msg.export))
+
+
+def order(msg: Any) -> int:
+    """The interpolation order of a BendRequest (unset: 1), checked by the export's options (0, 1 or 3)."""
+    from napari_unwind.pipeline import ExportOptions
+
+    return ExportOptions(order=int(msg.order) if msg.has_order else 1).order
 
 
 def export_options_msg(opt: Any, output_name: str = "") -> warp_pb2.ExportOptions:

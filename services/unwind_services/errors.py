@@ -24,7 +24,9 @@ __all__ = [
     "PermissionDeniedError",
     "ShuttingDownError",
     "StateError",
+    "disk_full",
     "status_for",
+    "DISK_FULL_MESSAGE",
     "INTERNAL_MESSAGE",
 ]
 
@@ -64,8 +66,36 @@ class AuthError(UnwindError):
     """No token, an unknown token, or an expired one."""
 
 
+#: Error numbers of a full disk or an exhausted quota.
+_FULL = (errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC))
+DISK_FULL_MESSAGE = "the server's disk is full; try again later or ask its operator to free some space"
+
+
+def disk_full(exc: BaseException) -> bool:
+    """True when ``exc`` or an error it was raised from (``__cause__``, ``__context__``) is a full disk or quota:
+    an OSError ENOSPC or EDQUOT (the core wraps those in its OutputError, libraries in their own) or SQLite's
+    "database or disk is full"."""
+    import sqlite3
+
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        seen.add(id(cause))
+        if isinstance(cause, OSError) and cause.errno in _FULL:
+            return True
+        if isinstance(cause, sqlite3.Error) and getattr(cause, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL:
+            return True
+        cause = cause.__cause__ or cause.__context__
+    return False
+
+
 def status_for(exc: BaseException) -> tuple[grpc.StatusCode, str | None]:
-    """The status code of an exception and the message a client may see (None: INTERNAL, hide the message)."""
+    """The status code of an exception and the message a client may see (None: INTERNAL, hide the message).
+
+    A full disk is RESOURCE_EXHAUSTED whatever wraps it (the core's OutputError would otherwise read as
+    FAILED_PRECONDITION, SQLite's error as INTERNAL)."""
+    if disk_full(exc):
+        return grpc.StatusCode.RESOURCE_EXHAUSTED, DISK_FULL_MESSAGE
     msg = str(exc) or type(exc).__name__
     table: tuple[tuple[type[BaseException] | tuple, grpc.StatusCode], ...] = (
         (AuthError, grpc.StatusCode.UNAUTHENTICATED),
@@ -81,6 +111,6 @@ def status_for(exc: BaseException) -> tuple[grpc.StatusCode, str | None]:
     for kinds, code in table:
         if isinstance(exc, kinds):
             return code, msg
-    if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
-        return grpc.StatusCode.RESOURCE_EXHAUSTED, "the server's disk is full"
+    if isinstance(exc, OSError) and exc.errno == errno.ENAMETOOLONG:  # a client's path, past PATH_MAX with the root
+        return grpc.StatusCode.INVALID_ARGUMENT, "a path or file name is too long for the server's file system"
     return grpc.StatusCode.INTERNAL, None

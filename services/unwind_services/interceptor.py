@@ -4,9 +4,14 @@ In the style of KServe's ``protocol/grpc/interceptors.py``: every handler is wra
 
 - resolves the caller's user from the ``authorization`` metadata (health and reflection need no token);
 - turns a request that does not parse into INVALID_ARGUMENT (grpc would answer INTERNAL);
+- refuses a request with a field out of its bounds (:func:`unwind_services.convert.check_request`: lengths, NaN,
+  infinities, NUL, huge numbers, too many items) before any servicer sees it: INVALID_ARGUMENT naming the field;
 - maps exceptions with :func:`unwind_services.errors.status_for`, keeping the core's one-line message (with the
   data root's absolute path removed). Anything unexpected becomes INTERNAL with a generic message and a
   reference; the traceback goes to the server log only, never over the wire.
+
+A refused call leaves one line in the log, at most :data:`MAX_LOG_LINE` characters (a 60 MiB path is cut, never
+copied whole); a traceback's lines are cut the same way and it keeps at most :data:`MAX_TRACEBACK` characters.
 """
 
 from __future__ import annotations
@@ -22,11 +27,15 @@ import grpc
 
 from napari_unwind.errors import InvalidInputError
 
+from . import convert
 from .auth import TokenAuth
 from .errors import INTERNAL_MESSAGE, status_for
 from .paths import DataRoot
 
-__all__ = ["ServiceInterceptor", "current_user"]
+__all__ = ["ServiceInterceptor", "current_user", "MAX_LOG_LINE", "MAX_MESSAGE", "MAX_TRACEBACK"]
+
+#: Longest line the log holds for a refused call; longest message a caller gets; longest traceback kept.
+MAX_LOG_LINE, MAX_MESSAGE, MAX_TRACEBACK = 500, 1000, 20_000
 
 log = logging.getLogger("unwind_services")
 
@@ -57,10 +66,25 @@ def _safe(deserializer: Callable[[bytes], Any] | None) -> Callable[[bytes], Any]
     return parse
 
 
+def _short(text: str, most: int) -> str:
+    """``text`` cut to ``most`` characters (saying how long it was)."""
+    if len(text) <= most:
+        return text
+    return f"{text[:most - 40]}... ({len(text)} characters)"
+
+
+def _bounded_traceback() -> str:
+    lines = [_short(line, MAX_LOG_LINE) for line in traceback.format_exc().splitlines()]
+    text = "\n".join(lines)
+    return text if len(text) <= MAX_TRACEBACK else text[:MAX_TRACEBACK // 2] + "\n...\n" + text[-MAX_TRACEBACK // 2:]
+
+
 def _check(request: Any) -> Any:
     if isinstance(request, _Malformed):
         raise InvalidInputError("the request message is malformed (it does not parse as the expected protobuf "
                                 "message); check the client's contract version (unwind.v1)")
+    if hasattr(request, "DESCRIPTOR"):  # not an upload's chunk (ingest.decoder hands those over as memoryviews)
+        convert.check_request(request)
     return request
 
 
@@ -77,13 +101,15 @@ class ServiceInterceptor(grpc.ServerInterceptor):
 
     def _abort(self, exc: BaseException, context: grpc.ServicerContext, method: str) -> None:
         code, message = status_for(exc)
+        method = _short(method, 200)
         if message is None:
             ref = uuid.uuid4().hex[:8]
-            log.error("%s failed (reference %s):\n%s", method, ref, traceback.format_exc())
+            log.error("%s failed (reference %s):\n%s", method, ref, _bounded_traceback())
             message = INTERNAL_MESSAGE.format(ref=ref)
         else:
-            log.info("%s -> %s: %s", method, code.name, message)
-        context.abort(code, self.root.scrub(message))
+            message = _short(self.root.scrub(message), MAX_MESSAGE)
+            log.info("%s", _short(f"{method} -> {code.name}: {message}", MAX_LOG_LINE))
+        context.abort(code, message)
 
     def _user(self, metadata: Any) -> str:
         md = dict(metadata or ())

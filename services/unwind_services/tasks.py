@@ -193,30 +193,32 @@ def bend(ctx: TaskContext, req: Any) -> TaskGen:
     _, session = ctx.catalog.session(ctx.owner, req.session_id)
     out = ctx.output(req.output_name, "bent.zarr")
     d = session.deformation
-    data = bend(straight, d, shape=tuple(session.source.shape), order=req.order if req.has_order else 1)
+    data = bend(straight, d, shape=tuple(session.source.shape), order=convert.order(req))
     written = yield from write_volume_iter(data, out, spacing=d.spacing, origin=d.origin, unit=session.source.unit)
     return pb.JobResult(volume_id=ctx.register(written, out.name))
 
 
-def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
-    """``unwind run`` as a job: :func:`napari_unwind.pipeline.run_iter` (segment or a mask, select, refine,
-    skeleton, session, straighten); the figures carry the specimen's status and reason."""
-    from napari_unwind.pipeline import PipelineOptions, SegmentOptions, run_iter
-    from napari_unwind.segmentation import load_features
-
-    vrow, volume = ctx.catalog.volume(ctx.owner, req.volume_id)
-    out = ctx.output(req.export.output_name, "straight.zarr")
-    seeds = convert.points(req.select, "select point")
-    ways = sum((len(seeds) > 0, bool(req.mask_volume_id), len(req.ids) > 0))
+def _one_specimen(req: Any) -> None:
+    """A pipeline request says which specimen in exactly one way."""
+    ways = sum((len(req.select) > 0, bool(req.mask_volume_id), len(req.ids) > 0))
     if ways != 1:
         raise InvalidInputError("say which specimen to straighten with exactly one of: select points (the scan is "
                                 "segmented first), ids of a segmentation, or a mask volume")
     if req.ids and not req.segmentation_id:
         raise InvalidInputError("feature ids need the segmentation they refer to (segmentation_id)")
-    options = PipelineOptions(
-        SegmentOptions(features=req.features or None, level=req.level if req.has_level else None,
-                       isovalue=req.isovalue if req.has_isovalue else None, fill_holes=req.fill_holes),
-        convert.skeleton_options(req.skeleton), convert.export_options(req.export))
+
+
+def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
+    """``unwind run`` as a job: :func:`napari_unwind.pipeline.run_iter` (segment or a mask, select, refine,
+    skeleton, session, straighten); the figures carry the specimen's status and reason."""
+    from napari_unwind.pipeline import run_iter
+    from napari_unwind.segmentation import load_features
+
+    vrow, volume = ctx.catalog.volume(ctx.owner, req.volume_id)
+    out = ctx.output(req.export.output_name, "straight.zarr")
+    seeds = convert.points(req.select, "select point")
+    _one_specimen(req)
+    options = convert.pipeline_options(req)
     endpoints = convert.endpoints(req.ends, req.HasField("ends"))
     t_all = time.perf_counter()
     chosen: dict[str, Any] = {}
@@ -253,11 +255,24 @@ _REQUIRED = {"segment": ("volume_id",), "select": ("segmentation_id",), "estimat
              "pipeline": ("volume_id",)}
 
 
+#: The core's options of each kind of job, built from its request (a bad value is refused as the job runs would).
+_OPTIONS = {"segment": convert.segment_options, "select": convert.segment_options,
+            "estimate_deformation": lambda r: convert.skeleton_options(r.options),
+            "straighten": lambda r: convert.export_options(r.options), "bend": convert.order,
+            "pipeline": convert.pipeline_options}
+
+
 def precheck(catalog: Catalog, owner: str, spec: jobs_pb2.SubmitRequest) -> None:
-    """Refuse malformed points (NaN, infinity) and ids the owner does not have when the job is submitted, not
-    minutes later when it runs."""
+    """Refuse at Submit, not minutes later when the job runs: a field out of its bounds
+    (:func:`unwind_services.convert.check_request`), options the core refuses (the same
+    :mod:`napari_unwind.pipeline` options the job builds), malformed points (NaN, infinity), bad output names,
+    and ids the owner does not have."""
     which = kind_of(spec)
+    convert.check_request(spec)
     req = getattr(spec, which)
+    _OPTIONS[which](req)
+    if which == "pipeline":
+        _one_specimen(req)
     required = _REQUIRED[which]
     for field_name, what in (("seeds", "seed"), ("select", "select point")):
         if hasattr(req, field_name):
