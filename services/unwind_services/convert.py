@@ -11,6 +11,7 @@ from napari_unwind.errors import InvalidInputError
 
 from ._proto.unwind.v1 import common_pb2 as pb
 from ._proto.unwind.v1 import segmentation_pb2, skeleton_pb2, volume_pb2, warp_pb2
+from .errors import LimitError
 
 __all__ = ["DTYPES", "dtype_of", "dtype_enum", "points", "point_msg", "endpoints", "volume_info", "feature_msg",
            "skeleton_options", "skeleton_options_msg", "export_options", "export_options_msg",
@@ -45,6 +46,51 @@ def points(msgs: Sequence[pb.Point], what: str) -> np.ndarray:
         raise InvalidInputError(f"{what} {i} is not a finite point: {tuple(arr[i])}; give three finite numbers "
                                 "(axis0, axis1, axis2)")
     return arr
+
+
+def map_points_in(msg: warp_pb2.MapPointsRequest, most: int, what: str, hint: str) -> np.ndarray:
+    """The (N, 3) points of a MapPointsRequest (``points`` or the flat ``coords``), at most ``most`` of them."""
+    if msg.points and msg.coords:
+        raise InvalidInputError("give the points either as points or as coords, not both")
+    n = len(msg.points) if msg.points else len(msg.coords) // 3
+    if n > most:
+        raise LimitError(f"{what} carries at most {most} points, got {n}; {hint}")
+    if not msg.coords:
+        return points(msg.points, "point")
+    if len(msg.coords) % 3:
+        raise InvalidInputError(f"coords holds (axis0, axis1, axis2) triples: its length must be a multiple of 3, "
+                                f"got {len(msg.coords)}")
+    arr = np.asarray(msg.coords, dtype=float).reshape(-1, 3)
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InvalidInputError(f"point {i} is not a finite point: {tuple(arr[i])}; give three finite numbers "
+                                "(axis0, axis1, axis2)")
+    return arr
+
+
+def map_points_out(mapped: np.ndarray, flat: bool) -> warp_pb2.MapPointsResponse:
+    """The response to a MapPointsRequest: flat ``coords`` when the request gave coords, else ``points``."""
+    if flat:
+        out = warp_pb2.MapPointsResponse()
+        out.coords.extend(np.ascontiguousarray(mapped, dtype=float).ravel().tolist())
+        return out
+    return warp_pb2.MapPointsResponse(points=[pb.Point(axis0=a, axis1=b, axis2=c) for a, b, c in mapped])
+
+
+def map_options(msg: warp_pb2.MapPointsRequest) -> dict[str, Any]:
+    """The keywords of ``napari_unwind.warp.map_points`` a MapPointsRequest gives."""
+    to = "scan" if msg.direction == warp_pb2.MAP_DIRECTION_TO_SCAN else "straight"
+    return {"to": to, "spacing": msg.spacing or None, "pad": msg.pad}
+
+
+def check_same_map(first: warp_pb2.MapPointsRequest, msg: warp_pb2.MapPointsRequest) -> None:
+    """A later message of MapPointsStream leaves the first one's session and options unset, or repeats them."""
+    for name in ("session_id", "direction", "spacing", "pad"):
+        value = getattr(msg, name)
+        if value and value != getattr(first, name):
+            raise InvalidInputError(f"every message of a MapPointsStream maps with the first one's {name} "
+                                    f"({getattr(first, name)!r}); a later message gave {value!r}")
 
 
 def point_msg(p: Sequence[float]) -> pb.Point:
