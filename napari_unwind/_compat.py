@@ -30,6 +30,8 @@ from types import ModuleType
 
 import numpy as np
 
+from .progress import checkpoint
+
 __all__ = ["tetrahedralize", "tetwild_extension"]
 
 
@@ -136,7 +138,11 @@ def _run_child(folder: str) -> int:
         proc = subprocess.Popen([sys.executable, "-m", "napari_unwind._tetwild_child", folder], cwd=folder,
                                 stdin=subprocess.DEVNULL, stdout=output, stderr=output, env=env)
         try:
-            return proc.wait()
+            while True:  # a cancelled job (progress.checkpoint raises) stops the child below
+                try:
+                    return proc.wait(timeout=0.1)
+                except subprocess.TimeoutExpired:
+                    checkpoint()
         finally:
             if proc.poll() is None:
                 proc.kill()

@@ -127,6 +127,10 @@ def _remote_error(exc: Any, what: str = "") -> RemoteError:
     return cls(f"{what}{details}", code.name)
 
 
+#: Points per MapPoints call or MapPointsStream message (the server takes up to 100000; 1.2 MB a message).
+MAP_BATCH = 50_000
+
+
 def _points(points: Any, what: str) -> list:
     from unwind_services._proto.unwind.v1 import common_pb2 as pb
 
@@ -673,16 +677,44 @@ class Client:
         return self.submit(jobs_pb2.SubmitRequest(bend=req), wait=wait)
 
     def map_points(self, session_id: str, points: Any, *, to: str = "straight", spacing: float | None = None,
-                   pad: int = 0) -> np.ndarray:
+                   pad: int = 0, timeout: float | None = None) -> np.ndarray:
+        """Carry points between the scan and the straight volume on the server (``napari_unwind.warp.map_points``).
+
+        Up to :data:`MAP_BATCH` points go in one MapPoints call; more stream through MapPointsStream in batches of
+        that many, so neither side holds more than a batch of messages (``timeout``: for the whole call, default
+        the client's timeout per batch).
+        """
         from unwind_services._proto.unwind.v1 import warp_pb2
 
         if to not in ("straight", "scan"):
             raise InvalidInputError(f"to must be 'straight' or 'scan', got {to!r}")
         direction = warp_pb2.MAP_DIRECTION_TO_SCAN if to == "scan" else warp_pb2.MAP_DIRECTION_TO_STRAIGHT
-        r = self._unary(self.warp_stub.MapPoints, warp_pb2.MapPointsRequest(
-            session_id=session_id, points=_points(points, "point"), direction=direction, spacing=spacing or 0.0,
-            pad=pad))
-        return np.array([(p.axis0, p.axis1, p.axis2) for p in r.points], dtype=float).reshape(-1, 3)
+        arr = np.asarray(points, dtype=float).reshape(-1, 3)
+        options = dict(session_id=session_id, direction=direction, spacing=spacing or 0.0, pad=pad)
+        batches = max(1, -(-len(arr) // MAP_BATCH))
+        timeout = timeout or self.timeout * batches
+        if batches == 1:
+            r = self._unary(self.warp_stub.MapPoints, warp_pb2.MapPointsRequest(
+                coords=arr.ravel().tolist(), **options), timeout=timeout)
+            return np.asarray(r.coords, dtype=float).reshape(-1, 3)
+
+        def requests() -> Iterator[Any]:
+            for a in range(0, len(arr), MAP_BATCH):
+                yield warp_pb2.MapPointsRequest(coords=arr[a:a + MAP_BATCH].ravel().tolist(),
+                                                **(options if a == 0 else {}))
+
+        def stream() -> np.ndarray:
+            out = np.empty_like(arr)
+            at = 0
+            for r in self.warp_stub.MapPointsStream(requests(), timeout=timeout, metadata=self._metadata):
+                got = np.asarray(r.coords, dtype=float).reshape(-1, 3)
+                out[at:at + len(got)] = got
+                at += len(got)
+            if at != len(arr):
+                raise RemoteError(f"map points: the server answered {at} of {len(arr)} points", "INTERNAL")
+            return out
+
+        return self._retrying(stream, "map points: ")
 
     def pipeline_request(self, volume_id: str, *, select: Any = None, ids: Sequence[int] | None = None,
                          segmentation_id: str = "", mask_volume_id: str = "", features: int | None = None,

@@ -85,7 +85,7 @@ from .io._api import _size, open_volume, write_volume_iter
 from .io._atomic import atomic_output, check_writable
 from .io._formats import output_format
 from .io._volume import SUPPORTED_DTYPES, Volume, normalise_unit, unit_label
-from .progress import Progress, run
+from .progress import Progress, checkpoint, run
 from .scheduler import use_scheduler
 
 __all__ = [
@@ -119,6 +119,8 @@ DEFAULT_TILE = 256
 #: usually smaller than its scan, so an output this large is nearly always a wrong spacing, pad or unit
 #: (the demo fish at ``--spacing 0.01`` would be 120 GiB; with ``--pad 100000000``, 86 GiB).
 DEFAULT_MAX_OUTPUT = 64 * 2**30
+#: Points :func:`map_points` maps between two cancellation checks (tens of milliseconds).
+_MAP_BATCH = 16384
 
 #: Largest ``pad`` (output slices at each end) accepted at all, whatever ``max_output``.
 MAX_PAD = 10**9
@@ -1704,6 +1706,7 @@ def map_points(
     to: str = "straight",
     spacing: float | None = None,
     pad: int = 0,
+    strict: bool = True,
 ) -> np.ndarray:
     """Carry points between the scan and the straight volume.
 
@@ -1719,6 +1722,9 @@ def map_points(
         ``ds`` of the straight grid (default: the finest scan spacing).
     pad : int
         Extra straight slices at each end, as given to :func:`straighten`.
+    strict : bool
+        True: a warning counts the points outside the cage, and an error says when all are. False: neither (one
+        batch of a longer stream of points, whose caller judges the whole).
 
     Returns
     -------
@@ -1743,22 +1749,29 @@ def map_points(
     out = np.full(pts.shape, np.nan)
     if len(pts) == 0:
         return out
-    if to == "straight":
-        xys, inside = _fast_inverse(d, d.to_physical(pts))  # Deformation.inverse, compiled
-        xys = xys[inside]
-        out[inside] = np.stack([(xys[:, 2] - s_lo) / ds, xys[:, 1] / ds + i0, xys[:, 0] / ds + j0], axis=1)
-    else:
-        s = s_lo + pts[:, 0] * ds
-        y = (pts[:, 1] - i0) * ds
-        x = (pts[:, 2] - j0) * ds
-        b = d.bounds_at(s)
-        tol = 1e-9 * max(1.0, d.length)
-        inside = ((s >= s_lo - tol) & (s <= s_hi + tol) & (x >= b[:, 0] - tol) & (x <= b[:, 1] + tol)
-                  & (y >= b[:, 2] - tol) & (y <= b[:, 3] + tol))
-        if inside.any():
-            phys = d.forward(np.stack([x[inside], y[inside], s[inside]], axis=1))
-            out[inside] = d.to_voxels(phys)
+    inside = np.zeros(len(pts), dtype=bool)
+    tol = 1e-9 * max(1.0, d.length)
+    for a in range(0, len(pts), _MAP_BATCH):  # each point on its own: batches only bound the time between checks
+        checkpoint()
+        p, o = pts[a:a + _MAP_BATCH], out[a:a + _MAP_BATCH]
+        if to == "straight":
+            xys, ins = _fast_inverse(d, d.to_physical(p))  # Deformation.inverse, compiled
+            xys = xys[ins]
+            o[ins] = np.stack([(xys[:, 2] - s_lo) / ds, xys[:, 1] / ds + i0, xys[:, 0] / ds + j0], axis=1)
+        else:
+            s = s_lo + p[:, 0] * ds
+            y = (p[:, 1] - i0) * ds
+            x = (p[:, 2] - j0) * ds
+            b = d.bounds_at(s)
+            ins = ((s >= s_lo - tol) & (s <= s_hi + tol) & (x >= b[:, 0] - tol) & (x <= b[:, 1] + tol)
+                   & (y >= b[:, 2] - tol) & (y <= b[:, 3] + tol))
+            if ins.any():
+                phys = d.forward(np.stack([x[ins], y[ins], s[ins]], axis=1))
+                o[ins] = d.to_voxels(phys)
+        inside[a:a + _MAP_BATCH] = ins
     n_out = int((~inside).sum())
+    if not strict:
+        return out
     if n_out == len(pts):
         raise InvalidInputError(
             f"all {len(pts)} points are outside the cage of the deformation (mapping to {to!r}); check that they "

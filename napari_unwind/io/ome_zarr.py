@@ -27,6 +27,7 @@ chunk that cannot be decoded is an error naming its file, also inside dask tasks
 
 from __future__ import annotations
 
+import contextvars
 import itertools
 import json
 import math
@@ -44,7 +45,7 @@ from zarr.codecs import BloscCodec, BytesCodec, Crc32cCodec
 from zarr.storage import LocalStore
 
 from ..errors import InvalidInputError, UnknownFormatError
-from ..progress import Progress
+from ..progress import Progress, checkpoint
 from ._atomic import final_name
 from ._files import check_regular, open_regular
 from ._headers import compose_transform
@@ -767,7 +768,11 @@ def write_ome_zarr(
 
     def read_slab(z0: int) -> np.ndarray:
         if given is None:
-            return np.asarray(volume.data[z0:min(shape[0], z0 + depth)].compute())
+            from dask.callbacks import Callback
+
+            # a cancelled job stops between two chunks of the slab (dask's local schedulers call pretask here)
+            with Callback(pretask=lambda *_: checkpoint(), posttask=lambda *_: checkpoint()):
+                return np.asarray(volume.data[z0:min(shape[0], z0 + depth)].compute())
         want = (min(shape[0], z0 + depth) - z0, *shape[1:])
         slab = next(given, None)
         if slab is None or tuple(slab.shape) != want or slab.dtype != dtype:
@@ -781,13 +786,14 @@ def write_ome_zarr(
             ThreadPoolExecutor(max_workers=_ENCODE_THREADS) as encoders:
         direct = [_DirectWriter(a, str(path), encoders) if _DirectWriter.usable(a) else None for a in arrays]
         pyr = _Cascade(arrays, labels=labels, writer=writer, direct=direct)
-        pending = reader.submit(read_slab, starts[0])
+        # the reader runs in this thread's context: its checkpoints run this thread's cancellation check
+        pending = reader.submit(contextvars.copy_context().run, read_slab, starts[0])
         for i, z0 in enumerate(starts):
             slab = pending.result()
             if given is not None and i + 1 == len(starts) and next(given, None) is not None:
                 raise InvalidInputError(f"more planes than the {shape[0]} of a {shape} {dtype} volume arrived")
             if i + 1 < len(starts):
-                pending = reader.submit(read_slab, starts[i + 1])
+                pending = reader.submit(contextvars.copy_context().run, read_slab, starts[i + 1])
             pyr.push(0, slab, last=i + 1 == len(starts))
             del slab
             yield Progress("write", i + 1, len(starts), f"planes {z0}-{z0 + depth - 1} of {shape[0]}"

@@ -51,7 +51,7 @@ import numpy as np
 from numba import njit
 
 from ..errors import InvalidInputError
-from ..progress import Progress, run
+from ..progress import Progress, checkpoint, run
 from ._common import MAX_FEATURES
 from ._features import simplify as _simplify
 
@@ -64,6 +64,39 @@ __all__ = ["JoinTree", "join_tree", "join_tree_iter", "MAX_FEATURES"]
 NOISE_FACTOR = 7.0
 
 _SWEEP_STEPS = 16  # progress records during the sweep
+_SWEEP_CHUNK = 1 << 22  # voxels swept between two cancellation checks (well under a second)
+_FILTER_WORK = 1 << 25  # multiply-adds of the Gaussian filter between two cancellation checks (tens of ms)
+
+
+def _gaussian(values: np.ndarray, sigma: float) -> np.ndarray:
+    """``ndimage.gaussian_filter(values, sigma, mode="nearest", output=np.float32)``, the same bytes, one axis at a
+    time in bundles of lines of bounded work, with a cancellation check between two bundles (a large sigma makes
+    the filter's kernel, and its time, grow without bound)."""
+    from scipy import ndimage
+
+    out = np.empty(values.shape, np.float32)
+    if sigma <= 1e-15:  # as gaussian_filter: no axis to filter
+        out[...] = values
+        return out
+    radius = int(4.0 * float(sigma) + 0.5)  # gaussian_filter1d's radius at truncate=4
+    src = values
+    for axis in range(values.ndim):
+        b, c = (a for a in range(values.ndim) if a != axis)
+        per_line = values.shape[axis] * (2 * radius + 1)
+        lines = max(1, _FILTER_WORK // per_line)
+        nc = values.shape[c]
+        if lines >= nc:  # whole planes along b
+            step = lines // nc
+            blocks = [{b: slice(i, i + step)} for i in range(0, values.shape[b], step)]
+        else:  # parts of one plane
+            blocks = [{b: slice(i, i + 1), c: slice(j, j + lines)} for i in range(values.shape[b])
+                      for j in range(0, nc, lines)]
+        for blk in blocks:
+            checkpoint()
+            sl = tuple(blk.get(a, slice(None)) for a in range(values.ndim))
+            ndimage.gaussian_filter1d(src[sl], sigma, axis=axis, output=out[sl], mode="nearest")
+        src = out
+    return out
 _NPZ_VERSION = 2
 _NOISE_WINDOW = 4  # half width of the local noise windows (9 x 9 x 9)
 
@@ -687,7 +720,6 @@ def join_tree_iter(
     volume_or_array: Any, *, level: int | None = None, smooth: float = 1.0, connectivity: int = 6
 ) -> Generator[Progress, None, JoinTree]:
     """Generator form of :func:`join_tree`: yields :class:`~napari_unwind.progress.Progress`, returns the tree."""
-    from scipy import ndimage
 
     try:
         smooth = float(smooth)
@@ -708,7 +740,7 @@ def join_tree_iter(
     values = np.asarray(arr, dtype=np.float32)
     if smooth > 0:
         yield Progress("smooth", 0, 1, f"sigma {smooth:g}")
-        values = ndimage.gaussian_filter(values, sigma=smooth, mode="nearest", output=np.float32)
+        values = _gaussian(values, smooth)
         yield Progress("smooth", 1, 1)
     values = np.ascontiguousarray(values)
     yield Progress("sort", 0, 1)
@@ -727,8 +759,9 @@ def join_tree_iter(
     for s in range(_SWEEP_STEPS):
         pos, stop = int(steps[s]), int(steps[s + 1])
         while pos < stop:
-            pos, nb = _sweep(flat, order, pos, stop, shape, offsets, state, *arrays, nb)
-            if pos < stop:  # the branch arrays are full: grow them
+            checkpoint()  # a cancelled job stops here (at most _SWEEP_CHUNK voxels apart); the sweep resumes at pos
+            pos, nb = _sweep(flat, order, pos, min(stop, pos + _SWEEP_CHUNK), shape, offsets, state, *arrays, nb)
+            if pos < stop and nb >= arrays[0].shape[0]:  # the branch arrays are full: grow them
                 arrays = _grow(arrays, 2 * arrays[0].shape[0])
         yield Progress("sweep", s + 1, _SWEEP_STEPS, f"{nb} maxima")
     del order

@@ -15,7 +15,7 @@ from scipy import ndimage as ndi
 from ..deformation import Deformation, Keyframe, parallel_transport_frames
 from ..errors import InvalidInputError
 from ..io._volume import Volume, check_spacing, normalise_unit, unit_label
-from ..progress import Progress, ProgressGenerator, run
+from ..progress import Progress, ProgressGenerator, checkpoint, run
 from ..session import Endpoints
 from ._curve import arclength, regularise_ends, resample_curve, select_keyframes, smooth_curve
 from ._foldfree import coverage, format_lost, max_tilt, unfold
@@ -460,6 +460,7 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
     best_key = np.full(len(idx), -np.inf)
     best_level = np.zeros(len(idx), dtype=int)
     for level, sg in enumerate(ladder):
+        checkpoint()
         _, _, key = build(np.full(len(idx), sg))
         better = key > best_key + 0.05  # a tilt must pay for itself
         best_key = np.where(better, key, best_key)

@@ -6,6 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..errors import InvalidInputError
+from ..progress import checkpoint
 
 __all__ = ["smooth_curve", "resample_curve", "regularise_ends", "select_keyframes", "arclength"]
 
@@ -51,6 +52,7 @@ def smooth_curve(points: np.ndarray, *, iterations: int = 50, method: str = "tau
     if len(pts) < 3:
         return pts
     for _ in range(int(iterations)):
+        checkpoint()
         for lam in steps:
             pts[1:-1] += lam * (0.5 * (pts[:-2] + pts[2:]) - pts[1:-1])
     return pts

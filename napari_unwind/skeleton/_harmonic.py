@@ -18,6 +18,7 @@ from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from ..errors import InvalidInputError
+from ..progress import checkpoint
 
 __all__ = ["TetMesh", "surface_mesh", "decimate_surface", "tet_mesh", "lattice_tet_mesh", "harmonic_field",
            "level_set_centroids"]
@@ -397,6 +398,7 @@ def level_set_centroids(mesh: TetMesh, u: np.ndarray, levels: np.ndarray) -> tup
     by_min = np.argsort(f[:, 0])
     fmin_sorted = f[by_min, 0]
     for i, c in enumerate(levels):
+        checkpoint()
         cand = by_min[: np.searchsorted(fmin_sorted, c, side="left")]
         cand = cand[f[cand, 3] > c]
         if cand.size == 0:

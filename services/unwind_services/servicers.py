@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
@@ -16,9 +17,9 @@ import numpy as np
 
 from napari_unwind.errors import InvalidInputError
 from napari_unwind.io._atomic import remove_path
+from napari_unwind.progress import cancellation
 
 from . import convert
-from ._proto.unwind.v1 import common_pb2 as pb
 from ._proto.unwind.v1 import (
     jobs_pb2,
     jobs_pb2_grpc,
@@ -28,11 +29,10 @@ from ._proto.unwind.v1 import (
     skeleton_pb2_grpc,
     volume_pb2,
     volume_pb2_grpc,
-    warp_pb2,
     warp_pb2_grpc,
 )
 from .catalog import Catalog
-from .errors import LimitError
+from .errors import CancelledError, DeadlineError, LimitError
 from .ingest import UploadPipe, decoder, encode_chunk, encoder, import_stream, level_slabs
 from .interceptor import current_user
 from .jobs import JobManager
@@ -48,8 +48,25 @@ DOWNLOAD_CHUNK = 2 * 1024 * 1024
 _SELF_CONTAINED = (".zarr", ".tif", ".tiff", ".nrrd", ".nii", ".nii.gz")
 
 
+#: Most points a MapPoints call (or one message of MapPointsStream) carries.
+MAX_MAP_POINTS = 100_000
+
+
 def _limit(value: int, default: int = 100, most: int = 1000) -> int:
     return min(most, value) if value > 0 else default
+
+
+def _while_wanted(context) -> contextlib.AbstractContextManager:
+    """The core's long loops within a unary call stop (``progress.checkpoint``) once its deadline has passed or its
+    client has cancelled: the call ends DEADLINE_EXCEEDED or CANCELLED instead of working on for nobody."""
+    def check() -> None:
+        left = context.time_remaining()
+        if left is not None and left <= 0:
+            raise DeadlineError("the call's deadline passed; the server stopped its work")
+        if not context.is_active():
+            raise CancelledError("the call was cancelled by its client; the server stopped its work")
+
+    return cancellation(check, 0.05)
 
 
 class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
@@ -271,7 +288,7 @@ class SegmentationServicer(segmentation_pb2_grpc.SegmentationServiceServicer):
         owner = current_user()
         row = self.catalog.segmentation(owner, request.segmentation_id)
         k = int(row.meta["k"])
-        with self.catalog.lock(row.id):
+        with self.catalog.lock(row.id), _while_wanted(context):
             vrow, vol = self._labels(owner, row, k)
         return self._info(row, k, vrow, vol)
 
@@ -282,7 +299,8 @@ class SegmentationServicer(segmentation_pb2_grpc.SegmentationServiceServicer):
         row = self.catalog.segmentation(owner, request.segmentation_id)
         k = check_features_count(request.features)
         with self.catalog.lock(row.id):
-            vrow, vol = self._labels(owner, row, k)
+            with _while_wanted(context):
+                vrow, vol = self._labels(owner, row, k)
             row = self.catalog.segmentation(owner, row.id)
             self.catalog.store.update_meta(owner, row.id, dict(row.meta, k=k, features=self.catalog.root.relative(
                 self.catalog.path(vrow))))
@@ -301,7 +319,9 @@ class SkeletonServicer(skeleton_pb2_grpc.SkeletonServiceServicer):
         scan = self.catalog.volume(owner, request.volume_id)[1] if request.volume_id else None
         if scan is not None and tuple(scan.shape) != tuple(mask.shape):
             raise InvalidInputError(f"the mask has shape {mask.shape} but the scan has {scan.shape}")
-        head, tail = suggest_endpoints(mask.data, spacing=mask.spacing, volume=None if scan is None else scan.data)
+        with _while_wanted(context):
+            head, tail = suggest_endpoints(mask.data, spacing=mask.spacing,
+                                           volume=None if scan is None else scan.data)
         return skeleton_pb2.Ends(head=convert.point_msg(head), tail=convert.point_msg(tail))
 
     def EstimateDeformation(self, request, context):
@@ -321,12 +341,34 @@ class WarpServicer(warp_pb2_grpc.WarpServiceServicer):
     def MapPoints(self, request, context):
         from napari_unwind.warp import map_points
 
-        pts = convert.points(request.points, "point")
+        pts = convert.map_points_in(request, MAX_MAP_POINTS, "MapPoints", "use MapPointsStream for more")
         _, session = self.catalog.session(current_user(), request.session_id)
-        to = "scan" if request.direction == warp_pb2.MAP_DIRECTION_TO_SCAN else "straight"
-        mapped = map_points(pts, session.deformation, to=to, spacing=request.spacing or None, pad=request.pad) \
-            if len(pts) else np.zeros((0, 3))
-        return warp_pb2.MapPointsResponse(points=[pb.Point(axis0=a, axis1=b, axis2=c) for a, b, c in mapped])
+        with _while_wanted(context):
+            mapped = map_points(pts, session.deformation, **convert.map_options(request)) if len(pts) \
+                else np.zeros((0, 3))
+        return convert.map_points_out(mapped, bool(request.coords))
+
+    def MapPointsStream(self, request_iterator, context):
+        from napari_unwind.warp import map_points
+
+        first, deformation, total, inside = None, None, 0, 0
+        for request in request_iterator:
+            if first is None:
+                first = request
+                _, session = self.catalog.session(current_user(), request.session_id)
+                deformation, options = session.deformation, convert.map_options(request)
+            else:
+                convert.check_same_map(first, request)
+            pts = convert.map_points_in(request, MAX_MAP_POINTS, "a message of MapPointsStream",
+                                        "send them in several messages")
+            with _while_wanted(context):
+                mapped = map_points(pts, deformation, strict=False, **options) if len(pts) else np.zeros((0, 3))
+            total += len(pts)
+            inside += int(np.isfinite(mapped[:, 0]).sum())
+            yield convert.map_points_out(mapped, bool(request.coords))
+        if total and not inside:
+            raise InvalidInputError(f"all {total} points are outside the cage of the deformation; check that they "
+                                    "are voxel coordinates of the right volume")
 
 
 def add_volume_service(servicer: VolumeServicer, server) -> None:

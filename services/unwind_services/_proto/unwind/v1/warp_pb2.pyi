@@ -61,21 +61,25 @@ class BendRequest(_message.Message):
     def __init__(self, volume_id: _Optional[str] = ..., session_id: _Optional[str] = ..., order: _Optional[int] = ..., has_order: _Optional[bool] = ..., output_name: _Optional[str] = ...) -> None: ...
 
 class MapPointsRequest(_message.Message):
-    __slots__ = ("session_id", "points", "direction", "spacing", "pad")
+    __slots__ = ("session_id", "points", "direction", "spacing", "pad", "coords")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     POINTS_FIELD_NUMBER: _ClassVar[int]
     DIRECTION_FIELD_NUMBER: _ClassVar[int]
     SPACING_FIELD_NUMBER: _ClassVar[int]
     PAD_FIELD_NUMBER: _ClassVar[int]
+    COORDS_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     points: _containers.RepeatedCompositeFieldContainer[_common_pb2.Point]
     direction: MapDirection
     spacing: float
     pad: int
-    def __init__(self, session_id: _Optional[str] = ..., points: _Optional[_Iterable[_Union[_common_pb2.Point, _Mapping]]] = ..., direction: _Optional[_Union[MapDirection, str]] = ..., spacing: _Optional[float] = ..., pad: _Optional[int] = ...) -> None: ...
+    coords: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, session_id: _Optional[str] = ..., points: _Optional[_Iterable[_Union[_common_pb2.Point, _Mapping]]] = ..., direction: _Optional[_Union[MapDirection, str]] = ..., spacing: _Optional[float] = ..., pad: _Optional[int] = ..., coords: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class MapPointsResponse(_message.Message):
-    __slots__ = ("points",)
+    __slots__ = ("points", "coords")
     POINTS_FIELD_NUMBER: _ClassVar[int]
+    COORDS_FIELD_NUMBER: _ClassVar[int]
     points: _containers.RepeatedCompositeFieldContainer[_common_pb2.Point]
-    def __init__(self, points: _Optional[_Iterable[_Union[_common_pb2.Point, _Mapping]]] = ...) -> None: ...
+    coords: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, points: _Optional[_Iterable[_Union[_common_pb2.Point, _Mapping]]] = ..., coords: _Optional[_Iterable[float]] = ...) -> None: ...

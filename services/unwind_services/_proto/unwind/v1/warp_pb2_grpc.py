@@ -52,6 +52,11 @@ class WarpServiceStub:
                 request_serializer=unwind_dot_v1_dot_warp__pb2.MapPointsRequest.SerializeToString,
                 response_deserializer=unwind_dot_v1_dot_warp__pb2.MapPointsResponse.FromString,
                 _registered_method=True)
+        self.MapPointsStream = channel.stream_stream(
+                '/unwind.v1.WarpService/MapPointsStream',
+                request_serializer=unwind_dot_v1_dot_warp__pb2.MapPointsRequest.SerializeToString,
+                response_deserializer=unwind_dot_v1_dot_warp__pb2.MapPointsResponse.FromString,
+                _registered_method=True)
 
 
 class WarpServiceServicer:
@@ -73,7 +78,18 @@ class WarpServiceServicer:
         raise NotImplementedError('Method not implemented!')
 
     def MapPoints(self, request, context):
-        """Carry points between the scan and the straight volume.
+        """Carry points between the scan and the straight volume: at most 100000 points a call (more: RESOURCE_EXHAUSTED;
+        use MapPointsStream). The work stops when the call's deadline passes or the client cancels.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def MapPointsStream(self, request_iterator, context):
+        """Carry any number of points, in batches of at most 100000 points a message: one response per request, in
+        order, each with the batch's points mapped. The first message names the session, direction, spacing and pad;
+        later ones may leave them unset (a different value is INVALID_ARGUMENT). The server holds one batch at a time.
+        When every point of the stream is outside the cage, the stream ends with INVALID_ARGUMENT.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -94,6 +110,11 @@ def add_WarpServiceServicer_to_server(servicer, server):
             ),
             'MapPoints': grpc.unary_unary_rpc_method_handler(
                     servicer.MapPoints,
+                    request_deserializer=unwind_dot_v1_dot_warp__pb2.MapPointsRequest.FromString,
+                    response_serializer=unwind_dot_v1_dot_warp__pb2.MapPointsResponse.SerializeToString,
+            ),
+            'MapPointsStream': grpc.stream_stream_rpc_method_handler(
+                    servicer.MapPointsStream,
                     request_deserializer=unwind_dot_v1_dot_warp__pb2.MapPointsRequest.FromString,
                     response_serializer=unwind_dot_v1_dot_warp__pb2.MapPointsResponse.SerializeToString,
             ),
@@ -178,6 +199,33 @@ class WarpService:
             request,
             target,
             '/unwind.v1.WarpService/MapPoints',
+            unwind_dot_v1_dot_warp__pb2.MapPointsRequest.SerializeToString,
+            unwind_dot_v1_dot_warp__pb2.MapPointsResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def MapPointsStream(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/unwind.v1.WarpService/MapPointsStream',
             unwind_dot_v1_dot_warp__pb2.MapPointsRequest.SerializeToString,
             unwind_dot_v1_dot_warp__pb2.MapPointsResponse.FromString,
             options,
