@@ -235,3 +235,23 @@ def test_shutdown_kills_a_worker_whose_job_does_not_stop(tmp_path):
     row = catalog.store.job_row(job.id)
     assert row["state"] == pb.JOB_STATE_FAILED and row["interrupted"] == 1
     catalog.store.close()
+
+
+def test_the_stored_bytes_quota_counts_the_users_folder_only(tmp_path):
+    from unwind_services.errors import LimitError
+
+    root = DataRoot(tmp_path)
+    catalog = Catalog(Store(root.database), root, Limits(max_stored_bytes_per_user=10_000))
+    (root.user_dir("alice") / "volumes").mkdir()
+    (root.user_dir("alice") / "volumes" / "a.bin").write_bytes(b"x" * 6000)
+    (root.user_dir("bob") / "b.bin").write_bytes(b"x" * 9000)
+    assert catalog.stored_bytes("alice") == 6000 and catalog.stored_bytes("bob") == 9000
+    catalog.check_quota("alice", 4000)  # exactly the quota: accepted
+    with pytest.raises(LimitError) as info:
+        catalog.check_quota("alice", 4001, "this upload")
+    assert "10000" in str(info.value) and "10001" in str(info.value) and str(tmp_path) not in str(info.value)
+    (root.user_dir("alice") / "more.bin").write_bytes(b"x" * 5000)
+    catalog.forget_stored_bytes("alice")  # e.g. a job ended
+    with pytest.raises(LimitError):
+        catalog.check_quota("alice", 0)
+    catalog.store.close()
