@@ -75,6 +75,17 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _non_negative_float(text: str) -> float:
+    """Seconds >= 0, finite (0: no limit where the option says so)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds >= 0, got {text!r}") from None
+    if not 0 <= v < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number of seconds >= 0, got {text!r}")
+    return v
+
+
 def _port(text: str) -> int:
     """A TCP port, 0..65535 (0: any free port); gRPC took 99999 and listened on a port of its choosing."""
     v = _positive_int(text)
@@ -98,6 +109,12 @@ def _days(text: str) -> float:
 # ------------------------------------------------------------------------------------------------------------------
 # unwind serve
 # ------------------------------------------------------------------------------------------------------------------
+#: ``unwind serve`` options that are fields of ``unwind_services.catalog.Limits`` of the same name, with their
+#: defaults there (the parser's default None means "not given").
+_PER_USER_LIMITS = ("max_running_per_user", "max_uploads_per_user", "max_stored_bytes_per_user", "max_calls_per_user",
+                    "upload_idle_seconds", "download_idle_seconds")
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     from unwind_services.auth import add_token
     from unwind_services.catalog import Limits
@@ -114,14 +131,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
         raise InvalidInputError("give the folder the server keeps its data in: --data-root DIR")
     logging.basicConfig(level=getattr(logging, args.log_level.upper(), logging.INFO),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    given = {name: getattr(args, name) for name in _PER_USER_LIMITS if getattr(args, name) is not None}
     limits = Limits(max_upload_bytes=args.max_upload_bytes, max_voxels=args.max_voxels,
-                    max_message_bytes=args.max_message_bytes, max_jobs_per_user=args.max_jobs_per_user)
+                    max_message_bytes=args.max_message_bytes, max_jobs_per_user=args.max_jobs_per_user, **given)
+    drain = {} if args.drain is None else {"drain_seconds": args.drain}  # default: ServerConfig's
     config = ServerConfig(data_root=Path(args.data_root), port=args.port, listen=args.listen,
                           services=args.service or (), scheduler=args.scheduler,
                           tokens=Path(args.tokens) if args.tokens else None,
                           tls_cert=Path(args.tls_cert) if args.tls_cert else None,
                           tls_key=Path(args.tls_key) if args.tls_key else None, limits=limits, workers=args.workers,
-                          imports=args.imports or 0, drain_seconds=args.drain)
+                          imports=args.imports or 0, **drain)
     UnwindServer(config).serve_forever()
     return 0
 
@@ -388,12 +407,28 @@ def add_remote_commands(subparsers: Any) -> None:
                    help="largest gRPC message, bytes (default 64 MiB)")
     p.add_argument("--max-jobs-per-user", type=_positive_int, default=4,
                    help="jobs one user may have queued or running (default 4; 0: no limit)")
+    p.add_argument("--max-running-per-user", type=_positive_int, default=None,
+                   help="jobs of one user running at once (default: half of --workers, at least 1); another "
+                        "user's queued job starts before a user's next one")
+    p.add_argument("--max-uploads-per-user", type=_positive_int, default=None,
+                   help="uploads of one user in progress at once (default 1; 0: no limit)")
+    p.add_argument("--max-stored-bytes-per-user", type=_positive_int, default=None,
+                   help="quota: bytes the server keeps for one user, uploads and job outputs (default 0: no limit)")
+    p.add_argument("--max-calls-per-user", type=_positive_int, default=None,
+                   help="calls of one user in progress at once, streams included (default 16; 0: no limit); "
+                        "health checks are not counted")
+    p.add_argument("--upload-idle-seconds", type=_non_negative_float, default=None,
+                   help="an upload that sends nothing for this long is aborted, its import slot freed (default 30; "
+                        "0: no limit)")
+    p.add_argument("--download-idle-seconds", type=_non_negative_float, default=None,
+                   help="a download whose client reads nothing for this long is cancelled (default 30; 0: no limit)")
     p.add_argument("--workers", type=int, default=2, help="jobs running at once (default 2)")
     p.add_argument("--imports", type=_positive_int, default=None,
                    help="uploads imported at once, in processes of their own so that a slow client holds no job "
                         "worker (default: as many as --workers); a further upload waits for a free one")
-    p.add_argument("--drain", type=float, default=10.0,
-                   help="on SIGTERM, seconds running jobs may finish before they are interrupted (default 10)")
+    p.add_argument("--drain", type=_non_negative_float, default=None,
+                   help="on SIGTERM, seconds running jobs may finish before they are interrupted (default 30); a job "
+                        "that does not stop within a few seconds more has its worker process killed")
     p.add_argument("--log-level", default="info", help="debug, info (default), warning, error")
     p.set_defaults(func=cmd_serve)
 

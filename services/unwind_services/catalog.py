@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import os
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from napari_unwind.errors import InvalidInputError
 from napari_unwind.io import Volume, open_volume
 
 from .errors import LimitError
@@ -18,14 +21,37 @@ from .store import ObjectRow, Store
 __all__ = ["Catalog", "Limits"]
 
 
+#: Seconds a user's stored bytes are remembered before the user's folder is measured again.
+STORED_BYTES_TTL = 10.0
+
+
 @dataclass(frozen=True)
 class Limits:
-    """What one server accepts (0: no limit)."""
+    """What one server accepts, in total and per user (0: no limit, unless said otherwise)."""
 
     max_upload_bytes: int = 8 * 1024**3
     max_voxels: int = 4 * 1024**3
     max_message_bytes: int = 64 * 1024**2
-    max_jobs_per_user: int = 4
+    max_jobs_per_user: int = 4  # queued or running
+    max_running_per_user: int = 0  # 0: half of the job workers, at least 1 (see running_per_user)
+    max_uploads_per_user: int = 1  # uploads in progress at once
+    max_stored_bytes_per_user: int = 0  # what the server keeps for a user: uploads and job outputs
+    max_calls_per_user: int = 16  # calls in progress at once (streams included); health and reflection apart
+    upload_idle_seconds: float = 30.0  # an upload that sends nothing for this long is aborted
+    download_idle_seconds: float = 30.0  # a download whose client reads nothing for this long is cancelled
+
+    def __post_init__(self) -> None:
+        for name in ("max_upload_bytes", "max_voxels", "max_message_bytes", "max_jobs_per_user",
+                     "max_running_per_user", "max_uploads_per_user", "max_stored_bytes_per_user",
+                     "max_calls_per_user", "upload_idle_seconds", "download_idle_seconds"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or value < 0:
+                raise InvalidInputError(f"{name} must be a number >= 0 (0: no limit), got {value!r}")
+
+    def running_per_user(self, workers: int) -> int:
+        """Jobs of one user running at once: the limit given, else half of the ``workers`` (at least 1), so that
+        one user's queue never holds every worker."""
+        return int(self.max_running_per_user) or max(1, int(workers) // 2)
 
     def check_voxels(self, shape: Any, what: str) -> None:
         n = int(np.prod([int(s) for s in shape], dtype=object))
@@ -41,6 +67,7 @@ class Catalog:
         self.store, self.root, self.limits = store, root, limits
         self._locks: dict[str, threading.Lock] = {}
         self._locks_guard = threading.Lock()
+        self._stored: dict[str, tuple[float, int]] = {}  # owner -> (when measured, bytes)
 
     def lock(self, object_id: str) -> threading.Lock:
         with self._locks_guard:
@@ -60,7 +87,7 @@ class Catalog:
         have been changed since by whoever can write the data root). What the server wrote for a user (uploads,
         job outputs: checked whole when added) lies in that user's folder, which no client writes into: only its
         path is checked here, so that listing many volumes does not walk every store."""
-        own = self.root.private / "users" / owner
+        own = self.root.user_dir(owner)
         if row.meta.get("origin") == "register":
             self.root.check_scan(path)
         else:
@@ -69,12 +96,42 @@ class Catalog:
     def add_volume(self, owner: str, path: Path, name: str, origin: str, job_id: str = "",
                    object_id: str | None = None) -> tuple[ObjectRow, Volume]:
         if origin != "register":  # the server wrote it, in the owner's folder (Register checks before this)
-            self.root.check_scan(path, within=self.root.private / "users" / owner)
+            self.root.check_scan(path, within=self.root.user_dir(owner))
         volume = open_volume(path)
         self.limits.check_voxels(volume.shape, f"the volume {name!r}")
         row = self.store.add_object(owner, "volume", name, self.root.relative(path), {"origin": origin}, job_id,
                                     object_id=object_id)
         return row, volume
+
+    # -- the stored-bytes quota ---------------------------------------------------------------------------------
+    def stored_bytes(self, owner: str, fresh: bool = False) -> int:
+        """Bytes under the owner's folder (uploads, job outputs and their temporary files), measured at most every
+        :data:`STORED_BYTES_TTL` seconds (``fresh``: now). Registered scans are the administrator's: not counted."""
+        now = time.monotonic()
+        with self._locks_guard:
+            cached = self._stored.get(owner)
+        if cached is not None and not fresh and now - cached[0] < STORED_BYTES_TTL:
+            return cached[1]
+        total = _du(self.root.user_dir(owner))
+        with self._locks_guard:
+            self._stored[owner] = (now, total)
+        return total
+
+    def forget_stored_bytes(self, owner: str) -> None:
+        """The owner's folder changed (an upload or a job ended): measure it again at the next check."""
+        with self._locks_guard:
+            self._stored.pop(owner, None)
+
+    def check_quota(self, owner: str, adding: int = 0, what: str = "this") -> None:
+        """LimitError when the owner's stored bytes plus ``adding`` exceed the per-user quota."""
+        quota = self.limits.max_stored_bytes_per_user
+        if not quota:
+            return
+        used = self.stored_bytes(owner)
+        if used + adding > quota:
+            raise LimitError(f"your data on this server would be {used + adding} bytes with {what}, more than your "
+                             f"quota of {quota}; ask the server's administrator to remove data you no longer need or "
+                             "to raise the quota")
 
     def segmentation(self, owner: str, segmentation_id: str) -> ObjectRow:
         return self.store.get_object(owner, segmentation_id, "segmentation")
@@ -84,3 +141,23 @@ class Catalog:
 
         row = self.store.get_object(owner, session_id, "session")
         return row, load_session(self.path(row))
+
+
+def _du(folder: Path) -> int:
+    """Bytes of the files under ``folder`` (symbolic links not followed, files vanishing meanwhile skipped)."""
+    total, stack = 0, [str(folder)]
+    while stack:
+        try:
+            entries = os.scandir(stack.pop())
+        except OSError:
+            continue
+        with entries:
+            for e in entries:
+                try:
+                    if e.is_dir(follow_symlinks=False):
+                        stack.append(e.path)
+                    elif e.is_file(follow_symlinks=False):
+                        total += e.stat(follow_symlinks=False).st_size
+                except OSError:
+                    continue
+    return total

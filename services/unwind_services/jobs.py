@@ -59,6 +59,8 @@ log = logging.getLogger("unwind_services.jobs")
 _PROGRESS_INTERVAL = 0.1  # seconds between two stored records of the same stage
 _WATCH_POLL = 0.2  # seconds between two looks at the store while watching
 _CHECK_INTERVAL = 0.2  # seconds between two looks at the stop flag from inside a step (progress.checkpoint)
+#: Seconds a job asked to stop (after the drain) has to reach its next step before its worker process is killed.
+STOP_GRACE = 3.0
 
 
 class JobManager:
@@ -73,8 +75,9 @@ class JobManager:
         self._pool: ProcessPoolExecutor | None = None
         self.imports = max(1, int(imports or self.workers))
         self._import_pool: ProcessPoolExecutor | None = None
-        self._futures: dict[str, Future] = {}
-        self._cond = threading.Condition()
+        self._futures: dict[str, Future] = {}  # jobs handed to a worker (at most ``workers``): running or starting
+        self._owners: dict[str, str] = {}  # their owners
+        self._cond = threading.Condition()  # its lock is reentrant: a job that ends at once calls back in _dispatch
         self._closing = False
 
     # -- life cycle ------------------------------------------------------------------------------------------------
@@ -85,8 +88,7 @@ class JobManager:
             log.warning("job %s was running when the server stopped: marked interrupted", job_id)
         self._sweep_leftovers()
         self._pool = self._new_pool()
-        for job_id in self.store.queued_ids():
-            self._dispatch(job_id)
+        self._pump()
 
     def _new_pool(self) -> ProcessPoolExecutor:
         return ProcessPoolExecutor(
@@ -102,7 +104,35 @@ class JobManager:
         for p in self.catalog.root.tmp.iterdir():
             remove_path(p)
 
-    def _dispatch(self, job_id: str) -> None:
+    def _pump(self) -> None:
+        """Hand queued jobs to free workers, fairly: a job is handed to a worker only when one is free, and the
+        next is the oldest job of the users with the fewest jobs running, among those below their limit of running
+        jobs (:meth:`Limits.running_per_user`). One user's long queue never keeps another user's job waiting
+        behind it."""
+        with self._cond:
+            while not self._closing and self._pool is not None and len(self._futures) < self.workers:
+                picked = self._pick()
+                if picked is None:
+                    return
+                self._dispatch(*picked)
+
+    def _pick(self) -> tuple[str, str] | None:
+        per_user = self.catalog.limits.running_per_user(self.workers)
+        running: dict[str, int] = {}
+        for owner in self._owners.values():
+            running[owner] = running.get(owner, 0) + 1
+        best: tuple[str, str, int] | None = None
+        for job_id, owner in self.store.queued_jobs():  # oldest first
+            n = running.get(owner, 0)
+            if job_id in self._futures or n >= per_user:
+                continue
+            if best is None or n < best[2]:
+                best = (job_id, owner, n)
+                if n == 0:
+                    break
+        return None if best is None else best[:2]
+
+    def _dispatch(self, job_id: str, owner: str) -> None:
         try:
             fut = self._pool.submit(_worker_run, job_id)
         except BrokenProcessPool:  # a worker was killed: its jobs are marked interrupted; start fresh workers
@@ -111,37 +141,57 @@ class JobManager:
             fut = self._pool.submit(_worker_run, job_id)
         with self._cond:
             self._futures[job_id] = fut
+            self._owners[job_id] = owner
         fut.add_done_callback(lambda f, j=job_id: self._done(j, f))
 
     def _done(self, job_id: str, fut: Future) -> None:
+        if not fut.cancelled() and fut.exception() is not None:  # the worker process died (not a job error)
+            if not self._closing:
+                log.error("the worker running job %s died: %s", job_id, fut.exception())
+            self._abandon(job_id)
         with self._cond:
             self._futures.pop(job_id, None)
+            owner = self._owners.pop(job_id, None)
             self._cond.notify_all()
-        if not fut.cancelled() and fut.exception() is not None:  # the worker process died (not a job error)
-            log.error("the worker running job %s died: %s", job_id, fut.exception())
-            self.store.finish(job_id, pb.JOB_STATE_FAILED, code="UNAVAILABLE", message=INTERRUPTED_MESSAGE,
-                              interrupted=True)
+        if owner is not None:
+            self.catalog.forget_stored_bytes(owner)
+        self._pump()
 
-    def shutdown(self, drain_seconds: float = 0.0) -> None:
-        """Accept no new jobs; let running ones finish for ``drain_seconds``, then interrupt them."""
-        self._closing = True
+    def _abandon(self, job_id: str) -> None:
+        """A job whose worker died or was killed: interrupted, and its folder removed (as a failed job's)."""
+        self.store.finish(job_id, pb.JOB_STATE_FAILED, code="UNAVAILABLE", message=INTERRUPTED_MESSAGE,
+                          interrupted=True)
+        workdir = self.catalog.root.absolute(self.store.job_row(job_id)["workdir"])
+        if workdir.exists() and not self.store.has_objects(job_id):
+            shutil.rmtree(workdir, ignore_errors=True)
+
+    def shutdown(self, drain_seconds: float = 0.0, stop_seconds: float = STOP_GRACE) -> None:
+        """Accept no new jobs; let running ones finish for ``drain_seconds``, then interrupt them (they stop at
+        their next step); a job still running ``stop_seconds`` later has its worker process killed. Queued jobs
+        stay queued: they run after the restart. Returns within about ``drain_seconds + stop_seconds``."""
+        with self._cond:
+            self._closing = True  # nothing more is handed to a worker
         deadline = time.monotonic() + max(0.0, drain_seconds)
-        for job_id in self.store.queued_ids():  # queued jobs stay queued: they run after the restart
-            fut = self._futures.get(job_id)
-            if fut is not None:
-                fut.cancel()
-        while self._running_ids() and time.monotonic() < deadline:
-            with self._cond:
-                self._cond.wait(timeout=0.2)
-        for job_id in self._running_ids():
+        self._wait_idle(deadline)
+        for job_id in list(self._futures):
             self.store.request_stop(job_id, "interrupt")
+        if not self._wait_idle(time.monotonic() + stop_seconds):
+            log.warning("jobs %s did not stop within %g s of the request: killing their workers",
+                        ", ".join(self._futures), stop_seconds)
+            _kill_workers(self._pool)
+            self._wait_idle(time.monotonic() + 5)  # the pool reports the dead workers: _done marks the jobs
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
         if self._import_pool is not None:  # the gRPC server has stopped: open uploads were cancelled, their imports end
-            self._import_pool.shutdown(wait=True, cancel_futures=True)
+            self._import_pool.shutdown(wait=False, cancel_futures=True)
+            _kill_workers(self._import_pool, after=stop_seconds)
 
-    def _running_ids(self) -> list[str]:
-        return [j for j in list(self._futures) if self.store.job_row(j)["state"] == pb.JOB_STATE_RUNNING]
+    def _wait_idle(self, deadline: float) -> bool:
+        """Wait until no job is handed to a worker, or the deadline; whether none is."""
+        with self._cond:
+            while self._futures and time.monotonic() < deadline:
+                self._cond.wait(timeout=min(0.2, max(0.0, deadline - time.monotonic())))
+            return not self._futures
 
     @property
     def closing(self) -> bool:
@@ -178,12 +228,13 @@ class JobManager:
         if limit and self.store.count_active(owner) >= limit:
             raise LimitError(f"you already have {limit} jobs queued or running, this server's limit per user; wait "
                              "for one to finish or cancel one")
+        self.catalog.check_quota(owner, 0, "the jobs you ran")
         job_id = f"job-{uuid.uuid4().hex[:12]}"
         workdir = self.catalog.root.user_dir(owner) / job_id
         job, new = self.store.add_job(owner, KINDS[kind], spec.name or kind, spec,
                                       self.catalog.root.relative(workdir), job_id)
         if new:
-            self._dispatch(job.id)
+            self._pump()
         return job
 
     def resubmit(self, owner: str, job_id: str) -> pb.Job:
@@ -261,6 +312,19 @@ def _die_with_server() -> None:
     threading.Thread(target=orphan_watch, name="unwind-orphan-watch", daemon=True).start()
     signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the server decides: drain, then interrupt
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _kill_workers(pool: ProcessPoolExecutor | None, after: float = 0.0) -> None:
+    """Kill the processes of ``pool`` still alive ``after`` seconds from now (a job step or an import that does not
+    end). ``ProcessPoolExecutor`` has no public way before Python 3.14 (``terminate_workers``)."""
+    if pool is None:
+        return
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    end = time.monotonic() + after
+    for p in procs:
+        p.join(timeout=max(0.0, end - time.monotonic()))
+        if p.is_alive():
+            p.kill()
 
 
 def _worker_init(root: str, limits: Limits, scheduler: str | None) -> None:

@@ -21,6 +21,7 @@ from napari_unwind.errors import InvalidInputError
 
 from .auth import TokenAuth
 from .catalog import Catalog, Limits
+from .fairness import CallLimiter
 from .interceptor import ServiceInterceptor
 from .jobs import JobManager
 from .paths import DataRoot, RootLock
@@ -49,7 +50,7 @@ class ServerConfig:
     imports: int = 0  # uploads imported at once, in their own processes (0: as many as workers)
     dask_threads: int = 0  # threads of the in-process LocalCluster's worker (0: one per core)
     grpc_threads: int = 64
-    drain_seconds: float = 10.0
+    drain_seconds: float = 30.0  # on SIGTERM: running jobs may finish for this long, then they are interrupted
 
 
 def _is_loopback(host: str) -> bool:
@@ -145,7 +146,8 @@ class UnwindServer:
             size = config.limits.max_message_bytes or 64 * 1024**2
             self.server = grpc.server(
                 ThreadPoolExecutor(max_workers=config.grpc_threads, thread_name_prefix="unwind-rpc"),
-                interceptors=[ServiceInterceptor(self.auth, self.root)],
+                # the user's calls in progress are counted inside the first, which knows the user
+                interceptors=[ServiceInterceptor(self.auth, self.root), CallLimiter(config.limits.max_calls_per_user)],
                 options=[("grpc.max_receive_message_length", size), ("grpc.max_send_message_length", size),
                          ("grpc.so_reuseport", 0)],
                 maximum_concurrent_rpcs=config.grpc_threads * 4,

@@ -33,6 +33,7 @@ from ._proto.unwind.v1 import (
 )
 from .catalog import Catalog
 from .errors import CancelledError, DeadlineError, LimitError
+from .fairness import UserSlots, idle_limited, idle_sends
 from .ingest import UploadPipe, decoder, encode_chunk, encoder, import_stream, level_slabs
 from .interceptor import current_user
 from .jobs import JobManager
@@ -72,9 +73,21 @@ def _while_wanted(context) -> contextlib.AbstractContextManager:
 class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
     def __init__(self, catalog: Catalog, jobs: JobManager):
         self.catalog, self.jobs = catalog, jobs
+        self.uploads = UserSlots(catalog.limits.max_uploads_per_user, "uploads",
+                                 "wait for it to end before starting another")
 
     def Upload(self, request_iterator, context):
-        owner, limits, root = current_user(), self.catalog.limits, self.catalog.root
+        owner, idle = current_user(), self.catalog.limits.upload_idle_seconds
+        with self.uploads.hold(owner):
+            try:
+                return self._upload(owner, idle_limited(
+                    request_iterator, idle, f"the upload sent nothing for {idle:g} s and was aborted (this "
+                    "server's idle limit); upload again"), context)
+            finally:
+                self.catalog.forget_stored_bytes(owner)
+
+    def _upload(self, owner, request_iterator, context):
+        limits, root = self.catalog.limits, self.catalog.root
         first = next(request_iterator, None)
         if first is None or isinstance(first, memoryview) or first.WhichOneof("part") != "header":
             raise InvalidInputError("an upload starts with a header message (name, shape, dtype, spacing, unit), "
@@ -92,6 +105,7 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
         if limits.max_upload_bytes and expected > limits.max_upload_bytes:
             raise LimitError(f"the upload would be {expected} bytes, more than this server's limit of "
                              f"{limits.max_upload_bytes}")
+        self.catalog.check_quota(owner, expected, "this upload")
         vid = f"vol-{uuid.uuid4().hex[:12]}"
         dst = root.user_dir(owner) / "volumes" / f"{vid}.zarr"
         dst.parent.mkdir(parents=True, exist_ok=True)
@@ -158,6 +172,10 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
         return convert.volume_info(row, vol)
 
     def Download(self, request, context) -> Iterator[volume_pb2.DownloadResponse]:
+        idle = self.catalog.limits.download_idle_seconds
+        return idle_sends(context, self._download(request, context), idle, f"download of {request.volume_id}")
+
+    def _download(self, request, context) -> Iterator[volume_pb2.DownloadResponse]:
         from napari_unwind.io import write_volume
 
         row, vol = self.catalog.volume(current_user(), request.volume_id)

@@ -169,6 +169,11 @@ class Store:
         rows = self._query(sql + " ORDER BY created DESC LIMIT ?", (*args, int(limit)))
         return [self._job(r) for r in rows]
 
+    def queued_jobs(self) -> list[tuple[str, str]]:
+        """(id, owner) of every queued job, oldest first."""
+        return [(r[0], r[1]) for r in self._query("SELECT id, owner FROM jobs WHERE state=? ORDER BY created",
+                                                  (pb.JOB_STATE_QUEUED,))]
+
     def queued_ids(self) -> list[str]:
         return [r[0] for r in self._query("SELECT id FROM jobs WHERE state=? ORDER BY created", (pb.JOB_STATE_QUEUED,))]
 

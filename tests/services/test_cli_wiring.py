@@ -15,7 +15,7 @@ WIRING = [
     (["serve", "--data-root", "/tmp/x", "--port", "0", "--service", "jobs", "--service", "warp", "--workers", "3",
       "--max-jobs-per-user", "2"],
      "cmd_serve", dict(data_root="/tmp/x", port=0, service=["jobs", "warp"], workers=3, max_jobs_per_user=2,
-                       listen="127.0.0.1", drain=10.0, max_message_bytes=64 * 1024**2)),
+                       listen="127.0.0.1", drain=None, max_message_bytes=64 * 1024**2)),
     (["submit", "scan.tif", "--select", "1,2,3", "--select", "4.5,5,6", "--order", "3", "--pad", "2", "--wait",
       "--server", "h:1", "--token=-abc", "--timeout", "5"],
      "cmd_submit", dict(input="scan.tif", select=[(1.0, 2.0, 3.0), (4.5, 5.0, 6.0)], order=3, pad=2, wait=True,

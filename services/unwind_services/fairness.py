@@ -1,0 +1,182 @@
+"""One user cannot stop everyone: per-user counts of calls and uploads in progress, and idle timeouts of transfers.
+
+- :class:`UserSlots` counts what each user has in progress (calls, uploads) against a limit; past it the call is
+  refused at once with RESOURCE_EXHAUSTED (:class:`~unwind_services.errors.LimitError`), it never waits.
+- :class:`CallLimiter` is the server interceptor that holds one of the caller's call slots while a call of the
+  services runs (a stream: until it ends). Health and reflection are not counted: a user's flood of calls leaves
+  the server's threads to health checks and to other users.
+- :func:`idle_limited` reads a client's stream on a thread of its own and stops with
+  :class:`~unwind_services.errors.DeadlineError` when nothing arrives for a while (an upload gone silent frees
+  its import slot); :func:`idle_sends` cancels a call whose client stops reading a response stream.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import grpc
+
+from .errors import DeadlineError, LimitError
+from .interceptor import current_user
+
+__all__ = ["UserSlots", "CallLimiter", "idle_limited", "idle_sends"]
+
+log = logging.getLogger("unwind_services")
+
+
+class UserSlots:
+    """How many of something each user has in progress, at most ``limit`` (0: no limit)."""
+
+    def __init__(self, limit: int, what: str, advice: str):
+        self.limit, self.what, self.advice = int(limit), what, advice
+        self._count: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def in_use(self, user: str) -> int:
+        with self._lock:
+            return self._count.get(user, 0)
+
+    @contextlib.contextmanager
+    def hold(self, user: str) -> Iterator[None]:
+        with self._lock:
+            n = self._count.get(user, 0)
+            if self.limit and n >= self.limit:
+                raise LimitError(f"you already have {n} {self.what} in progress, this server's limit per user; "
+                                 f"{self.advice}")
+            self._count[user] = n + 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                left = self._count[user] - 1
+                if left:
+                    self._count[user] = left
+                else:
+                    del self._count[user]
+
+
+_OPEN = ("/grpc.health.v1.Health/", "/grpc.reflection.")
+
+
+class CallLimiter(grpc.ServerInterceptor):
+    """Hold one of the caller's call slots while each call of the services runs (installed after
+    :class:`~unwind_services.interceptor.ServiceInterceptor`, which knows the user and maps the refusal)."""
+
+    def __init__(self, limit: int):
+        self.slots = UserSlots(limit, "calls", "wait for some to end (e.g. fewer parallel requests)")
+
+    def intercept_service(self, continuation, handler_call_details):
+        handler = continuation(handler_call_details)
+        if handler is None or handler_call_details.method.startswith(_OPEN) or not self.slots.limit:
+            return handler
+        slots = self.slots
+        if handler.unary_unary or handler.stream_unary:
+            inner = handler.unary_unary or handler.stream_unary
+
+            def unary(request, context):
+                with slots.hold(current_user()):
+                    return inner(request, context)
+
+            factory = grpc.stream_unary_rpc_method_handler if handler.stream_unary else \
+                grpc.unary_unary_rpc_method_handler
+        else:
+            inner = handler.unary_stream or handler.stream_stream
+
+            def unary(request, context):
+                with slots.hold(current_user()):
+                    yield from inner(request, context)
+
+            factory = grpc.stream_stream_rpc_method_handler if handler.stream_stream else \
+                grpc.unary_stream_rpc_method_handler
+        return factory(unary, request_deserializer=handler.request_deserializer,
+                       response_serializer=handler.response_serializer)
+
+
+_END = object()
+
+
+def idle_limited(requests: Iterator[Any], seconds: float, message: str) -> Iterator[Any]:
+    """The messages of ``requests``; DeadlineError(``message``) when none comes for ``seconds`` (0: wait forever).
+
+    A thread of its own reads the stream (gRPC's request iterator blocks until a message comes or the call ends);
+    when the caller stops early the call ends with it and the reader thread with the call.
+    """
+    if not seconds:
+        yield from requests
+        return
+    box: queue.Queue = queue.Queue(maxsize=2)  # a few chunks ahead at most
+    done = threading.Event()
+
+    def put(item: Any) -> bool:
+        while not done.is_set():
+            try:
+                box.put(item, timeout=0.5)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def read() -> None:
+        try:
+            for r in requests:
+                if not put((True, r)):
+                    return
+            put((True, _END))
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer (e.g. the call was cancelled)
+            put((False, exc))
+
+    reader = threading.Thread(target=read, name="unwind-upload-read", daemon=True)
+    reader.start()
+    try:
+        while True:
+            try:
+                ok, item = box.get(timeout=seconds)
+            except queue.Empty:
+                raise DeadlineError(message) from None
+            if not ok:
+                raise item
+            if item is _END:
+                return
+            yield item
+    finally:
+        done.set()
+
+
+def idle_sends(context: grpc.ServicerContext, messages: Iterator[Any], seconds: float, what: str) -> Iterator[Any]:
+    """The response stream ``messages``, cancelled when one message waits more than ``seconds`` to be taken by the
+    client (gRPC's send blocks the serving thread until the client reads: a client that stops reading would hold
+    it forever). Time the server spends making the next message does not count. The client sees CANCELLED; the
+    server log says why."""
+    if not seconds:
+        yield from messages
+        return
+    user = current_user()
+    sending: list[float | None] = [None]  # since when the message handed to gRPC waits to be sent
+    stop = threading.Event()
+
+    def watch() -> None:
+        while not stop.wait(min(1.0, seconds / 4)):
+            since = sending[0]
+            if since is not None and time.monotonic() - since > seconds:
+                log.warning("%s of %s: the client read nothing for %g s; cancelled", what, user, seconds)
+                context.cancel()
+                return
+
+    watcher = threading.Thread(target=watch, name="unwind-send-watch", daemon=True)
+    watcher.start()
+    try:
+        for m in messages:
+            sending[0] = time.monotonic()
+            yield m
+            sending[0] = None
+    finally:
+        stop.set()
+        close = getattr(messages, "close", None)
+        if close is not None:
+            close()  # now, not at garbage collection: the stream's temporary files go with it
