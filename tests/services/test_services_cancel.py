@@ -85,7 +85,7 @@ def test_cancel_stops_the_skeleton_level_sets(env):
 
 def test_cancel_stops_the_segmentation_smoothing(env):
     c, vid, *_ = env
-    job = c.segment(vid, smooth=1500.0, wait=False)  # a Gaussian of sigma 1500 working voxels: a very wide kernel
+    job = c.segment(vid, smooth=1000.0, wait=False)  # a Gaussian of sigma 1000 working voxels: a very wide kernel
     _cancel_and_check(c, env, job, "smooth")
 
 
