@@ -239,11 +239,14 @@ class Client:
     def __exit__(self, *exc: Any) -> None:
         self.close()
 
-    def _retrying(self, fn: Callable[[], Any], what: str) -> Any:
-        """Call ``fn``; on UNAVAILABLE retry with exponential backoff (and jitter) for up to ``retry_seconds``."""
+    def _retrying(self, fn: Callable[[], Any], what: str, until: float | None = None) -> Any:
+        """Call ``fn``; on UNAVAILABLE retry with exponential backoff (and jitter) for up to ``retry_seconds``, and
+        never past ``until`` (a ``time.monotonic()`` deadline: the call's own)."""
         import grpc
 
         deadline = time.monotonic() + self.retry_seconds
+        if until is not None:
+            deadline = min(deadline, until)
         delay = 0.1
         while True:
             try:
@@ -255,7 +258,15 @@ class Client:
             delay = min(delay * 2, 5.0)
 
     def _unary(self, method: Callable, request: Any, what: str = "", timeout: float | None = None) -> Any:
-        return self._retrying(lambda: method(request, timeout=timeout or self.timeout, metadata=self._metadata), what)
+        """One call within ``timeout`` (default the client's) in all: waiting for an unreachable or restarting
+        server counts against it, so an unreachable server is reported after ``timeout`` seconds, not after
+        ``retry_seconds``."""
+        end = time.monotonic() + (timeout or self.timeout)
+
+        def call() -> Any:
+            return method(request, timeout=max(0.05, end - time.monotonic()), metadata=self._metadata)
+
+        return self._retrying(call, what, until=end)
 
     def health(self, service: str = "") -> str:
         """The server's health status name (``SERVING``...) for the whole server or one service."""

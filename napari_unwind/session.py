@@ -3,7 +3,9 @@
 A session records
 
 - the **source scan**: absolute path, a content checksum, size in bytes, shape, dtype, spacing, unit and format
-  (:class:`SourceInfo`);
+  (:class:`SourceInfo`). A session a server job wrote names the scan by its file name alone (the server's paths
+  mean nothing elsewhere): :func:`load_session` takes a relative path as relative to the session file's folder,
+  so a session downloaded next to its scan finds it;
 - the **deformation** (:class:`~napari_unwind.deformation.Deformation`, stored with its own ``to_dict`` layout);
 - the **segmentation selection** (:class:`Segmentation`) and the **endpoints** (:class:`Endpoints`);
 - the software name and version, ``created`` / ``modified`` timestamps (ISO 8601, UTC) and free-text notes.
@@ -969,9 +971,12 @@ def load_session(path: str | os.PathLike) -> Session:
     if not isinstance(data, dict):
         raise InvalidInputError(f"{path} is not a session: it holds {_json_kind(data)}, not a JSON object")
     try:
-        return Session.from_dict(data)
+        session = Session.from_dict(data)
     except InvalidInputError as exc:
         raise InvalidInputError(f"{path}: {exc}") from None
+    if not os.path.isabs(session.source.path):  # a server job's session names its scan: next to the session file
+        session.source = replace(session.source, path=str(path.absolute().parent / session.source.path))
+    return session
 
 
 # ------------------------------------------------------------------------------------------------------------------

@@ -6,18 +6,86 @@ a socket would stream without end. :func:`open_regular` opens without blocking a
 there is no window between the check and the read. :func:`skip_lines` skips a header's ``line skip`` without
 reading past the end of the file, and :func:`check_room` refuses, before anything is written, an output that
 cannot fit on its disk.
+
+A reader may also be confined (:class:`ReadConfinement`, set with :func:`confined_reads` around the open; the
+server confines every scan to its data root): the stores and raw files opened under it remember it, and every
+file they read later, at each chunk read, is opened first and then checked where it really lies (the opened
+descriptor's own path, not a path resolved before the open), so a symbolic link swapped in after the open is
+never followed out.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import stat
+from collections.abc import Iterator
+from contextvars import ContextVar
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
 from ..errors import InvalidInputError, OutputError
 
-__all__ = ["check_regular", "check_room", "open_regular", "read_small", "skip_lines"]
+__all__ = ["ConfinementError", "ReadConfinement", "check_regular", "check_room", "confined_reads",
+           "current_confinement", "open_regular", "read_small", "skip_lines"]
+
+
+def _within(path: str, folder: str) -> bool:
+    return os.path.commonpath([path, folder]) == folder
+
+
+class ConfinementError(PermissionError):
+    """A confined reader was led outside where it may read (a PermissionError: the server's PERMISSION_DENIED)."""
+
+
+@dataclass(frozen=True)
+class ReadConfinement:
+    """Where a confined reader may read: inside ``base`` and, when ``deny`` is given, not inside ``deny`` (both real
+    paths, symbolic links resolved). ``where`` names the place in refusals, which never name the file itself.
+    Picklable: it travels with the lazy arrays to dask's workers."""
+
+    base: str
+    deny: str = ""
+    where: str = "the folder the reader is confined to"
+
+    def check(self, real: str | os.PathLike, role: str = "") -> None:
+        """Raise :class:`ConfinementError` (one line, naming no path) unless ``real`` lies where reads may go."""
+        real = os.fspath(real)
+        if not _within(real, self.base) or (self.deny and _within(real, self.deny)):
+            what = f"a {role} file" if role else "a file"
+            raise ConfinementError(f"{what} of the scan now lies outside {self.where} (a symbolic link changed since "
+                                  "the scan was opened): nothing was read there")
+
+
+_CONFINEMENT: ContextVar[ReadConfinement | None] = ContextVar("napari_unwind_read_confinement", default=None)
+
+
+@contextlib.contextmanager
+def confined_reads(confinement: ReadConfinement | None) -> Iterator[None]:
+    """Readers opened inside the block (in this thread) keep ``confinement`` for every later read."""
+    token = _CONFINEMENT.set(confinement)
+    try:
+        yield
+    finally:
+        _CONFINEMENT.reset(token)
+
+
+def current_confinement() -> ReadConfinement | None:
+    """The confinement a reader being opened now must keep (None: read anywhere)."""
+    return _CONFINEMENT.get()
+
+
+def _opened_path(fd: int, path: str | os.PathLike) -> str:
+    """Where the file open as ``fd`` really lies: the descriptor's own path where the system tells it (Linux), else
+    ``path`` resolved, accepted only when it is that very file (same device and inode)."""
+    try:
+        return os.readlink(f"/proc/self/fd/{fd}")
+    except OSError:
+        real = os.path.realpath(path)
+        if not os.path.samestat(os.fstat(fd), os.stat(real)):
+            raise ConfinementError("a file of the scan changed while it was opened: nothing was read") from None
+        return real
 
 _KINDS = (
     (stat.S_ISFIFO, "a named pipe"),
@@ -63,18 +131,23 @@ def check_regular(path: str | os.PathLike, role: str = "") -> None:
         raise _refuse(path, role, mode)
 
 
-def open_regular(path: str | os.PathLike, role: str = "") -> IO[bytes]:
+def open_regular(path: str | os.PathLike, role: str = "", *, confine: ReadConfinement | None = None) -> IO[bytes]:
     """Open ``path`` for binary reading if it is a regular file, without ever blocking on a named pipe.
+
+    With ``confine``, the file opened must lie where it allows (checked on the open descriptor: no window between
+    the check and the read).
 
     Raises
     ------
     FileNotFoundError, PermissionError
-        As :func:`open` does.
+        As :func:`open` does; PermissionError too for a file outside ``confine``.
     InvalidInputError
         When ``path`` is a named pipe, a device, a socket or a folder (named in one line with ``role``).
     """
     fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
     try:
+        if confine is not None:
+            confine.check(_opened_path(fd, path), role)
         mode = os.fstat(fd).st_mode
         if not stat.S_ISREG(mode):
             raise _refuse(path, role, mode)

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..errors import InvalidInputError
+from ._files import ConfinementError, current_confinement, open_regular
 from ._volume import LazyArray, Volume
 
 if TYPE_CHECKING:
@@ -53,10 +54,19 @@ class RawFileArray:
         self.shape = tuple(int(s) for s in shape)
         self.ndim = len(self.shape)
         self.offset = int(offset)
+        self.confine = current_confinement()  # opened confined: every read is (see _files.confined_reads)
+
+    def _map(self) -> np.memmap:
+        if self.confine is None:
+            return np.memmap(self.path, dtype=self.stored_dtype, mode="r", offset=self.offset, shape=self.shape)
+        with open_regular(self.path, "data", confine=self.confine) as fh:  # checked where the opened file lies
+            return np.memmap(fh, dtype=self.stored_dtype, mode="r", offset=self.offset, shape=self.shape)
 
     def __getitem__(self, key: Any) -> np.ndarray:
         try:
-            mm = np.memmap(self.path, dtype=self.stored_dtype, mode="r", offset=self.offset, shape=self.shape)
+            mm = self._map()
+        except ConfinementError:
+            raise
         except (OSError, ValueError) as exc:  # gone, or cut short since it was opened
             need = self.offset + int(np.prod(self.shape)) * self.stored_dtype.itemsize
             try:

@@ -47,7 +47,7 @@ from zarr.storage import LocalStore
 from ..errors import InvalidInputError, UnknownFormatError
 from ..progress import Progress, checkpoint
 from ._atomic import final_name
-from ._files import check_regular, open_regular
+from ._files import ConfinementError, ReadConfinement, check_regular, current_confinement, open_regular
 from ._headers import compose_transform
 from ._straight_record import straightening_record
 from ._units import axis_units
@@ -169,6 +169,7 @@ class _ZarrChunks:
         self.grid = tuple(int(c) for c in (array.shards or array.chunks))
         self.fill = array.fill_value
         self.direct = _direct_codecs(array)
+        self.confine = getattr(array.store, "confine", None)  # the store's confinement holds for direct reads too
 
     def chunk_file(self, coords: tuple[int, ...]) -> str:
         """Path of the file holding chunk (or shard) ``coords``."""
@@ -218,13 +219,15 @@ class _ZarrChunks:
         path = self.chunk_file(coords)
         part = tuple(slice(0, stop - start) for start, stop, _ in bounds)
         try:
-            with open_regular(path, "chunk") as fh:
+            with open_regular(path, "chunk", confine=self.confine) as fh:
                 buf = bytearray(os.fstat(fh.fileno()).st_size)  # writable: the result may be handed out
                 got = fh.readinto(buf)
         except FileNotFoundError:
             if self.complete:
                 raise self._missing(coords) from None
             return np.full([stop - start for start, stop, _ in bounds], self.fill, dtype=self.dtype)
+        except ConfinementError:
+            raise  # outside the confinement: one line naming no path
         except OSError as exc:
             raise InvalidInputError(f"{path}: cannot read chunk {'/'.join(map(str, coords))} "
                                     f"({exc.strerror or exc}); check the disk or copy the store again") from None
@@ -270,8 +273,8 @@ class _ZarrChunks:
                 return self._read_direct(*whole)
         try:
             block = np.asarray(self.array[key])
-        except InvalidInputError:
-            raise  # a chunk that is no regular file (_RegularFileStore), named already
+        except (InvalidInputError, ConfinementError):
+            raise  # a chunk that is no regular file or lies outside the confinement (_RegularFileStore)
         except Exception as exc:  # noqa: BLE001 - codecs raise RuntimeError, ValueError, zstd errors...
             raise self._corrupt(key, exc) from None
         if self.complete:
@@ -310,17 +313,70 @@ class _ZarrChunks:
                 raise self._missing(coords)
 
 
+def _role(key: str) -> str:
+    return "metadata" if key.endswith((".json", ".zarray", ".zgroup", ".zattrs", ".zmetadata")) else "chunk"
+
+
+def _get_confined(path: Path, prototype: Any, byte_range: Any, confine: ReadConfinement, role: str) -> Any:
+    """zarr's LocalStore read of one file, opened by :func:`open_regular` under ``confine``."""
+    from zarr.abc.store import OffsetByteRequest, RangeByteRequest, SuffixByteRequest
+
+    with open_regular(path, role, confine=confine) as f:
+        if byte_range is None:
+            return prototype.buffer.from_bytes(f.read())
+        size = f.seek(0, os.SEEK_END)
+        if isinstance(byte_range, RangeByteRequest):
+            f.seek(byte_range.start)
+            return prototype.buffer.from_bytes(f.read(byte_range.end - f.tell()))
+        if isinstance(byte_range, OffsetByteRequest):
+            f.seek(byte_range.offset)
+        elif isinstance(byte_range, SuffixByteRequest):
+            f.seek(max(0, size - byte_range.suffix))
+        else:
+            raise TypeError(f"Unexpected byte_range, got {byte_range}.")
+        return prototype.buffer.from_bytes(f.read())
+
+
 class _RegularFileStore(LocalStore):
     """zarr's LocalStore reading only regular files: a chunk or metadata file that is a named pipe (which would
-    block the read for ever), a device or a socket is refused in one line naming it."""
+    block the read for ever), a device or a socket is refused in one line naming it.
+
+    Opened under :func:`~napari_unwind.io._files.confined_reads`, it keeps that confinement (``confine``) and reads
+    every key, metadata and chunks, at every read, through a descriptor checked where it really lies."""
+
+    confine: ReadConfinement | None = None
+
+    @classmethod
+    def opened(cls, root: Path, confine: ReadConfinement | None) -> _RegularFileStore:
+        store = cls(root, read_only=True)
+        store.confine = confine
+        return store
+
+    def with_read_only(self, read_only: bool = False) -> _RegularFileStore:
+        store = type(self)(root=self.root, read_only=read_only)
+        store.confine = self.confine
+        return store
 
     async def get(self, key: str, prototype: Any = None, byte_range: Any = None) -> Any:
-        check_regular(self.root / key, "chunk" if not key.endswith((".json", ".zarray", ".zgroup", ".zattrs"))
-                      else "metadata")
-        return await super().get(key, prototype, byte_range)
+        if self.confine is None:
+            check_regular(self.root / key, _role(key))
+            return await super().get(key, prototype, byte_range)
+        import asyncio
+
+        from zarr.core.buffer import default_buffer_prototype
+
+        if not self._is_open:
+            await self._open()
+        try:
+            return await asyncio.to_thread(_get_confined, self.root / key, prototype or default_buffer_prototype(),
+                                           byte_range, self.confine, _role(key))
+        except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+            return None
 
     async def get_partial_values(self, prototype: Any, key_ranges: Any) -> Any:
         key_ranges = list(key_ranges)
+        if self.confine is not None:
+            return [await self.get(key, prototype, byte_range) for key, byte_range in key_ranges]
         for key, _ in key_ranges:
             check_regular(self.root / key, "chunk")
         return await super().get_partial_values(prototype, key_ranges)
@@ -375,8 +431,10 @@ def read_ome_zarr(path: Path, *, level: int | None = None) -> Volume:
     """
     path = Path(path).expanduser().absolute()
     try:
-        node = zarr.open(store=_RegularFileStore(path, read_only=True), mode="r")
+        node = zarr.open(store=_RegularFileStore.opened(path, current_confinement()), mode="r")
         attrs = dict(node.attrs)
+    except ConfinementError:
+        raise
     except Exception as exc:  # noqa: BLE001 - zarr raises several types for a broken store
         raise InvalidInputError(f"{path} is not a readable zarr store ({_first_line(exc)}); "
                                 "is the copy complete?") from None
@@ -420,6 +478,8 @@ def _read_multiscales(path: Path, node: Any, ms: dict, version: str, level: int 
     for ds in ms["datasets"]:
         try:
             arr = node[ds["path"]]
+        except ConfinementError:
+            raise
         except Exception as exc:  # noqa: BLE001 - a missing or broken zarr.json of one level
             raise InvalidInputError(f"{path}/{ds['path']}: cannot open this pyramid level ({_first_line(exc)}); "
                                     "is the copy complete?") from None

@@ -7,13 +7,17 @@ Format (``#`` starts a comment)::
 
 :func:`add_token` creates a random token (:func:`new_token`), appends its hash for a user and returns the token
 (shown once).
-The file is read again when it changes, so tokens are added and revoked without a restart.
+The file is read again when it changes, so tokens are added and revoked without a restart. A change that does not
+parse (a typo, a half-written line) keeps the last good table: the server log says once which line of which file
+is wrong, and callers see only what any caller with a token the table does not hold sees (UNAUTHENTICATED, no path,
+no line of the file).
 """
 
 from __future__ import annotations
 
 import hashlib
 import hmac
+import logging
 import os
 import re
 import secrets
@@ -30,6 +34,7 @@ __all__ = ["TokenAuth", "add_token", "new_token", "hash_token", "check_user", "L
 
 #: The user of every call when the server runs without a tokens file (loopback only).
 LOCAL_USER = "local"
+log = logging.getLogger("unwind_services.auth")
 _USER_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
@@ -114,6 +119,22 @@ class TokenAuth:
             self._entries = read_tokens(self.path)
             self._mtime = mtime
 
+    def _refresh(self) -> None:
+        """:meth:`_reload` while serving: a file being rewritten (gone for a moment) or holding a line that does not
+        parse keeps the last good table; a bad version is logged once (its modification time is remembered, so the
+        file is parsed again only when it changes again)."""
+        try:
+            self._reload()
+        except OSError:
+            pass  # keep the last good table while an admin rewrites the file
+        except InvalidInputError as exc:
+            try:
+                self._mtime = self.path.stat().st_mtime_ns if self.path is not None else None
+            except OSError:
+                pass
+            log.error("tokens file not reloaded, the last good table (%d tokens) is kept: %s", len(self._entries),
+                      exc)
+
     def user_for(self, authorization: str | None) -> str:
         """The user of an ``authorization`` metadata value (``Bearer <token>``); raises AuthError."""
         if self.path is None:
@@ -126,10 +147,7 @@ class TokenAuth:
         if scheme.lower() != "bearer" or not token.strip():
             raise AuthError("the authorization metadata must be 'Bearer <token>'")
         with self._lock:
-            try:
-                self._reload()
-            except OSError:
-                pass  # keep the last good table while an admin rewrites the file
+            self._refresh()
             entries = self._entries
         digest = hash_token(token.strip())
         for known, (user, expires) in entries.items():

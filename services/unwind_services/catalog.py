@@ -13,6 +13,7 @@ import numpy as np
 
 from napari_unwind.errors import InvalidInputError
 from napari_unwind.io import Volume, open_volume
+from napari_unwind.io._files import confined_reads
 
 from .errors import LimitError
 from .paths import DataRoot
@@ -80,7 +81,15 @@ class Catalog:
         row = self.store.get_object(owner, volume_id, "volume")
         path = self.path(row)
         self.check(owner, row, path)
-        return row, open_volume(path)
+        with confined_reads(self.confinement(owner, row.meta.get("origin"))):  # every chunk read checked again
+            return row, open_volume(path)
+
+    def confinement(self, owner: str, origin: str | None):
+        """Where the files of a volume may lie: a registered scan in the data root outside ``.unwind/``, what the
+        server wrote for ``owner`` in their own folder."""
+        if origin == "register":
+            return self.root.confinement()
+        return self.root.confinement(within=self.root.user_dir(owner))
 
     def check(self, owner: str, row: ObjectRow, path: Path) -> None:
         """Every file a registered volume reads is where it may be, checked at each open (a registered file may
@@ -97,7 +106,8 @@ class Catalog:
                    object_id: str | None = None) -> tuple[ObjectRow, Volume]:
         if origin != "register":  # the server wrote it, in the owner's folder (Register checks before this)
             self.root.check_scan(path, within=self.root.user_dir(owner))
-        volume = open_volume(path)
+        with confined_reads(self.confinement(owner, origin)):
+            volume = open_volume(path)
         self.limits.check_voxels(volume.shape, f"the volume {name!r}")
         row = self.store.add_object(owner, "volume", name, self.root.relative(path), {"origin": origin}, job_id,
                                     object_id=object_id)

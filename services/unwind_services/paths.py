@@ -120,6 +120,16 @@ class DataRoot:
         for member in scan_members(path):
             check(member, "a file the scan's header names")
 
+    def confinement(self, *, within: Path | None = None):
+        """The :class:`~napari_unwind.io._files.ReadConfinement` :meth:`check_scan` applies, for the readers to keep:
+        a volume opened under it (``confined_reads``) checks every file again at each chunk read, on the opened
+        descriptor, so a symbolic link swapped in after Register and after the open is not followed."""
+        from napari_unwind.io._files import ReadConfinement
+
+        if within is not None:
+            return ReadConfinement(os.path.realpath(within), "", "your own folder of the server's data root")
+        return ReadConfinement(os.path.realpath(self.root), os.path.realpath(self.private), "the server's data root")
+
     def check_path(self, path: Path, *, within: Path) -> None:
         """The path itself (resolved) lies inside ``within``, else :class:`PermissionDeniedError`."""
         base, real = os.path.realpath(within), os.path.realpath(path)

@@ -62,6 +62,51 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
+def check_tls(cert: Path, key: Path) -> None:
+    """Refuse, in one line and before anything binds, a certificate or key that cannot serve TLS: a missing or
+    unreadable file, one that is not PEM, or a key that is not the certificate's (Python's ``ssl`` loads the pair
+    as gRPC would, and says which)."""
+    import ssl
+
+    for what, path in (("--tls-cert", cert), ("--tls-key", key)):
+        if not Path(path).is_file():
+            raise InvalidInputError(f"{what} {path} does not exist or is not a file")
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    try:
+        context.load_cert_chain(str(cert), str(key))
+    except ssl.SSLError as exc:
+        reason = (exc.reason or str(exc)).replace("_", " ").lower()
+        if "key values mismatch" in reason:
+            problem = f"the key {key} is not the key of the certificate {cert}"
+        elif "pem" in reason or "no start line" in reason:
+            problem = f"{cert} or {key} is not a PEM certificate or key ({reason})"
+        else:
+            problem = f"{cert} and {key} cannot serve TLS ({reason})"
+        raise InvalidInputError(f"{problem}: give --tls-cert the PEM certificate (chain) and --tls-key its own "
+                                "private key, unencrypted") from None
+    except OSError as exc:
+        raise InvalidInputError(f"cannot read {cert} or {key}: {exc.strerror or exc}") from None
+
+
+#: gRPC's server reflection v1: the same messages as v1alpha (grpcio-reflection ships v1alpha only), so the v1alpha
+#: servicer answers on the v1 method too, for clients (grpcurl, Postman, newer grpc_cli) that ask v1 first.
+REFLECTION_V1 = "grpc.reflection.v1.ServerReflection"
+
+
+def _enable_reflection(server: grpc.Server, names: list[str]) -> None:
+    from grpc_reflection.v1alpha import reflection_pb2
+
+    names = [*names, reflection.SERVICE_NAME, REFLECTION_V1]
+    servicer = reflection.ReflectionServicer(names)
+    reflection.enable_server_reflection(names, server)  # v1alpha
+    handler = grpc.stream_stream_rpc_method_handler(
+        servicer.ServerReflectionInfo,
+        request_deserializer=reflection_pb2.ServerReflectionRequest.FromString,
+        response_serializer=reflection_pb2.ServerReflectionResponse.SerializeToString)
+    server.add_generic_rpc_handlers((grpc.method_handlers_generic_handler(
+        REFLECTION_V1, {"ServerReflectionInfo": handler}),))
+
+
 def _warm_imports() -> None:
     import importlib
 
@@ -135,6 +180,11 @@ class UnwindServer:
         if not _is_loopback(config.listen) and config.tokens is None:
             raise InvalidInputError(f"listening on {config.listen} (beyond this machine) needs --tokens FILE: "
                                     "without tokens anyone who reaches the port could use the server")
+        if config.tls_cert is not None:
+            check_tls(Path(config.tls_cert), Path(config.tls_key))
+        elif not _is_loopback(config.listen):
+            log.warning("listening on %s beyond this machine without TLS: tokens and scans cross the network in "
+                        "clear text; give --tls-cert and --tls-key", config.listen)
         self.root = DataRoot(config.data_root)
         self.lock = RootLock(self.root)  # before the database: a second server must not touch the jobs
         try:
@@ -160,9 +210,7 @@ class UnwindServer:
                 add(factory(self.catalog, self.jobs), self.server)
                 full_names.append(full)
             self.service_names = full_names
-            reflection.enable_server_reflection(
-                full_names + [health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME],
-                self.server)
+            _enable_reflection(self.server, full_names + [health_pb2.DESCRIPTOR.services_by_name["Health"].full_name])
             host = config.listen if ":" not in config.listen else f"[{config.listen}]"
             address = f"{host}:{config.port}"
             if config.tls_cert is not None:

@@ -89,6 +89,16 @@ def _save_session(ctx: TaskContext, session: Any, name: str) -> tuple[str, str]:
     return _register_session(ctx, path)
 
 
+def _portable(source: Any, row: Any) -> Any:
+    """The session's source as a client can use it: the scan named by its volume's name (a plain file name), never
+    the server's absolute path. Next to the session file, ``load_session`` resolves it to the scan downloaded or
+    copied there; its checksum, size and shape are the server's file's, so ``verify_source`` still proves it is the
+    same scan."""
+    from dataclasses import replace
+
+    return replace(source, path=row.name)
+
+
 def _register_session(ctx: TaskContext, path: Path) -> tuple[str, str]:
     name = Path(path).name
     row = ctx.catalog.store.add_object(ctx.owner, "session", name, ctx.catalog.root.relative(path), {}, ctx.job_id)
@@ -158,7 +168,7 @@ def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:
                                       volume=None if scan is mask else scan.data, options=options)
     dt = time.perf_counter() - t0
     yield Progress("checksum", 0, 1, "describing the source")
-    source = SourceInfo.from_path(ctx.catalog.path(srow), volume=scan)
+    source = _portable(SourceInfo.from_path(ctx.catalog.path(srow), volume=scan), srow)
     session = Session(source=source, deformation=result.deformation, endpoints=result.endpoints,
                       notes=f"unwind server job {ctx.job_id}: mask {mrow.name}"
                             + ("; suggested endpoints" if result.suggested else ""))
@@ -237,6 +247,12 @@ def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
     r = yield from run_iter(volume, endpoints=endpoints, options=options, output=out, session_path=session_path,
                             source=ctx.catalog.path(vrow), notes=f"unwind run (server job {ctx.job_id})",
                             scheduler=ctx.scheduler, **chosen)
+    if r.session is not None and session_path.exists():  # recorded again with the scan by name (see _portable)
+        from dataclasses import replace
+
+        from napari_unwind.session import save_session
+
+        save_session(replace(r.session, source=_portable(r.session.source, vrow)), session_path, overwrite=True)
     sid, text = _register_session(ctx, session_path)
     figures: dict[str, Any] = convert.result_figures(r)
     seg_record = r.session.segmentation

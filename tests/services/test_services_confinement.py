@@ -5,8 +5,10 @@ and read back (the check refuses only what it should). Reference: the bytes of t
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -132,3 +134,136 @@ def test_a_registered_store_changed_afterwards_is_refused_at_each_open(server):
             with pytest.raises(RemoteError) as err:
                 call()
             assert err.value.code == "PERMISSION_DENIED" and "secret" not in str(err.value)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# zarr v2 stores (.zarray / .zgroup / .zattrs; chunks "0.0.0" or nested "0/0/0"), and links swapped in after an open
+# ------------------------------------------------------------------------------------------------------------------
+V2_CHUNKS = (2, 2, 2)
+
+
+def _v2_store(folder: Path, name: str, *, nested: bool, group: bool) -> tuple[Path, np.ndarray]:
+    """A zarr v2 store of 8 chunks, written by zarr itself: a plain array, or an NGFF 0.4 group holding level "0"."""
+    import zarr
+
+    values = np.arange(np.prod(SHAPE), dtype=np.uint8).reshape(SHAPE)
+    store = folder / name
+    where = store / "0" if group else store
+    arr = zarr.open_array(str(where), mode="w", zarr_format=2, shape=SHAPE, chunks=V2_CHUNKS, dtype="u1",
+                          compressor=None, fill_value=0, dimension_separator="/" if nested else ".")
+    arr[:] = values
+    if group:
+        (store / ".zgroup").write_text('{"zarr_format": 2}')
+        axes = [{"name": a, "type": "space", "unit": "micrometer"} for a in "zyx"]
+        (store / ".zattrs").write_text(json.dumps({"multiscales": [{
+            "version": "0.4", "axes": axes,
+            "datasets": [{"path": "0", "coordinateTransformations": [{"type": "scale", "scale": [1.0, 1.0, 1.0]}]}]}]}))
+    return store, values
+
+
+def _v2_files(store: Path) -> list[Path]:
+    return sorted(p for p in store.rglob("*") if p.is_file() and not p.name.startswith("."))
+
+
+def _link_out(path: Path, outside: Path, tag: str) -> None:
+    """Replace ``path`` (a file or a folder) by a symbolic link to a copy of it outside the data root."""
+    copy = outside / f"{tag}-{path.name}"
+    if path.is_dir():
+        shutil.copytree(path, copy)
+        shutil.rmtree(path)
+    else:
+        shutil.copyfile(path, copy)
+        path.unlink()
+    os.symlink(copy, path)
+
+
+V2_CASES = [  # (name, nested chunk keys, NGFF group, what is replaced by a link out)
+    ("flat-chunk", False, False, "chunk"),
+    ("flat-zarray", False, False, ".zarray"),
+    ("nested-chunk", True, False, "chunk"),
+    ("nested-folder", True, False, "folder at depth 2"),
+    ("group-zarray", False, True, ".zarray"),
+    ("group-level", True, True, "level folder"),
+    ("group-folder", True, True, "folder at depth 3"),
+]
+
+
+@pytest.mark.parametrize("name,nested,group,what", V2_CASES, ids=[c[0] for c in V2_CASES])
+def test_a_zarr_v2_store_with_a_link_out_is_refused(server, name, nested, group, what):
+    srv, data, outside = server
+    store, values = _v2_store(data / "scans", f"v2-{name}.zarr", nested=nested, group=group)
+    assert not (store / "zarr.json").exists() and open_volume(store).format == "ome-zarr"
+    _fine(srv, os.path.relpath(store, data), values)  # the store itself reads back
+    array = store / "0" if group else store
+    chunk = _v2_files(array)[0]
+    victim = {"chunk": chunk, ".zarray": array / ".zarray", "level folder": array,
+              "folder at depth 2": array / "0" / "0", "folder at depth 3": array / "0" / "0"}[what]
+    if what.startswith("folder"):
+        assert victim.is_dir() and chunk.is_relative_to(victim), (victim, chunk)
+    _link_out(victim, outside, name)
+    _refused(srv, os.path.relpath(store, data))
+
+
+def _catalog_volume(srv, data: Path, store: Path):
+    """Register ``store`` through the server, then open it as the server's servicers and jobs do."""
+    from unwind_services.auth import LOCAL_USER
+
+    with Client(srv.address, progress=False) as c:
+        vid = c.register(os.path.relpath(store, data)).volume_id
+    return srv.catalog.volume(LOCAL_USER, vid)[1]
+
+
+@pytest.mark.parametrize("what,nested", [("chunk", False), ("chunk", True), ("folder", True)],
+                         ids=["chunk-flat", "chunk-nested", "folder-nested"])
+def test_a_link_swapped_in_after_the_open_is_not_followed_at_chunk_read(server, nested, what):
+    """The window the checks at Register and at each open leave: a volume opened (checked) whose chunk, or a
+    folder of chunks, becomes a link out before the chunk is read. The read refuses; the bytes never come back."""
+    srv, data, outside = server
+    store, values = _v2_store(data / "scans", f"swap-{what}-{'nested' if nested else 'flat'}.zarr", nested=nested,
+                              group=False)
+    volume = _catalog_volume(srv, data, store)
+    chunk = _v2_files(store)[-1]  # chunk (1, 1, 1): the last 2x2x2 corner
+    victim = chunk if what == "chunk" else chunk.parent
+    copy = outside / f"swap-{what}-{nested}"
+    if victim.is_dir():
+        shutil.copytree(victim, copy)
+        for f in copy.iterdir():
+            f.write_bytes(b"S" * f.stat().st_size)  # the outside copy holds other bytes
+        shutil.rmtree(victim)
+    else:
+        copy.write_bytes(b"S" * chunk.stat().st_size)
+        victim.unlink()
+    os.symlink(copy, victim)
+    with pytest.raises(PermissionError) as err:
+        np.asarray(volume.data[2:, 2:, 2:])
+    assert "secret" not in str(err.value) and str(outside) not in str(err.value), str(err.value)
+    # the chunks that are still inside read as before
+    np.testing.assert_array_equal(np.asarray(volume.data[:2, :2, :2]), values[:2, :2, :2])
+
+
+def test_a_link_swapped_into_a_v3_store_after_the_open_is_not_followed(server):
+    """The same for the stores the server writes (zarr v3, whole chunks read directly, without zarr)."""
+    srv, data, outside = server
+    store = _scan(data / "scans", "swap-v3.ome.zarr")
+    volume = _catalog_volume(srv, data, store)
+    chunk = sorted(p for p in store.rglob("*") if p.is_file() and not p.name.endswith(".json"))[0]
+    (outside / "swap-v3").write_bytes(chunk.read_bytes())  # the same bytes: only where they lie is wrong
+    chunk.unlink()
+    os.symlink(outside / "swap-v3", chunk)
+    with pytest.raises(PermissionError):
+        np.asarray(volume.data)
+
+
+def test_a_raw_data_file_swapped_after_the_open_is_not_followed(server):
+    """The same for a header's raw data file (a ``.dat``'s raw), memory-mapped anew at each read."""
+    srv, data, outside = server
+    folder = data / "scans" / "swap-dat"
+    folder.mkdir()
+    raw = _scan(folder, "fish.raw")
+    volume = _catalog_volume(srv, data, raw.with_suffix(".dat"))
+    np.testing.assert_array_equal(np.asarray(volume.data), np.asarray(open_volume(raw).data))
+    raw.unlink()
+    os.symlink(outside / "secret.raw", raw)  # as many bytes as the header promises
+    with pytest.raises(PermissionError) as err:
+        np.asarray(volume.data)
+    assert "secret" not in str(err.value) and str(outside) not in str(err.value), str(err.value)

@@ -223,3 +223,44 @@ def test_jobs_list_with_a_dash_token_against_a_real_server(tmp_path, capsys):
             assert len(err) == 1 and "unknown token" in err[0], err
     finally:
         srv.stop()
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# a typo in the tokens file (issue 22 item 5)
+# ------------------------------------------------------------------------------------------------------------------
+def test_a_typo_in_the_tokens_file_keeps_the_last_good_table_and_tells_only_the_log(tmp_path):
+    from napari_unwind.client import Client, RemoteError
+
+    tokens = tmp_path / "tokens"
+    alice = add_token(tokens, "alice")
+    srv = ServerProcess(tmp_path / "data", "--tokens", tokens, "--workers", "1")
+    try:
+        with Client(srv.address, token=alice, progress=False) as c:
+            c.volumes()
+        good = tokens.read_text()
+        bob = new_token()
+        # an admin's typo: bob's hash one digit short, on line 3 of the file
+        typo = f"bob {hash_token(bob)[:-1]}"
+        tokens.write_text(good + typo + "\n")
+        os.utime(tokens, ns=(os.stat(tokens).st_atime_ns, os.stat(tokens).st_mtime_ns + 10**9))  # a new mtime
+        for _ in range(3):
+            with Client(srv.address, token=alice, progress=False) as c:  # the last good table still holds alice
+                c.volumes()
+        for wrong in (bob, "not-a-token"):
+            with Client(srv.address, token=wrong, progress=False) as c, pytest.raises(RemoteError) as err:
+                c.volumes()
+            message = str(err.value)
+            assert err.value.code == "UNAUTHENTICATED", (err.value.code, message)
+            assert str(tmp_path) not in message and "tokens" not in message.replace("token;", "") \
+                and "sha256" not in message and "line" not in message, message
+        log = srv.log.read_text()
+        said = [line for line in log.splitlines() if "tokens file not reloaded" in line]
+        assert len(said) == 1, said  # once, not at every call
+        assert str(tokens) in said[0] and "line 3" in said[0], said[0]
+        # the admin fixes the line: bob's token works without a restart
+        tokens.write_text(good + f"bob {hash_token(bob)}\n")
+        os.utime(tokens, ns=(os.stat(tokens).st_atime_ns, os.stat(tokens).st_mtime_ns + 2 * 10**9))
+        with Client(srv.address, token=bob, progress=False) as c:
+            c.volumes()
+    finally:
+        srv.stop()
