@@ -59,8 +59,9 @@ MAX_PATH_BYTES, MAX_COMPONENT_BYTES = 4096, 255
 MAX_TIMEOUT_SECONDS = 30 * 24 * 3600.0
 #: Largest coordinate of a point, voxels.
 MAX_COORDINATE = 1e9
-#: Most points of a selection or of MapPoints, and most parts of a chain.
-MAX_POINTS, MAX_MAP_POINTS, MAX_CHAIN = 10_000, 1_000_000, 1_000
+#: Most points of a selection, of one MapPoints message on the wire, and most parts of a chain. (MapPoints itself
+#: maps at most ``servicers.MAX_MAP_POINTS`` a call or a stream message: more is RESOURCE_EXHAUSTED naming the stream.)
+MAX_POINTS, MAX_WIRE_POINTS, MAX_CHAIN = 10_000, 1_000_000, 1_000
 #: Largest `limit` of a listing (the server sends at most 1000) and `after_seq` of a watch.
 MAX_LIMIT, MAX_SEQ = 1_000_000, 2**53
 #: Largest side of an upload, voxels (the server's --max-voxels bounds the product).
@@ -125,9 +126,9 @@ def bounds() -> dict[str, Bound]:
         "StraightenRequest": dict(volume_id=ident, session_id=ident, options=anything),
         "BendRequest": dict(volume_id=ident, session_id=ident, order=Bound(0, 3), has_order=anything,
                             output_name=name),
-        "MapPointsRequest": dict(session_id=ident, points=Bound(max_items=MAX_MAP_POINTS), direction=anything,
+        "MapPointsRequest": dict(session_id=ident, points=Bound(max_items=MAX_WIRE_POINTS), direction=anything,
                                  spacing=Bound(0, P.MAX_LENGTH), pad=Bound(0, P.MAX_PAD),
-                                 coords=Bound(max_items=3 * MAX_MAP_POINTS)),
+                                 coords=Bound(max_items=3 * MAX_WIRE_POINTS)),
     }
     return {f"{m}.{f}": b for m, fs in table.items() for f, b in fs.items()}
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import grpc
+import numpy as np
 from google.protobuf.descriptor import FieldDescriptor as F
 
 from unwind_services._proto.unwind.v1 import jobs_pb2, segmentation_pb2, skeleton_pb2, volume_pb2, warp_pb2
@@ -157,3 +158,21 @@ def parse(text: str) -> Documented:
     if text in ("any", "a defined value", "the message size limit"):
         return Documented({"any": "any", "a defined value": "enum", "the message size limit": "bytes"}[text])
     raise AssertionError(f"a bound the tests cannot read: {text!r}")
+
+
+def small_server(tmp: Path):
+    """An in-process server (dask in threads, one worker) on a data root under ``tmp`` holding a 6x5x4 scan
+    ``scans/small.tif``; yields ``(server, channel)`` and stops both (a module fixture's body)."""
+    from napari_unwind.io import write_volume
+    from unwind_services.server import ServerConfig, UnwindServer
+
+    data = Path(tmp) / "data"
+    (data / "scans").mkdir(parents=True)
+    write_volume(np.arange(6 * 5 * 4, dtype=np.uint16).reshape(6, 5, 4), data / "scans" / "small.tif")
+    srv = UnwindServer(ServerConfig(data_root=data, port=0, scheduler="threads", workers=1))
+    srv.start()
+    channel = grpc.insecure_channel(f"127.0.0.1:{srv.port}", options=[
+        ("grpc.max_send_message_length", 64 * 2**20), ("grpc.max_receive_message_length", 64 * 2**20)])
+    yield srv, channel
+    channel.close()
+    srv.stop(0)

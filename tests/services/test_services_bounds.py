@@ -14,13 +14,11 @@ import math
 import sqlite3
 
 import grpc
-import numpy as np
 import pytest
-from _bounds import BAD, build, call, documented_bounds, parse, request_fields
+from _bounds import BAD, build, call, documented_bounds, parse, request_fields, small_server
 from google.protobuf.descriptor import FieldDescriptor as F
 
 from napari_unwind.client import Client
-from napari_unwind.io import write_volume
 from unwind_services._proto.unwind.v1 import jobs_pb2, jobs_pb2_grpc, volume_pb2, volume_pb2_grpc, warp_pb2
 
 C = grpc.StatusCode
@@ -31,18 +29,7 @@ DOCS = documented_bounds()
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    from unwind_services.server import ServerConfig, UnwindServer
-
-    data = tmp_path_factory.mktemp("bounds") / "data"
-    (data / "scans").mkdir(parents=True)
-    write_volume(np.arange(6 * 5 * 4, dtype=np.uint16).reshape(6, 5, 4), data / "scans" / "small.tif")
-    srv = UnwindServer(ServerConfig(data_root=data, port=0, scheduler="threads", workers=1))
-    srv.start()
-    channel = grpc.insecure_channel(f"127.0.0.1:{srv.port}", options=[
-        ("grpc.max_send_message_length", 64 * 2**20), ("grpc.max_receive_message_length", 64 * 2**20)])
-    yield srv, channel
-    channel.close()
-    srv.stop(0)
+    yield from small_server(tmp_path_factory.mktemp("bounds"))
 
 
 def _jobs(srv) -> list:

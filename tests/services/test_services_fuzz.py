@@ -10,15 +10,12 @@ import logging
 import math
 import random
 
-import grpc
-import numpy as np
 import pytest
-from _bounds import BAD, call, methods
+from _bounds import BAD, call, methods, small_server
 from google.protobuf import message_factory
 from google.protobuf.descriptor import FieldDescriptor as F
 
 from napari_unwind.client import Client
-from napari_unwind.io import write_volume
 
 SEED, CALLS = 20261203, 2000
 INTS = [0, 1, -1, 2, 3, 100, 101, 255, 4096, 4097, 10_000, 10_001, 2**31 - 1, -2**31]
@@ -79,18 +76,7 @@ def _fill(rng: random.Random, msg, real: list[str], depth: int = 0) -> None:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    from unwind_services.server import ServerConfig, UnwindServer
-
-    data = tmp_path_factory.mktemp("fuzz") / "data"
-    (data / "scans").mkdir(parents=True)
-    write_volume(np.arange(6 * 5 * 4, dtype=np.uint16).reshape(6, 5, 4), data / "scans" / "small.tif")
-    srv = UnwindServer(ServerConfig(data_root=data, port=0, scheduler="threads", workers=1))
-    srv.start()
-    channel = grpc.insecure_channel(f"127.0.0.1:{srv.port}", options=[
-        ("grpc.max_send_message_length", 64 * 2**20), ("grpc.max_receive_message_length", 64 * 2**20)])
-    yield srv, channel
-    channel.close()
-    srv.stop(0)
+    yield from small_server(tmp_path_factory.mktemp("fuzz"))
 
 
 def test_a_seeded_fuzz_of_every_request_never_gets_internal(server, caplog):
