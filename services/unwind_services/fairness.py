@@ -17,17 +17,20 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import grpc
 
-from .errors import DeadlineError, LimitError
+from .errors import CancelledError, DeadlineError, LimitError
 from .interceptor import current_user
 
 __all__ = ["UserSlots", "CallLimiter", "idle_limited", "idle_sends"]
 
 log = logging.getLogger("unwind_services")
+
+#: Seconds between two looks at whether a call is still alive while waiting for its client's next message.
+_ALIVE_POLL = 0.25
 
 
 class UserSlots:
@@ -101,8 +104,11 @@ class CallLimiter(grpc.ServerInterceptor):
 _END = object()
 
 
-def idle_limited(requests: Iterator[Any], seconds: float, message: str) -> Iterator[Any]:
-    """The messages of ``requests``; DeadlineError(``message``) when none comes for ``seconds`` (0: wait forever).
+def idle_limited(requests: Iterator[Any], seconds: float, message: str,
+                 is_active: Callable[[], bool] = lambda: True) -> Iterator[Any]:
+    """The messages of ``requests``; DeadlineError(``message``) when none comes for ``seconds`` (0: wait forever);
+    CancelledError as soon as the call is over (``is_active()`` False: the client went away, or gRPC ended the call
+    itself, e.g. on a message over its size limit, without the request iterator ever ending).
 
     A thread of its own reads the stream (gRPC's request iterator blocks until a message comes or the call ends);
     when the caller stops early the call ends with it and the reader thread with the call.
@@ -135,10 +141,16 @@ def idle_limited(requests: Iterator[Any], seconds: float, message: str) -> Itera
     reader.start()
     try:
         while True:
-            try:
-                ok, item = box.get(timeout=seconds)
-            except queue.Empty:
-                raise DeadlineError(message) from None
+            quiet_until = time.monotonic() + seconds
+            while True:
+                try:
+                    ok, item = box.get(timeout=min(_ALIVE_POLL, max(0.0, quiet_until - time.monotonic())))
+                    break
+                except queue.Empty:
+                    if not is_active():
+                        raise CancelledError("the upload's call ended before its last message") from None
+                    if time.monotonic() >= quiet_until:
+                        raise DeadlineError(message) from None
             if not ok:
                 raise item
             if item is _END:

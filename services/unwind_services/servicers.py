@@ -78,15 +78,18 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
 
     def Upload(self, request_iterator, context):
         owner, idle = current_user(), self.catalog.limits.upload_idle_seconds
-        with self.uploads.hold(owner):
-            try:
+        abandoned: list[UploadPipe] = []
+        try:
+            with self.uploads.hold(owner):  # the transfer holds the user's slot, not the clean-up after a failure
                 return self._upload(owner, idle_limited(
                     request_iterator, idle, f"the upload sent nothing for {idle:g} s and was aborted (this "
-                    "server's idle limit); upload again"), context)
-            finally:
-                self.catalog.forget_stored_bytes(owner)
+                    "server's idle limit); upload again", context.is_active), context, abandoned)
+        finally:
+            for pipe in abandoned:
+                pipe.abandon()  # the import sees the stream end short and removes its partial store; waits for that
+            self.catalog.forget_stored_bytes(owner)
 
-    def _upload(self, owner, request_iterator, context):
+    def _upload(self, owner, request_iterator, context, abandoned: list):
         limits, root = self.catalog.limits, self.catalog.root
         first = next(request_iterator, None)
         if first is None or isinstance(first, memoryview) or first.WhichOneof("part") != "header":
@@ -139,7 +142,7 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             log.info("upload %s of %s: %.1f MiB received in %.2f s, imported %.2f s after the last byte", vid,
                      owner, expected / 2**20, t1 - t0, time.perf_counter() - t1)
         except BaseException:
-            pipe.abandon()  # the worker sees the stream end short and removes its partial store
+            abandoned.append(pipe)
             raise
         row, vol = self.catalog.add_volume(owner, dst, name, "upload", object_id=vid)
         return convert.volume_info(row, vol)

@@ -75,12 +75,7 @@ def test_one_users_queue_does_not_hold_both_workers_and_another_user_starts_firs
             # bob's job takes the free worker at once, though two of alice's were queued before it
             wait_for(lambda: b.job(theirs.id).state == pb.JOB_STATE_RUNNING, timeout=10)
             assert [a.job(j.id).state for j in mine[1:]] == [pb.JOB_STATE_QUEUED] * 2
-            # four queued or running is alice's limit: the fifth is refused in one clear line
-            mine.append(a.straighten(*made["alice"], wait=False, output_name="a3.zarr", **SLOW))
-            with pytest.raises(RemoteError) as info:
-                a.straighten(*made["alice"], wait=False, output_name="a4.zarr", **SLOW)
-            assert info.value.code == "RESOURCE_EXHAUSTED"
-            assert "4 jobs queued or running" in str(info.value) and "\n" not in str(info.value)
+            # (the limit of jobs queued or running is test_services_bad_input's: here a job's length would decide)
         finally:
             _cancel_all(a)
             _cancel_all(b)
