@@ -253,7 +253,11 @@ def dtype_enum(dtype: Any) -> int:
 
 def points(msgs: Sequence[pb.Point], what: str) -> np.ndarray:
     """(N, 3) array of points; refuses NaN and infinity."""
-    arr = np.array([(p.axis0, p.axis1, p.axis2) for p in msgs], dtype=float).reshape(-1, 3)
+    return _finite(np.array([(p.axis0, p.axis1, p.axis2) for p in msgs], dtype=float).reshape(-1, 3), what)
+
+
+def _finite(arr: np.ndarray, what: str) -> np.ndarray:
+    """``arr`` ((N, 3) points), or InvalidInputError naming the first point with NaN or infinity."""
     bad = ~np.isfinite(arr).all(axis=1)
     if bad.any():
         i = int(np.argmax(bad))
@@ -274,13 +278,7 @@ def map_points_in(msg: warp_pb2.MapPointsRequest, most: int, what: str, hint: st
     if len(msg.coords) % 3:
         raise InvalidInputError(f"coords holds (axis0, axis1, axis2) triples: its length must be a multiple of 3, "
                                 f"got {len(msg.coords)}")
-    arr = np.asarray(msg.coords, dtype=float).reshape(-1, 3)
-    bad = ~np.isfinite(arr).all(axis=1)
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise InvalidInputError(f"point {i} is not a finite point: {tuple(arr[i])}; give three finite numbers "
-                                "(axis0, axis1, axis2)")
-    return arr
+    return _finite(np.asarray(msg.coords, dtype=float).reshape(-1, 3), "point")
 
 
 def map_points_out(mapped: np.ndarray, flat: bool) -> warp_pb2.MapPointsResponse:
