@@ -2,6 +2,7 @@
 
     .venv/bin/python -m benchmarks.bench_services                    # the recorded run
     .venv/bin/python -m benchmarks.bench_services --clients 4 --mib 64   # a quick look
+    .venv/bin/python -m benchmarks.bench_services --mib 0 --clients 28 --misbehave all   # issue 22's load test
 
 Everything runs in one invocation, each server in its own process on 127.0.0.1:
 
@@ -11,9 +12,15 @@ Everything runs in one invocation, each server in its own process on 127.0.0.1:
    messages (identity serializers, no protobuf, no disk). Two more rows bound the upload: the client's own
    messages (``Client.upload``'s, from the same array) into the bare server, i.e. the transfer without the server's
    work, and the same ``import_volume`` alone in this process: a streamed upload cannot be faster than either.
-2. Load: ``--clients`` concurrent clients, each uploading its own small scan (a 2-fish tank phantom, 100 x 65 x 65)
-   and running the whole pipeline (segment, select, skeleton, straighten) as a job it watches; meanwhile a prober
+2. Load: ``--clients`` concurrent clients, each a user of its own (a server with a tokens file and its default
+   per-user limits), uploading its own small scan (a 2-fish tank phantom, 100 x 65 x 65) and running the whole
+   pipeline (segment, select, skeleton, straighten) as a job it watches; meanwhile a prober in a process of its own
    calls the health service every 20 ms. Reports pipeline latency p50/p99, throughput, and health p50/p99/max.
+3. With ``--misbehave all`` (issue 22's load test), four more users misbehave, each in a process of its own, for as
+   long as the good clients run: one keeps two uploads open that send a header and then nothing, one submits jobs
+   with huge parameters (``levels=2**31-1``, NaN timeouts), one lists its volumes in bursts of 200 concurrent
+   calls, and one keeps its queue full of slow straight exports. What the misbehaving users were answered is
+   counted by status code; the good clients' figures are the verdict.
 """
 
 from __future__ import annotations
@@ -26,8 +33,8 @@ import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -209,9 +216,34 @@ def _pct(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values), q)) if values else float("nan")
 
 
-def load(address: str, clients: int) -> tuple[list[list[str]], dict]:
+def _probe(address: str, stop, out) -> None:
+    """A process of its own (as a cluster's health checker is): the health service every 20 ms until ``stop``;
+    puts (latencies in seconds, failures) on ``out``."""
     import grpc
     from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    health: list[float] = []
+    failures: list[str] = []
+    with grpc.insecure_channel(address) as ch:
+        stub = health_pb2_grpc.HealthStub(ch)
+        while not stop.is_set():
+            t0 = time.perf_counter()
+            try:
+                r = stub.Check(health_pb2.HealthCheckRequest(), timeout=5)
+                assert r.status == health_pb2.HealthCheckResponse.SERVING
+                health.append(time.perf_counter() - t0)
+            except Exception as exc:  # noqa: BLE001 - counted as a failure
+                failures.append(f"health: {exc}")
+            time.sleep(0.02)
+    out.put((health, failures))
+
+
+def load(address: str, clients: int, tokens: dict[str, str], bad: list[str]) -> tuple[list[list[str]], dict]:
+    """``clients`` concurrent pipelines, client i as user ``good{i}`` (``tokens``: user -> token); the users in
+    ``bad`` (of ``stall``, ``huge``, ``burst`` and ``hog``) misbehave (see :class:`_Misbehaving`), each in a process
+    of its own, until the good clients are done. The health prober runs in a process of its own too, so that its
+    figures are the server's, not this process's threads'."""
+    import multiprocessing
 
     from napari_unwind.client import Client
     from napari_unwind.datasets import tank_phantom
@@ -219,33 +251,27 @@ def load(address: str, clients: int) -> tuple[list[list[str]], dict]:
     t = tank_phantom(n_fish=2, seed=1, length=90)
     fish = t.fish[0]
     click = fish.centerline[len(fish.centerline) // 2]
-    health: list[float] = []
     failures: list[str] = []
-    stop = threading.Event()
-
-    def probe() -> None:
-        with grpc.insecure_channel(address) as ch:
-            stub = health_pb2_grpc.HealthStub(ch)
-            while not stop.is_set():
-                t0 = time.perf_counter()
-                try:
-                    r = stub.Check(health_pb2.HealthCheckRequest(), timeout=5)
-                    assert r.status == health_pb2.HealthCheckResponse.SERVING
-                    health.append(time.perf_counter() - t0)
-                except Exception as exc:  # noqa: BLE001 - counted as a failure
-                    failures.append(f"health: {exc}")
-                time.sleep(0.02)
+    mp = multiprocessing.get_context("spawn")
+    stop, out = mp.Event(), mp.Queue()
 
     def one(i: int) -> float:
-        with Client(address, progress=False, timeout=120) as c:
+        with Client(address, token=tokens[f"good{i}"], progress=False, timeout=120) as c:
             t0 = time.perf_counter()
             vid = c.upload(t.volume, spacing=t.spacing, unit=t.unit, name=f"tank{i}").volume_id
             job = c.pipeline(vid, select=[click], output_name=f"fish{i}.zarr")
             assert job.result.volume_id
             return time.perf_counter() - t0
 
-    prober = threading.Thread(target=probe, daemon=True)
-    prober.start()
+    procs = [mp.Process(target=_probe, args=(address, stop, out))]
+    procs += [mp.Process(target=_misbehave, args=(address, tokens[u], u, stop, out)) for u in bad]
+    for proc in procs:
+        proc.start()
+    answers: dict[str, dict[str, int]] = {}
+    for _ in bad:  # every misbehaving user under way (the hog with its session) before the good clients start
+        got = out.get(timeout=600)
+        if isinstance(got, dict):  # stopped before it was ready
+            answers.update(got)
     time.sleep(1.0)
     t_all = time.perf_counter()
     latencies: list[float] = []
@@ -257,7 +283,16 @@ def load(address: str, clients: int) -> tuple[list[list[str]], dict]:
                 failures.append(f"pipeline: {exc}")
     wall = time.perf_counter() - t_all
     stop.set()
-    prober.join()
+    health: list[float] = []
+    for _ in range(len(procs) - len(answers)):
+        got = out.get(timeout=120)
+        if isinstance(got, tuple):
+            health, lost = got
+            failures += lost
+        else:
+            answers.update(got)
+    for proc in procs:
+        proc.join(timeout=30)
     rows = [["measure", "value"],
             ["clients (each: upload + segment + select + skeleton + straighten)", str(clients)],
             ["pipelines succeeded", f"{len(latencies)} of {clients}"],
@@ -267,7 +302,133 @@ def load(address: str, clients: int) -> tuple[list[list[str]], dict]:
             ["health checks during load", str(len(health))],
             ["health p50 / p99 / max (ms)", f"{_pct(health, 50) * 1e3:.1f} / {_pct(health, 99) * 1e3:.1f} / "
                                             f"{max(health) * 1e3:.1f}"]]
+    for who, codes in sorted(answers.items()):
+        rows.append([f"misbehaving user {who!r}: answers", ", ".join(f"{k} {v}" for k, v in sorted(codes.items()))])
     return rows, {"failures": failures}
+
+
+def _misbehave(address: str, token: str, user: str, stop, out) -> None:
+    """A process of its own: ``user``'s misbehaviour until ``stop``; puts ``user`` on ``out`` when it is ready to
+    start (the hog has its session), then {user: {answer: count}} when it stops."""
+    bad = _Misbehaving(address, token, stop, ready=lambda: out.put(user))
+    try:
+        getattr(bad, user)()
+    except Exception as exc:  # noqa: BLE001 - reported with the answers
+        bad.count(f"stopped: {type(exc).__name__}: {str(exc)[:200]}")
+    out.put({user: bad.answers})
+
+
+class _Misbehaving:
+    """What the misbehaving users do, each until ``stop`` is set; the server's answers counted in ``answers``."""
+
+    USERS = ("stall", "huge", "burst", "hog")
+
+    def __init__(self, address: str, token: str, stop, ready: Callable[[], None]):
+        import grpc
+
+        self.address, self.token, self.stop, self.ready = address, token, stop, ready
+        self.answers: dict[str, int] = {}
+        self.meta = (("authorization", f"Bearer {token}"),)
+        self._grpc = grpc
+
+    def count(self, what: str) -> None:
+        self.answers[what] = self.answers.get(what, 0) + 1
+
+    def code(self, exc: BaseException) -> str:
+        c = getattr(exc, "code", None)
+        c = c() if callable(c) else c
+        return getattr(c, "name", None) or str(c or type(exc).__name__)
+
+    def stall(self) -> None:
+        """Two uploads at a time that send their header, then nothing (the server's idle limit ends them; the
+        second is over the limit of uploads in progress)."""
+        from unwind_services._proto.unwind.v1 import common_pb2 as pb
+        from unwind_services._proto.unwind.v1 import volume_pb2, volume_pb2_grpc
+
+        with self._grpc.insecure_channel(self.address) as ch:
+            stub = volume_pb2_grpc.VolumeServiceStub(ch)
+
+            def messages():
+                yield volume_pb2.UploadRequest(header=volume_pb2.UploadHeader(
+                    name="stalled", shape=[256, 256, 256], dtype=pb.DTYPE_UINT8))
+                self.stop.wait(600)
+
+            self.ready()
+            while not self.stop.is_set():
+                calls = [stub.Upload.future(messages(), metadata=self.meta, timeout=600) for _ in range(2)]
+                for call in calls:
+                    try:
+                        call.result()
+                        self.count("OK")
+                    except self._grpc.RpcError as exc:
+                        self.count(self.code(exc))
+
+    def huge(self) -> None:
+        """Submits with parameters out of bounds, as fast as they are answered."""
+        from unwind_services._proto.unwind.v1 import jobs_pb2, jobs_pb2_grpc, skeleton_pb2
+
+        with self._grpc.insecure_channel(self.address) as ch:
+            stub = jobs_pb2_grpc.JobServiceStub(ch)
+            bad = [jobs_pb2.SubmitRequest(pipeline=jobs_pb2.PipelineRequest(
+                       volume_id="v", skeleton=skeleton_pb2.SkeletonOptions(levels=2**31 - 1))),
+                   jobs_pb2.SubmitRequest(pipeline=jobs_pb2.PipelineRequest(
+                       volume_id="v", skeleton=skeleton_pb2.SkeletonOptions(smoothing_iterations=2**31 - 1,
+                                                                            has_smoothing_iterations=True))),
+                   jobs_pb2.SubmitRequest(pipeline=jobs_pb2.PipelineRequest(volume_id="v"),
+                                          timeout_seconds=float("nan"))]
+            k = 0
+            self.ready()
+            while not self.stop.is_set():
+                try:
+                    stub.Submit(bad[k % len(bad)], metadata=self.meta, timeout=30)
+                    self.count("OK")
+                except self._grpc.RpcError as exc:
+                    self.count(self.code(exc))
+                k += 1
+                time.sleep(0.01)
+
+    def burst(self) -> None:
+        """Bursts of 200 concurrent listings, one after the other."""
+        from unwind_services._proto.unwind.v1 import volume_pb2, volume_pb2_grpc
+
+        with self._grpc.insecure_channel(self.address) as ch:
+            stub = volume_pb2_grpc.VolumeServiceStub(ch)
+            self.ready()
+            while not self.stop.is_set():
+                calls = [stub.List.future(volume_pb2.ListVolumesRequest(limit=1000), metadata=self.meta,
+                                          timeout=30) for _ in range(200)]
+                for call in calls:
+                    try:
+                        call.result()
+                        self.count("OK")
+                    except self._grpc.RpcError as exc:
+                        self.count(self.code(exc))
+
+    def hog(self) -> None:
+        """Keeps its queue full of slow straight exports (2x finer than the scan, one slice per chunk)."""
+        from napari_unwind.client import Client, RemoteError
+        from napari_unwind.datasets import tank_phantom
+        from unwind_services._proto.unwind.v1 import common_pb2 as pb
+
+        t = tank_phantom(n_fish=2, seed=1, length=90)
+        fish = t.fish[0]
+        with Client(self.address, token=self.token, progress=False, timeout=120) as c:
+            vid = c.upload(t.volume, spacing=t.spacing, unit=t.unit, name="hog").volume_id
+            mid = c.upload(fish.mask.astype(np.uint8), spacing=t.spacing, unit=t.unit, name="mask").volume_id
+            sid = c.skeleton(mid, volume_id=vid, head=fish.head, tail=fish.tail).result.session_id
+            k = 0
+            self.ready()
+            while not self.stop.is_set():
+                try:
+                    c.straighten(vid, sid, wait=False, output_name=f"hog{k}.zarr", spacing=0.5, chunks=(1, 512, 512))
+                    self.count("OK (queued)")
+                    k += 1
+                except RemoteError as exc:
+                    self.count(exc.code)
+                    self.stop.wait(1.0)
+            for j in c.jobs():
+                if j.state in (pb.JOB_STATE_QUEUED, pb.JOB_STATE_RUNNING):
+                    c.cancel(j.id)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -276,6 +437,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mib", type=int, default=256, help="size of the transfer volume (MiB)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--workers", type=int, default=2, help="server job workers")
+    p.add_argument("--misbehave", default="", metavar="USERS",
+                   help="misbehaving users beside the clients: 'all' or some of stall,huge,burst,hog (comma-separated)")
     p.add_argument("--log-level", default="warning", help="the server's log level (info: upload timings)")
     p.add_argument("--raw-server", type=int, default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -284,18 +447,31 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     tmp = Path(tempfile.mkdtemp(prefix="bench-services-"))
     server = raw = None
+    serve = [sys.executable, "-m", "napari_unwind.cli", "serve", "--data-root", str(tmp / "data"), "--port", "0",
+             "--workers", str(args.workers), "--log-level", args.log_level]
+    stderr = None if args.log_level == "info" else subprocess.DEVNULL
     try:
-        server, address = _start([sys.executable, "-m", "napari_unwind.cli", "serve", "--data-root",
-                                  str(tmp / "data"), "--port", "0", "--workers", str(args.workers),
-                                  "--max-jobs-per-user", "0", "--log-level", args.log_level],
-                                 stderr=None if args.log_level == "info" else subprocess.DEVNULL)
-        raw, raw_address = _start([sys.executable, "-m", "benchmarks.bench_services", "--raw-server", "0"])
-        print(f"## Transfer ({args.mib} MiB)\n")
-        print(table(transfer(address, raw_address, args.mib, args.repeats, tmp)))
+        if args.mib:
+            server, address = _start(serve + ["--max-jobs-per-user", "0"], stderr=stderr)
+            raw, raw_address = _start([sys.executable, "-m", "benchmarks.bench_services", "--raw-server", "0"])
+            print(f"## Transfer ({args.mib} MiB)\n")
+            print(table(transfer(address, raw_address, args.mib, args.repeats, tmp)))
         if not args.clients:
             return 0
-        print(f"\n## Load ({args.clients} clients)\n")
-        rows, extra = load(address, args.clients)
+        bad = list(_Misbehaving.USERS) if args.misbehave == "all" else [u for u in args.misbehave.split(",") if u]
+        if set(bad) - set(_Misbehaving.USERS):
+            p.error(f"--misbehave: unknown users {sorted(set(bad) - set(_Misbehaving.USERS))}")
+        # a server of its own with a tokens file and its default per-user limits, a user per client
+        from unwind_services.auth import add_token
+
+        if server is not None:
+            _stop(server)
+        users = [f"good{i}" for i in range(args.clients)] + bad
+        tokens = {u: add_token(tmp / "tokens", u) for u in users}
+        serve[serve.index(str(tmp / "data"))] = str(tmp / "data-users")
+        server, address = _start(serve + ["--tokens", str(tmp / "tokens")], stderr=stderr)
+        print(f"\n## Load ({args.clients} clients{f', misbehaving: {bad}' if bad else ''})\n")
+        rows, extra = load(address, args.clients, tokens, bad)
         print(table(rows))
         if extra["failures"]:
             print("\nfailures:\n" + "\n".join(extra["failures"][:20]))
@@ -305,7 +481,6 @@ def main(argv: list[str] | None = None) -> int:
             if proc is not None:
                 _stop(proc)
         shutil.rmtree(tmp, ignore_errors=True)
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -112,7 +112,7 @@ def _days(text: str) -> float:
 #: ``unwind serve`` options that are fields of ``unwind_services.catalog.Limits`` of the same name, with their
 #: defaults there (the parser's default None means "not given").
 _PER_USER_LIMITS = ("max_running_per_user", "max_uploads_per_user", "max_stored_bytes_per_user", "max_calls_per_user",
-                    "upload_idle_seconds", "download_idle_seconds")
+                    "max_call_rate_per_user", "upload_idle_seconds", "download_idle_seconds")
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -417,6 +417,10 @@ def add_remote_commands(subparsers: Any) -> None:
     p.add_argument("--max-calls-per-user", type=_positive_int, default=None,
                    help="calls of one user in progress at once, streams included (default 16; 0: no limit); "
                         "health checks are not counted")
+    p.add_argument("--max-call-rate-per-user", type=_non_negative_float, default=None,
+                   help="calls one user may start per second, bursts of two seconds' worth (default 50; 0: no "
+                        "limit); a call over it waits for its turn, up to a second, holding one of the user's calls "
+                        "in progress, and is refused past that; health checks are not counted")
     p.add_argument("--upload-idle-seconds", type=_non_negative_float, default=None,
                    help="an upload that sends nothing for this long is aborted, its import slot freed (default 30; "
                         "0: no limit)")

@@ -38,13 +38,14 @@ class Limits:
     max_uploads_per_user: int = 1  # uploads in progress at once
     max_stored_bytes_per_user: int = 0  # what the server keeps for a user: uploads and job outputs
     max_calls_per_user: int = 16  # calls in progress at once (streams included); health and reflection apart
+    max_call_rate_per_user: float = 50.0  # calls started per second (bursts of two seconds' worth)
     upload_idle_seconds: float = 30.0  # an upload that sends nothing for this long is aborted
     download_idle_seconds: float = 30.0  # a download whose client reads nothing for this long is cancelled
 
     def __post_init__(self) -> None:
         for name in ("max_upload_bytes", "max_voxels", "max_message_bytes", "max_jobs_per_user",
                      "max_running_per_user", "max_uploads_per_user", "max_stored_bytes_per_user",
-                     "max_calls_per_user", "upload_idle_seconds", "download_idle_seconds"):
+                     "max_calls_per_user", "max_call_rate_per_user", "upload_idle_seconds", "download_idle_seconds"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or value < 0:
                 raise InvalidInputError(f"{name} must be a number >= 0 (0: no limit), got {value!r}")

@@ -2,9 +2,13 @@
 
 - :class:`UserSlots` counts what each user has in progress (calls, uploads) against a limit; past it the call is
   refused at once with RESOURCE_EXHAUSTED (:class:`~unwind_services.errors.LimitError`), it never waits.
-- :class:`CallLimiter` is the server interceptor that holds one of the caller's call slots while a call of the
-  services runs (a stream: until it ends). Health and reflection are not counted: a user's flood of calls leaves
-  the server's threads to health checks and to other users.
+- :class:`UserRate` is a token bucket per user: the calls a user may start per second (bursts of two seconds'
+  worth); a call over it waits for its turn (up to a second), past that it is refused with RESOURCE_EXHAUSTED.
+- :class:`CallLimiter` is the server interceptor that holds one of the caller's call slots while a call runs (a
+  stream: until it ends), and takes one of their tokens when it starts (waiting holds the slot). Health and
+  reflection are not counted: a user's flood of calls leaves the server's threads to health checks and to other
+  users. With the server's HTTP/2 limit of streams per connection set to the same number of calls, a client's
+  calls past its slots wait in the client's own transport and cost the server nothing.
 - :func:`idle_limited` reads a client's stream on a thread of its own and stops with
   :class:`~unwind_services.errors.DeadlineError` when nothing arrives for a while (an upload gone silent frees
   its import slot); :func:`idle_sends` cancels a call whose client stops reading a response stream.
@@ -25,7 +29,7 @@ import grpc
 from .errors import CancelledError, DeadlineError, LimitError
 from .interceptor import current_user
 
-__all__ = ["UserSlots", "CallLimiter", "idle_limited", "idle_sends"]
+__all__ = ["UserSlots", "UserRate", "CallLimiter", "idle_limited", "idle_sends"]
 
 log = logging.getLogger("unwind_services")
 
@@ -64,26 +68,77 @@ class UserSlots:
                     del self._count[user]
 
 
+class UserRate:
+    """Calls each user may start per second: a bucket per user that refills at ``rate`` tokens per second and holds
+    up to ``burst`` (default two seconds' worth); ``rate`` 0: no limit.
+
+    A call that finds the bucket empty waits for its token when that comes within ``max_wait`` seconds (the token
+    is reserved at once, so waiting calls are served in turn at the rate) and is refused otherwise: a flood is
+    slowed to the rate rather than answered with refusals as fast as it sends, which would cost the server as much
+    as serving it.
+    """
+
+    def __init__(self, rate: float, burst: float | None = None, max_wait: float = 1.0):
+        self.rate, self.max_wait = float(rate), float(max_wait)
+        self.burst = float(burst) if burst is not None else max(1.0, 2.0 * self.rate)
+        self._buckets: dict[str, tuple[float, float]] = {}  # user -> (tokens, when counted); below 0: reserved
+        self._lock = threading.Lock()
+
+    def reserve(self, user: str) -> float:
+        """Take one of ``user``'s tokens: the seconds to wait before the call may start (0: at once); LimitError
+        when that would be longer than ``max_wait``."""
+        if not self.rate:
+            return 0.0
+        now = time.monotonic()
+        with self._lock:
+            tokens, then = self._buckets.get(user, (self.burst, now))
+            tokens = min(self.burst, tokens + (now - then) * self.rate)
+            wait = max(0.0, (1.0 - tokens) / self.rate)
+            if wait > self.max_wait:
+                self._buckets[user] = (tokens, now)
+                raise LimitError(f"more than {self.rate:g} calls per second, this server's limit per user; wait a "
+                                 "moment and retry, with fewer calls")
+            self._buckets[user] = (tokens - 1.0, now)
+        return wait
+
+    def take(self, user: str) -> None:
+        """:meth:`reserve`, then wait for the token."""
+        wait = self.reserve(user)
+        if wait:
+            time.sleep(wait)
+
+
 _OPEN = ("/grpc.health.v1.Health/", "/grpc.reflection.")
 
 
 class CallLimiter(grpc.ServerInterceptor):
-    """Hold one of the caller's call slots while each call of the services runs (installed after
-    :class:`~unwind_services.interceptor.ServiceInterceptor`, which knows the user and maps the refusal)."""
+    """Hold one of the caller's call slots while each call of the services runs, and take one of their tokens
+    (:class:`UserRate`) when it starts (installed after :class:`~unwind_services.interceptor.ServiceInterceptor`, which
+    knows the user and maps the refusal)."""
 
-    def __init__(self, limit: int):
+    def __init__(self, limit: int, rate: float = 0.0):
         self.slots = UserSlots(limit, "calls", "wait for some to end (e.g. fewer parallel requests)")
+        self.rate = UserRate(rate)
 
     def intercept_service(self, continuation, handler_call_details):
         handler = continuation(handler_call_details)
-        if handler is None or handler_call_details.method.startswith(_OPEN) or not self.slots.limit:
+        if handler is None or handler_call_details.method.startswith(_OPEN) or not (self.slots.limit or
+                                                                                    self.rate.rate):
             return handler
-        slots = self.slots
+        slots, rate = self.slots, self.rate
+
+        @contextlib.contextmanager
+        def admitted():
+            user = current_user()
+            with slots.hold(user):
+                rate.take(user)
+                yield
+
         if handler.unary_unary or handler.stream_unary:
             inner = handler.unary_unary or handler.stream_unary
 
             def unary(request, context):
-                with slots.hold(current_user()):
+                with admitted():
                     return inner(request, context)
 
             factory = grpc.stream_unary_rpc_method_handler if handler.stream_unary else \
@@ -92,7 +147,7 @@ class CallLimiter(grpc.ServerInterceptor):
             inner = handler.unary_stream or handler.stream_stream
 
             def unary(request, context):
-                with slots.hold(current_user()):
+                with admitted():
                     yield from inner(request, context)
 
             factory = grpc.stream_stream_rpc_method_handler if handler.stream_stream else \

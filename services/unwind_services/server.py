@@ -163,6 +163,13 @@ class LocalDask:
         self.cluster.close(timeout=30)
 
 
+def _stream_limit(calls_per_user: int) -> list[tuple[str, int]]:
+    """HTTP/2's limit of concurrent streams per connection, set to the calls a user may have in progress (plus the
+    health checks a prober may share the connection with): a client's further calls wait in its own transport instead
+    of reaching the server only to be refused (which costs the server as much as serving them)."""
+    return [("grpc.max_concurrent_streams", int(calls_per_user) + 4)] if calls_per_user else []
+
+
 class UnwindServer:
     """One process serving the chosen services over one port."""
 
@@ -197,9 +204,10 @@ class UnwindServer:
             self.server = grpc.server(
                 ThreadPoolExecutor(max_workers=config.grpc_threads, thread_name_prefix="unwind-rpc"),
                 # the user's calls in progress are counted inside the first, which knows the user
-                interceptors=[ServiceInterceptor(self.auth, self.root), CallLimiter(config.limits.max_calls_per_user)],
+                interceptors=[ServiceInterceptor(self.auth, self.root), CallLimiter(config.limits.max_calls_per_user,
+                                                                                config.limits.max_call_rate_per_user)],
                 options=[("grpc.max_receive_message_length", size), ("grpc.max_send_message_length", size),
-                         ("grpc.so_reuseport", 0)],
+                         ("grpc.so_reuseport", 0)] + _stream_limit(config.limits.max_calls_per_user),
                 maximum_concurrent_rpcs=config.grpc_threads * 4,
             )
             self.health = health.HealthServicer(experimental_non_blocking=True)

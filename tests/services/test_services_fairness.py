@@ -251,3 +251,60 @@ def test_the_stored_bytes_quota_counts_the_users_folder_only(tmp_path):
     with pytest.raises(LimitError):
         catalog.check_quota("alice", 0)
     catalog.store.close()
+
+
+def test_the_call_rate_bucket_refills_at_its_rate_and_makes_calls_past_it_wait_their_turn(monkeypatch):
+    from unwind_services import fairness
+    from unwind_services.errors import LimitError
+
+    now = [100.0]
+    monkeypatch.setattr(fairness.time, "monotonic", lambda: now[0])
+    rate = fairness.UserRate(10.0, max_wait=1.0)  # bursts of 20
+    assert [rate.reserve("alice") for _ in range(20)] == [0.0] * 20
+    # then one every 0.1 s, each waiting behind the ones before it, up to a second
+    waits = [rate.reserve("alice") for _ in range(10)]
+    assert np.allclose(waits, 0.1 * np.arange(1, 11))
+    with pytest.raises(LimitError, match="more than 10 calls per second"):
+        rate.reserve("alice")  # would wait 1.1 s
+    assert rate.reserve("bob") == 0.0  # a bucket per user
+    now[0] += 0.5  # five of the reserved tokens come back: the next call waits 0.6 s
+    assert rate.reserve("alice") == pytest.approx(0.6)
+    now[0] += 3600.0  # refills up to the burst, no further
+    assert [rate.reserve("alice") for _ in range(20)] == [0.0] * 20
+    assert rate.reserve("alice") == pytest.approx(0.1)
+    assert fairness.UserRate(0.0).reserve("alice") == 0.0  # 0: no limit
+
+
+def test_a_users_flood_of_calls_is_slowed_to_the_rate_and_another_user_is_served_meanwhile(tmp_path):
+    tokens = tmp_path / "tokens"
+    users = {u: add_token(tokens, u) for u in ("alice", "bob")}
+    srv = ServerProcess(tmp_path / "data", "--tokens", tokens, "--max-call-rate-per-user", 5)
+    try:
+        def lists(user, n, channel=None):
+            with grpc.insecure_channel(srv.address) as ch:
+                stub, codes, start = volume_pb2_grpc.VolumeServiceStub(ch), [], time.monotonic()
+                for _ in range(n):
+                    t0 = time.monotonic()
+                    try:
+                        stub.List(volume_pb2.ListVolumesRequest(), timeout=30,
+                                  metadata=(("authorization", f"Bearer {users[user]}"),))
+                        codes.append(("OK", time.monotonic() - t0))
+                    except grpc.RpcError as exc:
+                        codes.append((exc.code().name, time.monotonic() - t0))
+                        assert "calls per second" in exc.details() and "/" not in exc.details()
+                return codes, time.monotonic() - start
+
+        flood = {}
+        th = threading.Thread(target=lambda: flood.update(alice=lists("alice", 25)))
+        th.start()
+        time.sleep(1.0)  # alice is past her burst of 10 and waits for her turn on every call
+        got, took = lists("bob", 3)
+        assert [c for c, _ in got] == ["OK"] * 3 and took < 1.0, (got, took)
+        th.join(60)
+        codes, took = flood["alice"]
+        # sequential calls are slowed, not refused: the burst (10) at once, then one every 0.2 s
+        assert [c for c, _ in codes] == ["OK"] * 25
+        assert took >= (25 - 10) / 5 - 0.5, took
+        assert max(t for _, t in codes[12:]) >= 0.1
+    finally:
+        srv.stop()
