@@ -7,11 +7,12 @@
 Everything runs in one invocation, each server in its own process on 127.0.0.1:
 
 1. Transfer: a ``--mib`` MiB uint16 volume (smooth + noise) uploaded with ``Client.upload`` (the server imports it
-   into an OME-Zarr pyramid while it streams) and downloaded with ``Client.open`` (raw bytes of level 0, read from
-   the zarr), against a bare gRPC server that only receives / sends the same number of bytes in the same 2 MiB
-   messages (identity serializers, no protobuf, no disk). Two more rows bound the upload: the client's own
-   messages (``Client.upload``'s, from the same array) into the bare server, i.e. the transfer without the server's
-   work, and the same ``import_volume`` alone in this process: a streamed upload cannot be faster than either.
+   into an OME-Zarr pyramid while it streams) and downloaded with ``Client.open`` (level 0 as the store's
+   chunks, decoded by the client), against a bare gRPC server that only receives / sends the same number of bytes in
+   the same 2 MiB messages (identity serializers, no protobuf, no disk). Two more rows bound the upload: the
+   client's own messages (``Client.upload``'s, from the same array) into the bare server, i.e. the transfer without
+   the server's work, and the same ``import_volume`` alone in this process: a streamed upload cannot be faster
+   than either.
 2. Load: ``--clients`` concurrent clients, each a user of its own (a server with a tokens file and its default
    per-user limits), uploading its own small scan (a 2-fish tank phantom, 100 x 65 x 65) and running the whole
    pipeline (segment, select, skeleton, straighten) as a job it watches; meanwhile a prober in a process of its own
@@ -202,8 +203,8 @@ def transfer(address: str, raw_address: str, mib: int, repeats: int, tmp: Path) 
              f"{client_up / raw_up:.2f}"],
             ["import_volume alone (same array, in this process)", f"{size / imp_s:.0f}", f"{raw_up:.0f}",
              f"{size / imp_s / raw_up:.2f}"],
-            ["download raw level 0 (zarr read), Client.open", f"{size / down_s:.0f}", f"{raw_down:.0f}",
-             f"{size / down_s / raw_down:.2f}"]]
+            ["download of level 0, Client.open (the stored chunks, decoded by the client)", f"{size / down_s:.0f}",
+             f"{raw_down:.0f}", f"{size / down_s / raw_down:.2f}"]]
     print(f"volume {vol.shape} uint16, {size:.0f} MiB; best of {repeats}; load average "
           f"{open('/proc/loadavg').read().split()[0]}")
     return rows

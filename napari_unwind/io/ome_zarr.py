@@ -255,6 +255,23 @@ class _ZarrChunks:
             raise self._corrupt_chunk(coords, _first_line(exc)) from None
         return out[part]
 
+    def stored_chunk(self, coords: tuple[int, ...]) -> bytes | None:
+        """The bytes of chunk ``coords`` as stored (codecs applied, not decoded), read under the store's confinement;
+        None for a chunk never written (the fill value), an error for one missing from a complete store."""
+        path = self.chunk_file(coords)
+        try:
+            with open_regular(path, "chunk", confine=self.confine) as fh:
+                return fh.read()
+        except FileNotFoundError:
+            if self.complete:
+                raise self._missing(coords) from None
+            return None
+        except ConfinementError:
+            raise
+        except OSError as exc:
+            raise InvalidInputError(f"{path}: cannot read chunk {'/'.join(map(str, coords))} "
+                                    f"({exc.strerror or exc}); check the disk or copy the store again") from None
+
     def _corrupt_chunk(self, coords: tuple[int, ...], why: str) -> InvalidInputError:
         return InvalidInputError(f"{self.chunk_file(coords)}: chunk {'/'.join(map(str, coords))} is corrupt "
                                  f"({why}); re-import the scan")

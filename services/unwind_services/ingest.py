@@ -28,6 +28,7 @@ import fcntl
 import itertools
 import os
 import select
+import sys
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -205,6 +206,24 @@ def level_slabs(vol: Any, index: int, dtype: np.dtype) -> Iterator[np.ndarray]:
             return slab
 
         yield from read_ahead(read, range(0, shape[0], step), name="unwind-download-read")
+
+
+def stored_chunks(vol: Any, index: int, max_message: int) -> tuple[Any, Iterator[bytes | None]] | None:
+    """Pyramid level ``index`` of ``vol`` as its stored chunks, when they are blosc streams of little-endian voxels
+    the client can decode itself (what the core's OME-Zarr writer stores) and a chunk fits in a message of
+    ``max_message`` bytes even uncompressed: (the chunk reader, the chunks' bytes in C order of the grid, None for a
+    chunk never written, read ahead); None otherwise (send the level raw)."""
+    from napari_unwind.io._lazy import read_ahead
+
+    reader = _chunk_reader(vol, index)
+    if reader is None or reader.direct is None or not reader.direct[0] or sys.byteorder != "little":
+        return None
+    if int(np.prod(reader.grid)) * reader.dtype.itemsize * 1.01 + 1024 > max_message:  # blosc's worst case
+        return None
+    grid = [range(-(-n // g)) for n, g in zip(reader.shape, reader.grid, strict=True)]
+    coords = list(itertools.product(*grid))
+    return reader, read_ahead(lambda k: reader.stored_chunk(coords[k]), range(len(coords)),
+                              name="unwind-download-read")
 
 
 def _open_reader(fifo: str) -> int:

@@ -272,3 +272,53 @@ def test_a_stalled_upload_does_not_hold_back_jobs(server):
         finally:
             fut.cancel()
             release.set()
+
+
+def test_open_receives_the_stored_chunks_and_a_volume_stored_otherwise_raw(server):
+    """Our stores come as their chunks (fewer bytes than the voxels for a compressible scan, decoded by the client);
+    a registered TIFF comes raw, said in the header."""
+    a = np.zeros((200, 40, 150), np.uint16)
+    a[:, 10:30, 20:130] = np.arange(110, dtype=np.uint16)
+    scans = server.data_root / "scans"
+    scans.mkdir(exist_ok=True)
+    write_volume(a[:20], scans / "stored-otherwise.tif")
+    with Client(server.address, progress=False) as c:
+        vid = c.upload(a, name="chunks").volume_id
+        header, chunks = c._download_stream(vid, "chunks", 0, 60)  # noqa: SLF001 - what the wire holds
+        blobs = [bytes(b) for b in chunks]
+        grid = json.loads((_store(server, vid) / "0" / "zarr.json").read_text())["chunk_grid"]
+        assert header.format == "chunks" and list(header.chunk_shape) == grid["configuration"]["chunk_shape"]
+        counts = [-(-n // g) for n, g in zip(a.shape, header.chunk_shape)]
+        assert header.total_bytes == a.nbytes and len(blobs) == np.prod(counts) > 1  # the grid, in C order
+        assert sum(map(len, blobs)) < a.nbytes / 10
+        np.testing.assert_array_equal(c.open(vid).data.compute(), a)
+        reg = c.register("scans/stored-otherwise.tif").volume_id
+        header, chunks = c._download_stream(reg, "chunks", 0, 60)  # noqa: SLF001
+        assert header.format == "raw" and sum(map(len, chunks)) == a[:20].nbytes
+        np.testing.assert_array_equal(c.open(reg).data.compute(), a[:20])
+
+
+def test_a_chunk_never_written_comes_as_the_fill_value_and_a_corrupt_one_is_data_loss(server, tmp_path):
+    rng = np.random.default_rng(8)
+    a = rng.integers(1, 60000, (300, 20, 270), dtype=np.uint16)
+    scans = server.data_root / "scans"
+    scans.mkdir(exist_ok=True)
+    store = scans / "holes.zarr"
+    import_volume(as_volume(a), store)
+    meta = json.loads((store / "zarr.json").read_text())
+    meta["attributes"]["unwind"]["all_chunks_written"] = False  # a store that does not claim every chunk
+    (store / "zarr.json").write_text(json.dumps(meta))
+    (store / "0" / "c" / "1" / "0" / "2").unlink()  # chunk (1, 0, 2): planes 128..255, columns 256..269
+    want = a.copy()
+    want[128:256, :, 256:] = 0
+    with Client(server.address, progress=False) as c:
+        reg = c.register("scans/holes.zarr").volume_id
+        np.testing.assert_array_equal(c.open(reg).data.compute(), want)
+        vid = c.upload(a, name="to-corrupt").volume_id
+        chunk = _store(server, vid) / "0" / "c" / "0" / "0" / "1"
+        blob = bytearray(chunk.read_bytes())
+        blob[len(blob) // 2] ^= 0xFF
+        chunk.write_bytes(bytes(blob))
+        with pytest.raises(RemoteError) as info:
+            c.open(vid)
+        assert info.value.code == "DATA_LOSS" and "chunk (0, 0, 1) does not match its checksum" in str(info.value)

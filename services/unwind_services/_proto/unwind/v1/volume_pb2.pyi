@@ -99,7 +99,7 @@ class DownloadRequest(_message.Message):
     def __init__(self, volume_id: _Optional[str] = ..., format: _Optional[str] = ..., level: _Optional[int] = ...) -> None: ...
 
 class DownloadHeader(_message.Message):
-    __slots__ = ("name", "shape", "dtype", "spacing", "unit", "origin", "format", "total_bytes", "tar", "file_name")
+    __slots__ = ("name", "shape", "dtype", "spacing", "unit", "origin", "format", "total_bytes", "tar", "file_name", "chunk_shape", "chunk_crc32c", "fill_value")
     NAME_FIELD_NUMBER: _ClassVar[int]
     SHAPE_FIELD_NUMBER: _ClassVar[int]
     DTYPE_FIELD_NUMBER: _ClassVar[int]
@@ -110,6 +110,9 @@ class DownloadHeader(_message.Message):
     TOTAL_BYTES_FIELD_NUMBER: _ClassVar[int]
     TAR_FIELD_NUMBER: _ClassVar[int]
     FILE_NAME_FIELD_NUMBER: _ClassVar[int]
+    CHUNK_SHAPE_FIELD_NUMBER: _ClassVar[int]
+    CHUNK_CRC32C_FIELD_NUMBER: _ClassVar[int]
+    FILL_VALUE_FIELD_NUMBER: _ClassVar[int]
     name: str
     shape: _containers.RepeatedScalarFieldContainer[int]
     dtype: _common_pb2.DType
@@ -120,7 +123,10 @@ class DownloadHeader(_message.Message):
     total_bytes: int
     tar: bool
     file_name: str
-    def __init__(self, name: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., dtype: _Optional[_Union[_common_pb2.DType, str]] = ..., spacing: _Optional[_Iterable[float]] = ..., unit: _Optional[str] = ..., origin: _Optional[_Iterable[float]] = ..., format: _Optional[str] = ..., total_bytes: _Optional[int] = ..., tar: _Optional[bool] = ..., file_name: _Optional[str] = ...) -> None: ...
+    chunk_shape: _containers.RepeatedScalarFieldContainer[int]
+    chunk_crc32c: bool
+    fill_value: float
+    def __init__(self, name: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., dtype: _Optional[_Union[_common_pb2.DType, str]] = ..., spacing: _Optional[_Iterable[float]] = ..., unit: _Optional[str] = ..., origin: _Optional[_Iterable[float]] = ..., format: _Optional[str] = ..., total_bytes: _Optional[int] = ..., tar: _Optional[bool] = ..., file_name: _Optional[str] = ..., chunk_shape: _Optional[_Iterable[int]] = ..., chunk_crc32c: _Optional[bool] = ..., fill_value: _Optional[float] = ...) -> None: ...
 
 class DownloadResponse(_message.Message):
     __slots__ = ("header", "chunk")
