@@ -438,3 +438,33 @@ def test_block_reduce_keeps_the_dtype_and_reduces_partial_blocks():
         data[:2, :2, :2].mean())
     assert block_reduce(data, 2, "min")[1, 0, 0] == data[2:4, :2, :2].min()
     assert block_reduce(data, 2, "mean").dtype == np.uint16
+
+
+def test_the_scan_is_first_seen_in_3d_from_its_side_and_a_turned_camera_is_kept(make_napari_viewer, qtbot):
+    """napari's first 3D view looks down axis0 (end-on down a tube of fish); the dock's scan is seen from its side:
+    its longest world axis across the screen, looking along its shortest, the box on the canvas."""
+    from napari_unwind._napari._widget import UnwindWidget
+
+    viewer = _viewer(make_napari_viewer)
+    dock = UnwindWidget(viewer)
+    viewer.window.add_dock_widget(dock, name="Unwind")
+    data = np.zeros((30, 50, 20), np.float32)   # world (60, 50, 40) with the scale: axis0 longest, axis2 shortest
+    data[5:25, 10:40, 5:15] = 1.0
+    scale = (2.0, 1.0, 2.0)
+    layer = viewer.add_image(data, name="scan", scale=scale)
+    dock.use_layer(layer)
+    viewer.dims.ndisplay = 3
+    view = np.asarray(viewer.scene.camera.view_direction, float)
+    view /= np.linalg.norm(view)
+    assert abs(view[2]) > 0.99, view   # along axis2, the shortest (40)
+    up = np.asarray(viewer.scene.camera.up_direction, float)
+    assert abs(up[1]) > 0.99, up       # axis1 up: axis0 (the longest, 60) runs across
+    h, w = viewer.canvas.size
+    assert 0.5 * w <= 60 * viewer.scene.camera.zoom <= w
+    assert 50 * viewer.scene.camera.zoom <= h
+    np.testing.assert_allclose(viewer.scene.camera.center, [29.0, 24.5, 19.0], atol=1e-6)
+    # the user's own camera is kept across 2D and back
+    viewer.scene.camera.angles = (10.0, 20.0, 30.0)
+    viewer.dims.ndisplay = 2
+    viewer.dims.ndisplay = 3
+    np.testing.assert_allclose(viewer.scene.camera.angles, (10.0, 20.0, 30.0), atol=1e-6)

@@ -200,9 +200,10 @@ class ScanStep(Step):
         changed = old is None or volume.source != old.source or volume.shape != old.shape
         dock.scan_layer = layer
         self.workflow.set_scan(volume, name=layer.name)
-        from .._layers import in_3d
+        from .._layers import in_3d, side_view_in_3d
 
         in_3d(self.viewer, layer)
+        side_view_in_3d(self.viewer, layer)
         if changed:
             dock.mask_choice = None
         self.refresh_layer_combo()
