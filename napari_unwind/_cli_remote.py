@@ -361,7 +361,7 @@ def run_remote(args: argparse.Namespace) -> int:
     remote = Session.from_dict(_server_json(job.result.session_json, "the session"))
     # the session describes the local scan (its checksum), so unwind straighten INPUT --session verifies
     session = Session(source=SourceInfo.from_path(args.input, volume=volume), deformation=remote.deformation,
-                      segmentation=remote.segmentation, endpoints=remote.endpoints,
+                      segmentation=remote.segmentation, endpoints=remote.endpoints, twist=remote.twist,
                       notes=f"unwind run --server {args.server} (job {job.id})")
     written_session = save_session(session, target, overwrite=args.overwrite)
     result = replace(verdict, output=Path(written), session_path=Path(written_session), session=session)

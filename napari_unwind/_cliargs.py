@@ -272,7 +272,9 @@ def _skeleton_options(args: argparse.Namespace):
     given = dict(estimate_twist=False if args.no_twist else None, n_levels=args.levels,
                  smoothing_iterations=args.smoothing_iterations, cage_radius=args.cage_radius,
                  tolerance=args.tolerance, snap_tolerance=args.snap_tolerance, half_extent=getattr(args, "cage", None),
-                 cage_margin=getattr(args, "cage_margin", None))
+                 cage_margin=getattr(args, "cage_margin", None),
+                 dorsal_points=tuple(args.dorsal) if getattr(args, "dorsal", None) else None,
+                 dorsal_direction=getattr(args, "dorsal_direction", None))
     return SkeletonOptions(**{k: v for k, v in given.items() if v is not None})
 
 

@@ -456,9 +456,7 @@ def _skeleton_report(result: Any, args: argparse.Namespace) -> list[str]:
     if args.no_twist:
         lines.append("twist: not estimated (--no-twist): frames by parallel transport")
     else:
-        deg = np.degrees(np.asarray(result.twist, dtype=float))
-        lines.append(f"twist: {deg.min():.1f} to {deg.max():.1f} degrees along the body (relative to parallel "
-                     "transport)")
+        lines.append(result.twist_report())
     lines.append(result.report())
     total = sum(result.timings.values())
     lines.append("times: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings.items()) + f" (total {total:.1f} s)")
@@ -513,7 +511,7 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
     if isinstance(refined, dict) and refined.get("isovalue") is not None:
         segmentation = Segmentation(isovalue=refined["isovalue"])
     session = Session(source=source, deformation=result.deformation, segmentation=segmentation,
-                      endpoints=result.endpoints,
+                      endpoints=result.endpoints, twist=result.twist_profile(),
                       notes=f"unwind skeleton: mask {Path(args.mask).absolute()}"
                             + ("; suggested endpoints" if result.suggested else ""))
     written = save_session(session, target, overwrite=args.overwrite)
@@ -681,6 +679,13 @@ def _add_skeleton_options(p: argparse.ArgumentParser) -> None:
                    "tail (the first starts at the head, the last ends at the tail)")
     p.add_argument("--no-twist", action="store_true",
                    help="do not estimate the twist (frames by parallel transport)")
+    p.add_argument("--dorsal", type=_triple, action="append", default=None, metavar="A0,A1,A2",
+                   help="a point on the specimen's dorsal side (full-resolution voxels), repeated for several: the "
+                   "twist turns the cross-section's up (v) towards each and changes evenly between them, instead of "
+                   "being estimated")
+    p.add_argument("--dorsal-direction", type=_triple, default=None, metavar="D0,D1,D2",
+                   help="a direction (axis0,axis1,axis2) that the cross-section's up (v) follows wherever the curve "
+                   "crosses it, instead of the estimate (for a vessel: the patient's anterior)")
     d = _skeleton_default
     p.add_argument("--levels", type=_whole(2, 10000), default=None,
                    help=f"level sets of the harmonic field, 2-10000 (default {d('n_levels')})")

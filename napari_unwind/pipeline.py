@@ -100,6 +100,8 @@ MAX_CAGE_MARGIN = 100.0
 MAX_PAD = 100_000
 #: Largest chunk side of the export.
 MAX_CHUNK = 4096
+#: Most dorsal landmark points.
+MAX_DORSAL_POINTS = 1000
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -116,6 +118,21 @@ def _whole(name: str, value: Any, lo: int, hi: int | None = None) -> int:
         rng = f">= {lo}" if hi is None else f"{lo}..{hi}"
         raise InvalidInputError(f"{name} must be a whole number {rng}, got {value!r}")
     return int(value)
+
+
+def _points3(name: str, value: Any, most: int, what: str = "") -> tuple[tuple[float, float, float], ...]:
+    """``value`` as a tuple of at most ``most`` points of 3 finite numbers (each within +-MAX_LENGTH)."""
+    import numpy as np
+
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{name} must be points of 3 numbers, got {value!r}") from None
+    if a.ndim != 2 or a.shape[1] != 3 or len(a) > most or not np.isfinite(a).all() \
+            or np.abs(a).max(initial=0) > MAX_LENGTH:
+        what = what or f"at most {most} points of 3 finite numbers"
+        raise InvalidInputError(f"{name} must be {what} within +-{MAX_LENGTH:g}, got {value!r}"[:300])
+    return tuple(tuple(float(c) for c in p) for p in a)
 
 
 def _positive(name: str, value: Any, *, zero: bool = False, hi: float | None = None) -> float:
@@ -206,6 +223,12 @@ class SkeletonOptions:
         (None: fitted per keyframe and side).
     cage_margin : float
         Relative margin of the fitted cages, 0..:data:`MAX_CAGE_MARGIN` (0.1: 10 %).
+    dorsal_points : tuple of (a0, a1, a2) or None
+        Points on the dorsal side (full-resolution voxels, at most :data:`MAX_DORSAL_POINTS`): the twist turns
+        ``v`` at each and changes linearly between, instead of being estimated.
+    dorsal_direction : (a0, a1, a2) or None
+        A direction that ``v`` follows wherever the curve crosses it (for a vessel, "anterior"), instead of the
+        estimate. At most one of the two.
     """
 
     estimate_twist: bool = True
@@ -216,8 +239,23 @@ class SkeletonOptions:
     snap_tolerance: float = 5.0
     half_extent: tuple[float, float] | None = None
     cage_margin: float = 0.1
+    dorsal_points: tuple[tuple[float, float, float], ...] | None = None
+    dorsal_direction: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
+        if self.dorsal_points is not None and self.dorsal_direction is not None:
+            raise InvalidInputError("give either dorsal points or a dorsal direction, not both")
+        if self.estimate_twist is False and (self.dorsal_points is not None or self.dorsal_direction is not None):
+            raise InvalidInputError("dorsal landmarks set the twist, and estimate_twist=False (--no-twist) asks for "
+                                    "none: give one of them")
+        if self.dorsal_points is not None:
+            pts = _points3("dorsal_points", self.dorsal_points, MAX_DORSAL_POINTS)
+            object.__setattr__(self, "dorsal_points", pts or None)
+        if self.dorsal_direction is not None:
+            d = _points3("dorsal_direction", [self.dorsal_direction], 1, "3 finite numbers (axis0, axis1, axis2)")[0]
+            if not any(d):
+                raise InvalidInputError(f"dorsal_direction must not be 0, got {self.dorsal_direction!r}")
+            object.__setattr__(self, "dorsal_direction", d)
         if not isinstance(self.estimate_twist, bool):
             raise InvalidInputError(f"estimate_twist must be True or False, got {self.estimate_twist!r}")
         _whole("n_levels", self.n_levels, 2, MAX_N_LEVELS)
@@ -813,7 +851,8 @@ def run_iter(
             source = SourceInfo.from_path(source, volume=volume)
             yield Progress("checksum", 1, 1)
         session = Session(source=source, deformation=d, segmentation=segmentation, endpoints=result.endpoints,
-                          notes=notes + ("; suggested endpoints" if result.suggested else ""))
+                          notes=notes + ("; suggested endpoints" if result.suggested else ""),
+                          twist=result.twist_profile())
         if session_path is not None:
             written_session = save_session(session, session_path, overwrite=overwrite)
     messages = [m for m in result.warnings if not (d.folds() and m.startswith("the deformation folds"))]

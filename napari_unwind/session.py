@@ -101,6 +101,7 @@ __all__ = [
     "SESSION_SUFFIX",
     "Endpoints",
     "Segmentation",
+    "TwistProfile",
     "Session",
     "SourceChangedError",
     "SourceInfo",
@@ -661,6 +662,61 @@ class Endpoints:
                    chain=d.get("chain", ()))
 
 
+TWIST_SOURCES = ("estimated", "landmarks", "none")
+
+
+@dataclass(frozen=True)
+class TwistProfile:
+    """How the skeleton turned the frames about the curve, for the record (the deformation's keyframes carry the
+    twist itself).
+
+    Attributes
+    ----------
+    s : tuple of float
+        Arclengths (physical units), increasing, at most :data:`TWIST_STATIONS` stations.
+    angle : tuple of float
+        The twist at each (degrees) relative to the parallel-transport (minimal-rotation) frames.
+    confidence : tuple of float
+        In [0, 1]: 1 where the cross-sections' orientation (or the landmarks) set the twist, 0 where the frames
+        follow parallel transport.
+    source : {"estimated", "landmarks", "none"}
+        What set it.
+    """
+
+    s: tuple[float, ...]
+    angle: tuple[float, ...]
+    confidence: tuple[float, ...]
+    source: str = "estimated"
+
+    def __post_init__(self) -> None:
+        for name in ("s", "angle", "confidence"):
+            values = _sequence(getattr(self, name), f"twist.{name}")
+            object.__setattr__(self, name, tuple(_number(v, f"twist.{name}[{i}]") for i, v in enumerate(values)))
+        if not len(self.s) == len(self.angle) == len(self.confidence):
+            raise InvalidInputError(f"twist.s, twist.angle and twist.confidence must be as long as each other, got "
+                                    f"{len(self.s)}, {len(self.angle)} and {len(self.confidence)}")
+        if any(b <= a for a, b in zip(self.s, self.s[1:], strict=False)):
+            raise InvalidInputError("twist.s must increase")
+        if any(not 0 <= c <= 1 for c in self.confidence):
+            raise InvalidInputError("twist.confidence must lie in [0, 1]")
+        if self.source not in TWIST_SOURCES:
+            raise InvalidInputError(f"twist.source must be one of {TWIST_SOURCES}, got {self.source!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"s": list(self.s), "angle": list(self.angle), "confidence": list(self.confidence),
+                "source": self.source}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> TwistProfile:
+        d = _object(d, "twist")
+        return cls(s=_require(d, "s", "twist"), angle=_require(d, "angle", "twist"),
+                   confidence=_require(d, "confidence", "twist"), source=_require(d, "source", "twist"))
+
+
+#: Most stations of a session's twist profile (the skeleton's dense curve is resampled to these).
+TWIST_STATIONS = 400
+
+
 @dataclass
 class Session:
     """Everything needed to redo, audit or continue the straightening of one specimen.
@@ -677,6 +733,8 @@ class Session:
         Head, tail and the parts' endpoints.
     notes : str
         Free text.
+    twist : TwistProfile or None
+        The twist along the curve and where it was estimated (written by the skeleton solve).
     software, software_version : str
         The program that last wrote the file (set by :func:`save_session`).
     created, modified : str
@@ -695,10 +753,11 @@ class Session:
     software_version: str = field(default_factory=_current_version)
     created: str = field(default_factory=_utcnow)
     modified: str | None = None
+    twist: TwistProfile | None = None
 
     def __post_init__(self) -> None:
         for name, kind in (("source", SourceInfo), ("deformation", Deformation), ("segmentation", Segmentation),
-                           ("endpoints", Endpoints)):
+                           ("endpoints", Endpoints), ("twist", TwistProfile)):
             value = getattr(self, name)
             if not isinstance(value, kind) and not (value is None and name != "source"):
                 raise InvalidInputError(f"session.{name} must be a {kind.__name__}"
@@ -723,6 +782,7 @@ class Session:
             "segmentation": None if self.segmentation is None else self.segmentation.to_dict(),
             "endpoints": None if self.endpoints is None else self.endpoints.to_dict(),
             "notes": self.notes,
+            **({} if self.twist is None else {"twist": self.twist.to_dict()}),  # files without it stay as they were
         }
 
     @classmethod
@@ -752,6 +812,7 @@ class Session:
             software_version=_require(software, "version", "software"),
             created=_require(d, "created", ""),
             modified=_require(d, "modified", ""),
+            twist=None if d.get("twist") is None else TwistProfile.from_dict(d["twist"]),
         )
 
 

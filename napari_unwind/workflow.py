@@ -121,6 +121,7 @@ class Skeletonized:
     deformation: Any
     endpoints: Any = None
     where: str = ""  # "" on this computer, " (server host:port, session ...)" on a server
+    twist: Any = None  # the session's TwistProfile (where the twist was estimated)
 
 
 class Backend(Protocol):
@@ -197,7 +198,7 @@ class LocalBackend:
         specimen = yield from self.runner(SKELETON, (mask, ends), dict(
             spacing=volume.spacing, origin=volume.origin, unit=volume.unit, volume=volume.data, options=options))
         result = specimen.skeleton
-        return Skeletonized(specimen, result.deformation, result.endpoints)
+        return Skeletonized(specimen, result.deformation, result.endpoints, twist=result.twist_profile())
 
     def check_export(self, deformation: Any) -> None:
         pass
@@ -305,7 +306,7 @@ class ServerBackend:
                                                                  options=options)
         self._ids["session"] = (session_id, session.deformation)
         return Skeletonized(specimen, session.deformation, session.endpoints,
-                            f" (server {self.server.address}, session {session_id})")
+                            f" (server {self.server.address}, session {session_id})", twist=session.twist)
 
     def export(self, volume: Any, deformation: Any, target: Path, *, name: str, options: ExportOptions,
                folded: float | None, session: Any, overwrite: bool
@@ -639,8 +640,9 @@ class Workflow:
                                seeds=tuple(s.seeds[i] for i in s.ids))
         elif s.mask is not None and s.source is not None:
             seg = Segmentation(mask=s.source, mask_label=s.label)
+        twist = None if self.skeleton is None else self.skeleton.twist  # as the skeleton set it, before edits
         return Session(source=source, deformation=self.edit.deformation, segmentation=seg, endpoints=self.ends,
-                       notes="napari-unwind dock")
+                       notes="napari-unwind dock", twist=twist)
 
     def session_or_none(self) -> Any:
         """The session written into an export (None: the scan's checksum is not known yet)."""

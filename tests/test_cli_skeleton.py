@@ -71,6 +71,12 @@ def test_skeleton_with_given_ends_follows_the_true_centreline(fish, given_ends):
     # the summary
     assert f"{len(d)} keyframes" in out and "length" in out and "twist" in out and "times:" in out
     assert "padding" in out and "cage half extents" in out and "suggested" not in out
+    # the session records the twist profile and where it was estimated (the body, not the tips)
+    tw = session.twist
+    assert tw.source == "estimated" and len(tw.s) == len(tw.angle) == len(tw.confidence) > 50
+    assert abs(tw.s[-1] - f.length) < 0.05 * f.length
+    conf = np.asarray(tw.confidence)
+    assert conf[len(conf) // 2] == 1.0 and conf[0] == 0.0 and 0.6 < conf.mean() < 1.0
 
 
 def test_straighten_accepts_the_session_made_with_volume(fish, given_ends, tmp_path):
@@ -358,3 +364,29 @@ def test_run_with_fill_holes_refines_at_the_lowest_threshold_the_mask_covers(tmp
     # the phantom's values: the rod (400) in the medium (100) is the dimmer body; its midpoint within 10 % of the
     # contrast, so the rod is in the mask
     assert abs(seg.isovalue - 250.0) <= 0.1 * 300.0, seg.isovalue
+
+
+def test_dorsal_points_set_the_twist_through_them(fish, tmp_path):
+    tmp, f, mask, scan = fish
+    session = tmp_path / "dorsal.unwind.json"
+    at = np.linspace(0, len(f.arclength) - 1, 6).astype(int)[1:-1]   # four landmarks along the body
+    # on the fish's side (its u), 5 units off the centreline: where the estimate would never put v
+    side = f.frames[at, 0]
+    marks = f.centerline[at] + 5.0 * side / np.asarray(f.spacing)
+    code, out, err = _run("skeleton", mask, "--head", _arg(f.head), "--tail", _arg(f.tail),
+                          *[a for p in marks for a in ("--dorsal", _arg(p))], "-o", session)
+    assert code == 0, err
+    assert "set by the dorsal landmarks" in out
+    assert load_session(session).twist.source == "landmarks"
+    d = load_session(session).deformation
+    s_true = f.arclength[at]
+    _, frames = d.sample(s_true * d.length / f.length)
+    angle = np.degrees(np.arccos(np.clip(np.sum(frames[:, 1] * side, axis=1), -1, 1)))
+    assert angle.max() <= 8.0, angle  # v at each landmark points at it (the curve and the keyframes within a voxel)
+
+
+def test_dorsal_landmarks_and_no_twist_are_refused_together(fish, tmp_path, capsys):
+    tmp, f, mask, scan = fish
+    assert main(["skeleton", str(mask), "--dorsal", "1,2,3", "--no-twist", "-o", str(tmp_path / "x.unwind.json")]) == 1
+    err = capsys.readouterr().err
+    assert _one_error_line(err) and "--no-twist" in err

@@ -43,8 +43,49 @@ def _coverage(deformation, mask_path):
     return coverage(deformation, np.asarray(m.data), m.spacing, m.origin)
 
 
-def test_aorta_runs_without_folds_and_keeps_the_mask(tmp_path):
-    proc, out, dt = _run(tmp_path, "aorta_ct.nrrd", "aorta_ct_aorta_mask.nrrd")
+@pytest.fixture(scope="module")
+def aorta(tmp_path_factory):
+    return _run(tmp_path_factory.mktemp("aorta"), "aorta_ct.nrrd", "aorta_ct_aorta_mask.nrrd")
+
+
+def _roll_against_rotation_minimising(d, step=0.5):
+    """The roll (degrees, unwrapped) of the deformation's ``u`` about its normal against the rotation-minimising
+    frames of the same centres and normals, by double reflection (Wang, Juttler, Zheng, Liu 2008), started on the
+    first frame; and the arclengths. Written here, independent of napari_unwind's own frames."""
+    s = np.arange(0.0, d.length, step)
+    x, f = d.sample(s)
+    u, t = f[:, 0], f[:, 2]
+    r = np.empty_like(u)
+    r[0] = u[0]
+    for i in range(len(s) - 1):
+        v1 = x[i + 1] - x[i]
+        c1 = v1 @ v1
+        rl = r[i] - (2 / c1) * (v1 @ r[i]) * v1
+        tl = t[i] - (2 / c1) * (v1 @ t[i]) * v1
+        v2 = t[i + 1] - tl
+        c2 = v2 @ v2
+        r[i + 1] = rl - (2 / c2) * (v2 @ rl) * v2 if c2 > 1e-18 else rl
+    angle = np.arctan2(np.einsum("ij,ij->i", np.cross(r, u), t), np.einsum("ij,ij->i", r, u))
+    return np.degrees(np.unwrap(angle)), s
+
+
+def test_the_aorta_keeps_its_roll(aorta):
+    # a vessel has no dorsal side: the frames follow the rotation-minimising frames (the code before issue 23
+    # turned them by about 320 degrees along the vessel, with a jump of about 90 degrees within 10 mm)
+    proc, out, _ = aorta
+    assert proc.returncode == 0, proc.stderr
+    roll, s = _roll_against_rotation_minimising(_session(out).deformation)
+    step = int(round(10.0 / 0.5))  # 10 mm
+    assert roll.max() - roll.min() <= 45.0, f"the frames roll by {roll.max() - roll.min():.0f} deg along the aorta"
+    local = np.abs(roll[step:] - roll[:-step])
+    assert local.max() <= 10.0, f"{local.max():.0f} deg within 10 mm at s = {s[np.argmax(local)]:.0f} mm"
+    assert "taken as round" in proc.stderr + proc.stdout
+    twist = _session(out).twist
+    assert twist.source == "none" and max(twist.confidence) == 0.0 and max(map(abs, twist.angle)) == 0.0
+
+
+def test_aorta_runs_without_folds_and_keeps_the_mask(aorta):
+    proc, out, dt = aorta
     assert proc.returncode == 0, proc.stderr
     assert out.exists() and "Traceback" not in proc.stderr
     assert "cage: min Jacobian" in proc.stdout and "coverage" in proc.stdout
@@ -66,3 +107,25 @@ def test_spine_runs_and_follows_the_manual_centreline(tmp_path):
     assert dist.mean() <= 1.0, dist.mean()
     assert _coverage(d, DATA / "spine_t2_cord_mask.nrrd") >= 0.99
     assert dt < 90
+
+
+def test_the_spine_centreline_mask_is_refused_without_a_cage_and_followed_with_one(tmp_path):
+    # the shared centreline mask is a line one voxel thick: before issue 23 it came out as a 7 x 8 voxel "straight"
+    # cord (the cage fitted to the line), or failed with an error about points in physical units
+    proc, out, _ = _run(tmp_path, "spine_t2.nrrd", "spine_t2_centerline_mask.nrrd")
+    assert proc.returncode == 1 and not out.exists()
+    lines = [x for x in proc.stderr.splitlines() if x.startswith("unwind: error")]
+    assert len(lines) == 1 and "is a line" in lines[0] and "voxels thick" in lines[0] and "--cage" in lines[0]
+    out = tmp_path / "cage" / "straight.tif"
+    out.parent.mkdir()
+    proc = subprocess.run([sys.executable, "-m", "napari_unwind.cli", "run", str(DATA / "spine_t2.nrrd"), "--mask",
+                           str(DATA / "spine_t2_centerline_mask.nrrd"), "--cage", "6,6", "-o", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    d = _session(out).deformation
+    manual = np.loadtxt(DATA / "spine_t2_centerline_manual.csv", delimiter=",", skiprows=1)
+    c, _ = d.sample(np.linspace(0, d.length, 1000))
+    dist, _ = cKDTree(d.to_physical(manual)).query(c)
+    assert dist.max() <= 1.5, dist.max()
+    he = d.half_extents  # the given cage, shrunk only on the inner side of a bend that would fold it
+    assert np.all(he <= 6.0 + 1e-9) and np.isclose(he.max(), 6.0) and not d.folds()

@@ -51,6 +51,10 @@ class SkeletonResult:
         Its frames (rows u, v, n; twist applied when estimated).
     twist : ndarray, shape (K,)
         Twist (radians) of ``frames`` relative to parallel transport (zeros without twist estimation).
+    twist_confidence : ndarray, shape (K,)
+        Where the twist was estimated: 1 where the cross-sections' orientation was followed, 0 where the frames
+        follow parallel transport (round stretches, the tips, a round specimen, no estimation), a smooth blend
+        between. Empty when unknown.
     keyframe_indices : ndarray of int
         Indices into ``curve`` of the keyframes.
     factor : int
@@ -91,6 +95,34 @@ class SkeletonResult:
     coverage: float = float("nan")
     lost: tuple[tuple[float, float, float], ...] = ()
     folded: float = 0.0
+    twist_confidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    twist_source: str = "none"
+
+    def twist_report(self) -> str:
+        """One line: the twist's range, what set it and over how much of the length."""
+        deg = np.degrees(np.asarray(self.twist, dtype=float))
+        conf = np.asarray(self.twist_confidence, dtype=float)
+        if self.twist_source == "none" or not len(deg) or not np.any(conf > 0):
+            return "twist: none (frames by parallel transport)"
+        s = arclength(self.curve * np.asarray(self.deformation.spacing))
+        ds = np.gradient(s) if len(s) > 1 else np.ones(1)
+        share = float((conf * ds).sum() / max(ds.sum(), 1e-300))
+        how = "set by the dorsal landmarks" if self.twist_source == "landmarks" else "estimated"
+        return (f"twist: {deg.min():.1f} to {deg.max():.1f} degrees along the body (relative to parallel transport), "
+                f"{how} over {100 * share:.0f} % of the length (elsewhere the frames follow parallel transport)")
+
+    def twist_profile(self) -> Any:
+        """The :class:`~napari_unwind.session.TwistProfile` for the session: the twist (degrees) and its
+        confidence at up to ``TWIST_STATIONS`` stations evenly spread along the curve."""
+        from ..session import TWIST_STATIONS, TwistProfile
+
+        s = arclength(self.curve * np.asarray(self.deformation.spacing))
+        k = len(s)
+        conf = np.asarray(self.twist_confidence, dtype=float)
+        conf = conf if len(conf) == k else np.zeros(k)
+        idx = np.unique(np.linspace(0, k - 1, min(k, TWIST_STATIONS)).round().astype(int))
+        return TwistProfile(s=tuple(np.round(s[idx], 6)), angle=tuple(np.round(np.degrees(self.twist[idx]), 4)),
+                            confidence=tuple(np.round(np.clip(conf[idx], 0, 1), 4)), source=self.twist_source)
 
     def report(self) -> str:
         """One line: minimum Jacobian, largest tilt, coverage and where mask is lost."""
@@ -239,6 +271,17 @@ def _border_sides(wm: WorkingMask) -> list[str]:
 
 _MIN_ACROSS = 6  # working voxels across the body's thickest section, at least
 _MAX_WORKING_VOXELS = 256 ** 3  # the working mask's bounding box, at most (memory and meshing time)
+
+
+_LINE_ACROSS = 3.5  # full-resolution voxels: a mask thinner than this at its thickest is a line, not a body
+_LINE_TUBE = 2.0  # a line mask is solved as the tube of this many (coarsest) voxels around it
+
+
+def _across(wm: WorkingMask) -> float:
+    """The thickest section of the working mask, in full-resolution voxels (twice the largest inscribed radius)."""
+    if not wm.binary.any():
+        return 0.0
+    return 2.0 * float(ndi.distance_transform_edt(np.pad(wm.binary, 1)).max()) * wm.factor
 
 
 def _thin_factor(wm: WorkingMask) -> int:
@@ -474,6 +517,19 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
     return kf, b
 
 
+def _landmarks(points: Any) -> np.ndarray:
+    """Dorsal points (full-resolution voxels, array index order) as an (M, 3) float array, checked."""
+    try:
+        a = np.asarray(points, dtype=float)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"dorsal_points must be points of 3 numbers (voxels), got {points!r}") from None
+    a = a.reshape(1, 3) if a.shape == (3,) else a
+    if a.ndim != 2 or a.shape[1] != 3 or not len(a) or not np.isfinite(a).all():
+        raise InvalidInputError(f"dorsal_points must be one or more points of 3 finite numbers (voxels), got an "
+                                f"array of shape {a.shape}")
+    return a
+
+
 def estimate_deformation_iter(
     mask: Any,
     endpoints: Any = None,
@@ -502,6 +558,8 @@ def estimate_deformation_iter(
     fold_free: bool = True,
     cage_margin: float = 0.1,
     min_jacobian: float = 0.2,
+    dorsal_points: Any = None,
+    dorsal_direction: Sequence[float] | None = None,
 ) -> ProgressGenerator[SkeletonResult]:
     """Generator form of :func:`estimate_deformation`: yields :class:`Progress` per stage, returns a
     :class:`SkeletonResult` (its ``deformation`` is what :func:`estimate_deformation` returns).
@@ -510,7 +568,7 @@ def estimate_deformation_iter(
     """
     from ._cage import propose_cage
     from ._endpoints import suggest_endpoints
-    from ._twist import apply_twist
+    from ._twist import apply_twist, landmark_twist
     from ._twist import estimate_twist as twist_angles
 
     timings: dict[str, float] = {}
@@ -558,6 +616,24 @@ def estimate_deformation_iter(
     thin = _thin_factor(wm)
     if thin < wm.factor:  # a slender body (an eel) keeps >= 6 working voxels across, however long it is
         wm = working_mask(mask, spacing=tuple(sp), volume=volume, factor=thin)
+    across = _across(wm)
+    line_voxels = None
+    if across < _LINE_ACROSS:  # a centreline drawn as a mask: no cross-section to fit a cage or a twist to
+        unit_name = unit_label(unit)
+        if half_extent is None:
+            raise InvalidInputError(
+                f"the mask is a line, at most {across:.1f} voxels thick: a centreline, not the specimen's body, so "
+                f"there is no cross-section to fit the cage to; give the cage's half extents (--cage RX,RY in "
+                f"{unit_name}, half_extent=) to straighten around the line, or the specimen's own mask")
+        tube = _LINE_TUBE * float(sp.max())
+        note(f"the mask is a line, at most {across:.1f} voxels thick: the curve runs along it (a tube of "
+             f"{tube:.3g} {unit_name} around it), the cage is the one given, and the twist is not estimated")
+        line = np.asarray(mask.data if isinstance(mask, Volume) else mask)
+        line_voxels = np.argwhere(line != 0).astype(float)
+        mask = ndi.distance_transform_edt(line == 0, sampling=sp) <= tube
+        estimate_twist = False
+        wm = working_mask(mask, spacing=tuple(sp), volume=volume, max_side=max_side)
+        wm = working_mask(mask, spacing=tuple(sp), volume=volume, factor=min(wm.factor, _thin_factor(wm)))
     sides = _border_sides(wm)
     if sides:
         note(f"the mask touches the volume's border ({', '.join(sides)}): the specimen may be cut off by the scan's "
@@ -573,6 +649,10 @@ def estimate_deformation_iter(
         h, tl = wm.from_working(np.asarray(h)), wm.from_working(np.asarray(tl))
         if sides:  # an end where the mask runs off the scan: the centre of the cut face, not a point of its rim
             h, tl = _cut_face_end(mask, h, wm, sp), _cut_face_end(mask, tl, wm, sp)
+        if line_voxels is not None:  # the line's own ends, not the tube's caps beyond them
+            from scipy.spatial import cKDTree
+
+            h, tl = line_voxels[cKDTree(line_voxels * sp).query(np.array([h, tl]) * sp)[1]]
         ends = Endpoints(head=tuple(h), tail=tuple(tl))
         suggested = True
         t = _stage("endpoints", timings, t)
@@ -622,7 +702,17 @@ def estimate_deformation_iter(
 
     curve_w = curve - wm.offset  # physical, origin at working voxel 0 (the helpers' convention)
     theta = np.zeros(len(curve))
-    if estimate_twist:
+    theta_conf = np.zeros(len(curve))
+    twist_source = "none"
+    if dorsal_points is not None or dorsal_direction is not None:
+        yield Progress("twist", 0, 1, "through the dorsal landmarks")
+        theta, theta_conf = landmark_twist(
+            curve, frames, dorsal_direction=dorsal_direction,
+            dorsal_points=None if dorsal_points is None else _landmarks(dorsal_points) * sp)
+        frames = apply_twist(frames, theta)
+        twist_source = "landmarks"
+        t = _stage("twist", timings, t)
+    elif estimate_twist:
         yield Progress("twist", 0, 1, "orienting the cross-sections")
         # The orientation of a cross-section needs it several voxels across: at the working resolution a
         # slender body is only a few voxels wide (the twist error doubled on the phantoms). The sections are
@@ -636,8 +726,11 @@ def estimate_deformation_iter(
                 tw = working_mask(mask, spacing=tuple(sp), volume=volume, factor=tf)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            theta = np.asarray(twist_angles(curve - tw.offset, frames, mask=tw.binary, spacing=tw.working_spacing,
-                                            volume=tw.volume), dtype=float)
+            theta, twist_info = twist_angles(curve - tw.offset, frames, mask=tw.binary,
+                                             spacing=tw.working_spacing, volume=tw.volume, return_info=True)
+        theta = np.asarray(theta, dtype=float)
+        theta_conf = np.zeros(len(curve)) if twist_info["round"] else np.asarray(twist_info["confidence"], float)
+        twist_source = "none" if twist_info["round"] else "estimated"
         for w in caught:
             note(str(w.message))
         # the tips are a few voxels across: their sections carry no orientation, keep the body's
@@ -646,6 +739,7 @@ def estimate_deformation_iter(
         if hold > 0:
             theta = np.where(sc < hold, np.interp(hold, sc, theta), theta)
             theta = np.where(sc > sc[-1] - hold, np.interp(sc[-1] - hold, sc, theta), theta)
+            theta_conf = np.where((sc < hold) | (sc > sc[-1] - hold), 0.0, theta_conf)
         frames = apply_twist(frames, theta)
         t = _stage("twist", timings, t)
     yield Progress("cage", 0, 1, "cross-section extent")
@@ -698,7 +792,8 @@ def estimate_deformation_iter(
         deformation=deformation, endpoints=used, suggested=suggested, curve=curve / sp, frames=frames,
         twist=theta, keyframe_indices=idx, factor=wm.factor,
         mesh={"parts": mesh_info}, timings=timings, warnings=tuple(notes), min_jacobian=jmin, max_tilt=tilt,
-        coverage=cov.fraction, lost=cov.lost, folded=cov.folded)
+        coverage=cov.fraction, lost=cov.lost, folded=cov.folded, twist_confidence=theta_conf,
+        twist_source=twist_source)
 
 
 def estimate_deformation(
@@ -761,7 +856,11 @@ def estimate_deformation(
         replaced by a quadratic fit, see :func:`~napari_unwind.skeleton.regularise_ends`; 0 keeps them),
         ``fold_free`` (True: each keyframe's cage fitted per side to the sections there, and inner sides shrunk
         where the Jacobian would fall below ``min_jacobian``, 0.2; False: one centred cage for the whole body, as
-        before), ``cage_margin`` (0.1: the cage's relative margin; 2 working voxels are added besides).
+        before), ``cage_margin`` (0.1: the cage's relative margin; 2 working voxels are added besides),
+        ``dorsal_points`` (points on the dorsal side, full-resolution voxels: the twist turns ``v`` at them and
+        changes linearly between, instead of being estimated) or ``dorsal_direction`` (a direction, axis0, axis1,
+        axis2, that ``v`` follows wherever the curve crosses it; for a vessel, "anterior"): see
+        :func:`~napari_unwind.skeleton._twist.landmark_twist`.
 
     Returns
     -------

@@ -170,7 +170,7 @@ def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:
     yield Progress("checksum", 0, 1, "describing the source")
     source = _portable(SourceInfo.from_path(ctx.catalog.path(srow), volume=scan), srow)
     session = Session(source=source, deformation=result.deformation, endpoints=result.endpoints,
-                      notes=f"unwind server job {ctx.job_id}: mask {mrow.name}"
+                      twist=result.twist_profile(), notes=f"unwind server job {ctx.job_id}: mask {mrow.name}"
                             + ("; suggested endpoints" if result.suggested else ""))
     sid, text = _save_session(ctx, session, "session.unwind.json")
     yield Progress("checksum", 1, 1)

@@ -308,3 +308,44 @@ def test_a_long_thin_body_keeps_six_working_voxels_across():
     dist, _ = cKDTree(c).query(curve[20:-20])
     true_length = float(np.linalg.norm(np.diff(curve, axis=0), axis=1).sum())
     assert dist.mean() < 1.0 and abs(res.deformation.length - true_length) / true_length < 0.02
+
+
+def _line_mask(spacing=(1.0, 1.0, 1.0)):
+    """A bent cylinder phantom's centreline drawn one voxel thick (26-connected), with the phantom."""
+    from napari_unwind.datasets import cylinder_phantom
+
+    cyl = cylinder_phantom(spacing=spacing)
+    mask = np.zeros(cyl.shape, dtype=bool)
+    idx = np.unique(np.round(cyl.centerline).astype(int), axis=0)
+    idx = idx[np.all((idx >= 0) & (idx < cyl.shape), axis=1)]
+    mask[tuple(idx.T)] = True
+    return mask, cyl
+
+
+def test_a_line_mask_is_refused_in_one_line_naming_its_thickness_and_the_cage():
+    mask, cyl = _line_mask()
+    with pytest.raises(InvalidInputError, match=r"the mask is a line, at most [0-9.]+ voxels thick.*--cage") as info:
+        estimate_deformation(mask, spacing=cyl.spacing)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (1.5, 1.0, 1.0)])
+def test_a_line_mask_with_a_cage_is_straightened_along_it(spacing):
+    mask, cyl = _line_mask(spacing)
+    result = _solve_quiet(mask, None, spacing=spacing, half_extent=(5.0, 5.0))
+    assert any("is a line" in m for m in result.warnings)
+    d = result.deformation
+    curve, _ = d.sample(np.linspace(0, d.length, 400))
+    dist, _ = cKDTree(cyl.centerline_physical).query(curve)
+    assert dist.max() <= 1.5 * max(spacing), dist.max()  # along the true line (its voxels within half a voxel)
+    assert abs(d.length - cyl.length) <= 0.05 * cyl.length
+    assert np.allclose(d.half_extents, 5.0) and not d.folds()
+
+
+def test_a_thin_body_is_not_taken_for_a_line():
+    from napari_unwind.datasets import cylinder_phantom
+
+    cyl = cylinder_phantom(radius=2.5)  # 5 voxels across
+    result = _solve_quiet(cyl.mask, None, spacing=cyl.spacing)
+    assert not any("is a line" in m for m in result.warnings)
+    assert result.coverage >= 0.99
