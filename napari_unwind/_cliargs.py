@@ -274,7 +274,7 @@ def _skeleton_options(args: argparse.Namespace):
                  tolerance=args.tolerance, snap_tolerance=args.snap_tolerance, half_extent=getattr(args, "cage", None),
                  cage_margin=getattr(args, "cage_margin", None),
                  dorsal_points=tuple(args.dorsal) if getattr(args, "dorsal", None) else None,
-                 dorsal_direction=getattr(args, "dorsal_direction", None))
+                 dorsal_direction=getattr(args, "dorsal_direction", None), context=getattr(args, "context", None))
     return SkeletonOptions(**{k: v for k, v in given.items() if v is not None})
 
 

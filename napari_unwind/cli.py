@@ -457,6 +457,9 @@ def _skeleton_report(result: Any, args: argparse.Namespace) -> list[str]:
         lines.append("twist: not estimated (--no-twist): frames by parallel transport")
     else:
         lines.append(result.twist_report())
+    if result.context is not None:
+        lines.append(f"context: {args.context:.4g} {unit} asked, at least {max(result.context, 0.0):.4g} {unit} "
+                     "beyond the mask on every side")
     lines.append(result.report())
     total = sum(result.timings.values())
     lines.append("times: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings.items()) + f" (total {total:.1f} s)")
@@ -703,6 +706,10 @@ def _add_skeleton_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cage", type=_cage_pair, default=None, metavar="RX,RY",
                    help="cage half extents along u and v for every keyframe, in the scan's unit (default: fitted "
                    "per keyframe and per side to the specimen's sections)")
+    p.add_argument("--context", type=_non_negative, default=None, metavar="MM",
+                   help="widen the straight volume by this much (the scan's unit) on every side of the fitted cages "
+                   "and at both ends, to keep what surrounds the specimen; given up where a bend would fold the "
+                   "cage, and reported (default 0)")
     p.add_argument("--cage-margin", type=_non_negative, default=None, metavar="M",
                    help=f"relative margin of the fitted cages (default {d('cage_margin')}: "
                    f"{100 * d('cage_margin'):.0f} %%; 2 voxels are added besides)")

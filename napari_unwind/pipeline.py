@@ -229,6 +229,9 @@ class SkeletonOptions:
     dorsal_direction : (a0, a1, a2) or None
         A direction that ``v`` follows wherever the curve crosses it (for a vessel, "anterior"), instead of the
         estimate. At most one of the two.
+    context : float
+        Physical units (0..:data:`MAX_LENGTH`) added to every side of the fitted cages and to the end padding:
+        what surrounds the specimen in the straight volume. Not with ``half_extent``.
     """
 
     estimate_twist: bool = True
@@ -241,8 +244,12 @@ class SkeletonOptions:
     cage_margin: float = 0.1
     dorsal_points: tuple[tuple[float, float, float], ...] | None = None
     dorsal_direction: tuple[float, float, float] | None = None
+    context: float = 0.0
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "context", _positive("context", self.context, zero=True, hi=MAX_LENGTH))
+        if self.context and self.half_extent is not None:
+            raise InvalidInputError("context widens the fitted cages: give it or a cage (half_extent), not both")
         if self.dorsal_points is not None and self.dorsal_direction is not None:
             raise InvalidInputError("give either dorsal points or a dorsal direction, not both")
         if self.estimate_twist is False and (self.dorsal_points is not None or self.dorsal_direction is not None):

@@ -51,6 +51,8 @@ class SkeletonResult:
         Its frames (rows u, v, n; twist applied when estimated).
     twist : ndarray, shape (K,)
         Twist (radians) of ``frames`` relative to parallel transport (zeros without twist estimation).
+    context : float or None
+        With ``context`` asked: the least distance (physical) any cage side lies beyond the mask's own sections.
     twist_confidence : ndarray, shape (K,)
         Where the twist was estimated: 1 where the cross-sections' orientation was followed, 0 where the frames
         follow parallel transport (round stretches, the tips, a round specimen, no estimation), a smooth blend
@@ -97,6 +99,7 @@ class SkeletonResult:
     folded: float = 0.0
     twist_confidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
     twist_source: str = "none"
+    context: float | None = None
 
     def twist_report(self) -> str:
         """One line: the twist's range, what set it and over how much of the length."""
@@ -462,7 +465,7 @@ def _part_curve(
 
 
 def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx: np.ndarray, eps: float,
-                     margin: float) -> tuple[np.ndarray, np.ndarray]:
+                     margin: float, context: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Keyframe frames and cage sides ``(m, 4)``: cages fitted per side to the sections, their margins given up
     where a bend would fold them, and the keyframes' normals tilted where that is not enough (docs/design.md section
     3, ways 1 and 2; the caller shrinks what still folds, way 3).
@@ -472,7 +475,8 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
     keyframe whose two segments keep ``det J >= eps`` untilted (margins given up) keeps ``sigma = 0``; another
     takes the smallest window that reaches ``eps`` (or, when none does, the one that gets closest, if it beats
     no tilt), and the windows are then made to vary no faster than the arclength so that neighbouring normals
-    stay consistent.
+    stay consistent. ``context`` (physical) is added to every side beyond the margins, given up like them.
+    Returns the keyframe frames, the cage sides and the tissue's own sides (no margin) per keyframe.
     """
     from ._cage import fit_cages
     from ._foldfree import tilted_frames, unfold
@@ -489,7 +493,8 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
         s_dense = np.union1d(np.clip(sc, 0, d.length), d.knots)
         c, fr = d.sample(s_dense)
         keys = np.searchsorted(s_dense, d.knots)
-        b = fit_cages(wm.binary, c, fr, keys, spacing=wm.working_spacing, margin=margin)
+        b = fit_cages(wm.binary, c, fr, keys, spacing=wm.working_spacing, margin=margin,
+                      min_margin=2.0 * step + context)
         tissue = fit_cages(wm.binary, c, fr, keys, spacing=wm.working_spacing, margin=0.0, min_margin=0.0)
         d = Deformation(tuple(Keyframe.from_bounds(k.position, k.frame, bb) for k, bb in zip(d.keyframes, b,
                                                                                                strict=True)))
@@ -497,14 +502,14 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
         seg = np.array([d.jacobian_min(np.linspace(d.knots[k], d.knots[k + 1], 5)).min() for k in range(len(idx) - 1)])
         # a keyframe's figure: the worse of its two segments
         key = np.minimum(np.concatenate([[np.inf], seg]), np.concatenate([seg, [np.inf]]))
-        return kf, d.bounds, key
+        return kf, d.bounds, key, tissue
 
     chosen = np.full(len(idx), -1)
     best_key = np.full(len(idx), -np.inf)
     best_level = np.zeros(len(idx), dtype=int)
     for level, sg in enumerate(ladder):
         checkpoint()
-        _, _, key = build(np.full(len(idx), sg))
+        _, _, key, _ = build(np.full(len(idx), sg))
         better = key > best_key + 0.05  # a tilt must pay for itself
         best_key = np.where(better, key, best_key)
         best_level = np.where(better, level, best_level)
@@ -513,8 +518,24 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
             break
     sigma = np.asarray(ladder)[np.where(chosen >= 0, chosen, best_level)]
     sigma = np.max(sigma[None, :] - np.abs(a[:, None] - a[None, :]), axis=1).clip(min=0)
-    kf, b, _ = build(sigma)
-    return kf, b
+    kf, b, _, tissue = build(sigma)
+    return kf, b, tissue
+
+
+def _context_given(bounds: np.ndarray, tissue: np.ndarray, knots: np.ndarray, asked: float, vox: float,
+                   unit: str | None, note: Any) -> float:
+    """The context the cages give: per keyframe and side, how far the side lies beyond the tissue's own (the
+    least of them); a note says where it is less than ``asked`` (the fold-free construction gave it up)."""
+    beyond = np.stack([tissue[:, 0] - bounds[:, 0], bounds[:, 1] - tissue[:, 1],
+                       tissue[:, 2] - bounds[:, 2], bounds[:, 3] - tissue[:, 3]], axis=1)
+    least = float(beyond.min())
+    short = beyond.min(axis=1) < asked - 0.5 * vox
+    if short.any():
+        u = unit_label(unit)
+        where = ", ".join(f"{knots[i]:.4g}" for i in np.flatnonzero(short)[:8])
+        note(f"context: {asked:.4g} {u} asked, at least {max(least, 0.0):.3g} {u} given; the cage gives it up on "
+             f"the inner side of bends that would fold it, at the keyframes at s = {where} {u}")
+    return least
 
 
 def _landmarks(points: Any) -> np.ndarray:
@@ -560,6 +581,7 @@ def estimate_deformation_iter(
     min_jacobian: float = 0.2,
     dorsal_points: Any = None,
     dorsal_direction: Sequence[float] | None = None,
+    context: float = 0.0,
 ) -> ProgressGenerator[SkeletonResult]:
     """Generator form of :func:`estimate_deformation`: yields :class:`Progress` per stage, returns a
     :class:`SkeletonResult` (its ``deformation`` is what :func:`estimate_deformation` returns).
@@ -593,6 +615,10 @@ def estimate_deformation_iter(
         raise InvalidInputError(f"end_window_factor must be a number >= 0, got {end_window_factor!r}")
     if not (isinstance(cage_margin, (int, float, np.number)) and 0 <= cage_margin < np.inf):
         raise InvalidInputError(f"cage_margin must be a number >= 0 (0.1: 10 %), got {cage_margin!r}")
+    if not (isinstance(context, (int, float, np.number)) and 0 <= context < np.inf):
+        raise InvalidInputError(f"context must be a number >= 0 (physical units), got {context!r}")
+    if context > 0 and (half_extent is not None or not fold_free):
+        raise InvalidInputError("context widens the fitted cages: give it without a cage (--cage, half_extent=)")
     if not (isinstance(min_jacobian, (int, float, np.number)) and 0 < min_jacobian < 1):
         raise InvalidInputError(f"min_jacobian must be a number in (0, 1), got {min_jacobian!r}")
     if level_spacing not in ("arclength", "uniform"):
@@ -744,6 +770,7 @@ def estimate_deformation_iter(
         t = _stage("twist", timings, t)
     yield Progress("cage", 0, 1, "cross-section extent")
     auto_he, auto_pad = propose_cage(wm.binary, curve_w, frames, spacing=wm.working_spacing, margin=cage_margin)
+    auto_pad = np.asarray(auto_pad, dtype=float) + float(context)
     he = auto_he if half_extent is None else half_extent
     pd = auto_pad if pad is None else pad
     length = float(arclength(curve)[-1])
@@ -758,7 +785,8 @@ def estimate_deformation_iter(
     key_frames = frames[idx]
     if fold_free and half_extent is None:
         yield Progress("keyframes", 0, 1, "per-side cages, tilting the sections where a bend would fold them")
-        key_frames, b = _fold_free_cages(wm, curve_w, frames, idx, float(min_jacobian), float(cage_margin))
+        key_frames, b, tissue = _fold_free_cages(wm, curve_w, frames, idx, float(min_jacobian), float(cage_margin),
+                                                 float(context))
         he = np.stack([(b[:, 1] - b[:, 0]) / 2, (b[:, 3] - b[:, 2]) / 2], axis=1)
         offsets = np.stack([(b[:, 1] + b[:, 0]) / 2, (b[:, 3] + b[:, 2]) / 2], axis=1)
     deformation = Deformation.from_keyframes(curve[idx] + org, key_frames, he, pad=pd, spacing=tuple(sp),
@@ -766,6 +794,10 @@ def estimate_deformation_iter(
     if fold_free:
         # where the inner side still reaches the centre of curvature: shrink it (the third way out)
         deformation = unfold(deformation, eps=float(min_jacobian))
+    context_given = None
+    if context > 0:
+        context_given = _context_given(deformation.bounds, tissue, deformation.knots, float(context),
+                                       float(vox), unit, note)
     folds = deformation.folds()
     if folds:
         where = ", ".join(f"{a:.4g}-{b:.4g}" for a, b in folds)
@@ -793,7 +825,7 @@ def estimate_deformation_iter(
         twist=theta, keyframe_indices=idx, factor=wm.factor,
         mesh={"parts": mesh_info}, timings=timings, warnings=tuple(notes), min_jacobian=jmin, max_tilt=tilt,
         coverage=cov.fraction, lost=cov.lost, folded=cov.folded, twist_confidence=theta_conf,
-        twist_source=twist_source)
+        twist_source=twist_source, context=context_given)
 
 
 def estimate_deformation(
@@ -857,6 +889,9 @@ def estimate_deformation(
         ``fold_free`` (True: each keyframe's cage fitted per side to the sections there, and inner sides shrunk
         where the Jacobian would fall below ``min_jacobian``, 0.2; False: one centred cage for the whole body, as
         before), ``cage_margin`` (0.1: the cage's relative margin; 2 working voxels are added besides),
+        ``context`` (0: physical units added to every side of the fitted cages and to the end padding, so that
+        the straight volume shows what surrounds the specimen; given up where a bend would fold the cage, and
+        reported),
         ``dorsal_points`` (points on the dorsal side, full-resolution voxels: the twist turns ``v`` at them and
         changes linearly between, instead of being estimated) or ``dorsal_direction`` (a direction, axis0, axis1,
         axis2, that ``v`` follows wherever the curve crosses it; for a vessel, "anterior"): see

@@ -111,7 +111,8 @@ def bounds() -> dict[str, Bound]:
                                 half_extent=Bound(0, P.MAX_LENGTH, counts=(0, 2)),
                                 cage_margin=Bound(0, P.MAX_CAGE_MARGIN), has_cage_margin=anything,
                                 dorsal_points=Bound(max_items=P.MAX_DORSAL_POINTS),
-                                dorsal_direction=Bound(-P.MAX_LENGTH, P.MAX_LENGTH, counts=(0, 3))),
+                                dorsal_direction=Bound(-P.MAX_LENGTH, P.MAX_LENGTH, counts=(0, 3)),
+                                context=Bound(0, P.MAX_LENGTH)),
         "EstimateDeformationRequest": dict(mask_volume_id=ident, volume_id=ident, ends=anything, options=anything),
         "UploadHeader": dict(name=name, shape=Bound(1, MAX_SIDE, counts=(3,),
                                                     say="3 positive sizes (axis0, axis1, axis2)"), dtype=anything,
@@ -374,6 +375,8 @@ def skeleton_options(msg: skeleton_pb2.SkeletonOptions):
         given["dorsal_points"] = tuple(map(tuple, points(msg.dorsal_points, "options.dorsal_points")))
     if len(msg.dorsal_direction):
         given["dorsal_direction"] = tuple(msg.dorsal_direction)
+    if msg.context:
+        given["context"] = float(msg.context)
     return SkeletonOptions(**given)
 
 
@@ -384,7 +387,7 @@ def skeleton_options_msg(opt: Any) -> skeleton_pb2.SkeletonOptions:
         has_smoothing_iterations=True, cage_radius=opt.cage_radius, tolerance=opt.tolerance,
         snap_tolerance=opt.snap_tolerance, half_extent=list(opt.half_extent or ()), cage_margin=opt.cage_margin,
         has_cage_margin=True, dorsal_points=[point_msg(p) for p in opt.dorsal_points or ()],
-        dorsal_direction=list(opt.dorsal_direction or ()))
+        dorsal_direction=list(opt.dorsal_direction or ()), context=opt.context)
 
 
 def export_options(msg: warp_pb2.ExportOptions):

@@ -349,3 +349,53 @@ def test_a_thin_body_is_not_taken_for_a_line():
     result = _solve_quiet(cyl.mask, None, spacing=cyl.spacing)
     assert not any("is a line" in m for m in result.warnings)
     assert result.coverage >= 0.99
+
+
+def _gaps(mask, deformation):
+    """The least distance (physical) from the straightened mask to the straight volume's sides, over its slices, and
+    from its ends to the volume's ends (the warp resamples the mask; the skeleton's own figures are not used)."""
+    from napari_unwind.warp import straighten
+
+    out = np.asarray(straighten(mask.astype(np.float32), deformation, order=1).data) > 0.5
+    ds = float(min(deformation.spacing))
+    rows = np.flatnonzero(out.any(axis=(1, 2)))
+    side = np.inf
+    for k in rows:
+        yy, xx = np.nonzero(out[k])
+        side = min(side, yy.min(), out.shape[1] - 1 - yy.max(), xx.min(), out.shape[2] - 1 - xx.max())
+    return side * ds, min(rows[0], len(out) - 1 - rows[-1]) * ds
+
+
+def test_context_keeps_the_distance_asked_around_the_specimen():
+    from napari_unwind.datasets import cylinder_phantom
+
+    cyl = cylinder_phantom(amplitude=4.0, wavelength=400.0, radius=5.0)  # nearly straight: nothing to give up
+    base = _solve_quiet(cyl.mask, None, spacing=cyl.spacing)
+    wide = _solve_quiet(cyl.mask, None, spacing=cyl.spacing, context=6.0)
+    side0, end0 = _gaps(cyl.mask, base.deformation)
+    side, end = _gaps(cyl.mask, wide.deformation)
+    assert side0 < 5.0 and side >= 6.0 - 1.0, (side0, side)  # one voxel for the resampling
+    assert end >= end0 + 6.0 - 1.0, (end0, end)
+    # the figure reported is a lower bound of what the straight volume shows, and a shortfall is said
+    assert 0 < wide.context <= side + 1.0 and base.context is None
+    noted = any(m.startswith("context:") for m in wide.warnings)
+    assert noted == (wide.context < 6.0 - 0.5)
+
+
+def test_context_is_given_up_on_the_inner_side_of_a_tight_bend_and_reported():
+    from napari_unwind.datasets import hard_fish_phantom
+
+    ph = hard_fish_phantom(1000, kind="s-bend")
+    result = _solve_quiet(ph.mask, (ph.head, ph.tail), spacing=ph.spacing, context=12.0)
+    assert not result.deformation.folds()
+    assert result.context < 12.0
+    notes = [m for m in result.warnings if m.startswith("context:")]
+    assert len(notes) == 1 and "12 " in notes[0] and "inner side of bends" in notes[0]
+
+
+def test_context_and_a_given_cage_are_refused_together():
+    mask, cyl = _line_mask()
+    with pytest.raises(InvalidInputError, match="context"):
+        estimate_deformation(mask, spacing=1.0, half_extent=(5.0, 5.0), context=2.0)
+    with pytest.raises(InvalidInputError, match="context"):
+        estimate_deformation(mask, spacing=1.0, context=-1.0)

@@ -26,7 +26,7 @@ _sym_db = _symbol_database.Default()
 from unwind_services._proto.unwind.v1 import common_pb2 as unwind_dot_v1_dot_common__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18unwind/v1/skeleton.proto\x12\tunwind.v1\x1a\x16unwind/v1/common.proto\"?\n\x12SuggestEndsRequest\x12\x16\n\x0emask_volume_id\x18\x01 \x01(\t\x12\x11\n\tvolume_id\x18\x02 \x01(\t\"K\n\tPointPair\x12\x1f\n\x05start\x18\x01 \x01(\x0b\x32\x10.unwind.v1.Point\x12\x1d\n\x03\x65nd\x18\x02 \x01(\x0b\x32\x10.unwind.v1.Point\"k\n\x04\x45nds\x12\x1e\n\x04head\x18\x01 \x01(\x0b\x32\x10.unwind.v1.Point\x12\x1e\n\x04tail\x18\x02 \x01(\x0b\x32\x10.unwind.v1.Point\x12#\n\x05\x63hain\x18\x03 \x03(\x0b\x32\x14.unwind.v1.PointPair\"\xb9\x02\n\x0fSkeletonOptions\x12\x10\n\x08no_twist\x18\x01 \x01(\x08\x12\x0e\n\x06levels\x18\x02 \x01(\x05\x12\x1c\n\x14smoothing_iterations\x18\x03 \x01(\x05\x12 \n\x18has_smoothing_iterations\x18\x04 \x01(\x08\x12\x13\n\x0b\x63\x61ge_radius\x18\x05 \x01(\x01\x12\x11\n\ttolerance\x18\x06 \x01(\x01\x12\x16\n\x0esnap_tolerance\x18\x07 \x01(\x01\x12\x13\n\x0bhalf_extent\x18\x08 \x03(\x01\x12\x13\n\x0b\x63\x61ge_margin\x18\t \x01(\x01\x12\x17\n\x0fhas_cage_margin\x18\n \x01(\x08\x12\'\n\rdorsal_points\x18\x0b \x03(\x0b\x32\x10.unwind.v1.Point\x12\x18\n\x10\x64orsal_direction\x18\x0c \x03(\x01\"\x93\x01\n\x1a\x45stimateDeformationRequest\x12\x16\n\x0emask_volume_id\x18\x01 \x01(\t\x12\x11\n\tvolume_id\x18\x02 \x01(\t\x12\x1d\n\x04\x65nds\x18\x03 \x01(\x0b\x32\x0f.unwind.v1.Ends\x12+\n\x07options\x18\x04 \x01(\x0b\x32\x1a.unwind.v1.SkeletonOptions2\x9e\x01\n\x0fSkeletonService\x12=\n\x0bSuggestEnds\x12\x1d.unwind.v1.SuggestEndsRequest\x1a\x0f.unwind.v1.Ends\x12L\n\x13\x45stimateDeformation\x12%.unwind.v1.EstimateDeformationRequest\x1a\x0e.unwind.v1.Jobb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18unwind/v1/skeleton.proto\x12\tunwind.v1\x1a\x16unwind/v1/common.proto\"?\n\x12SuggestEndsRequest\x12\x16\n\x0emask_volume_id\x18\x01 \x01(\t\x12\x11\n\tvolume_id\x18\x02 \x01(\t\"K\n\tPointPair\x12\x1f\n\x05start\x18\x01 \x01(\x0b\x32\x10.unwind.v1.Point\x12\x1d\n\x03\x65nd\x18\x02 \x01(\x0b\x32\x10.unwind.v1.Point\"k\n\x04\x45nds\x12\x1e\n\x04head\x18\x01 \x01(\x0b\x32\x10.unwind.v1.Point\x12\x1e\n\x04tail\x18\x02 \x01(\x0b\x32\x10.unwind.v1.Point\x12#\n\x05\x63hain\x18\x03 \x03(\x0b\x32\x14.unwind.v1.PointPair\"\xca\x02\n\x0fSkeletonOptions\x12\x10\n\x08no_twist\x18\x01 \x01(\x08\x12\x0e\n\x06levels\x18\x02 \x01(\x05\x12\x1c\n\x14smoothing_iterations\x18\x03 \x01(\x05\x12 \n\x18has_smoothing_iterations\x18\x04 \x01(\x08\x12\x13\n\x0b\x63\x61ge_radius\x18\x05 \x01(\x01\x12\x11\n\ttolerance\x18\x06 \x01(\x01\x12\x16\n\x0esnap_tolerance\x18\x07 \x01(\x01\x12\x13\n\x0bhalf_extent\x18\x08 \x03(\x01\x12\x13\n\x0b\x63\x61ge_margin\x18\t \x01(\x01\x12\x17\n\x0fhas_cage_margin\x18\n \x01(\x08\x12\'\n\rdorsal_points\x18\x0b \x03(\x0b\x32\x10.unwind.v1.Point\x12\x18\n\x10\x64orsal_direction\x18\x0c \x03(\x01\x12\x0f\n\x07\x63ontext\x18\r \x01(\x01\"\x93\x01\n\x1a\x45stimateDeformationRequest\x12\x16\n\x0emask_volume_id\x18\x01 \x01(\t\x12\x11\n\tvolume_id\x18\x02 \x01(\t\x12\x1d\n\x04\x65nds\x18\x03 \x01(\x0b\x32\x0f.unwind.v1.Ends\x12+\n\x07options\x18\x04 \x01(\x0b\x32\x1a.unwind.v1.SkeletonOptions2\x9e\x01\n\x0fSkeletonService\x12=\n\x0bSuggestEnds\x12\x1d.unwind.v1.SuggestEndsRequest\x1a\x0f.unwind.v1.Ends\x12L\n\x13\x45stimateDeformation\x12%.unwind.v1.EstimateDeformationRequest\x1a\x0e.unwind.v1.Jobb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -40,9 +40,9 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_ENDS']._serialized_start=205
   _globals['_ENDS']._serialized_end=312
   _globals['_SKELETONOPTIONS']._serialized_start=315
-  _globals['_SKELETONOPTIONS']._serialized_end=628
-  _globals['_ESTIMATEDEFORMATIONREQUEST']._serialized_start=631
-  _globals['_ESTIMATEDEFORMATIONREQUEST']._serialized_end=778
-  _globals['_SKELETONSERVICE']._serialized_start=781
-  _globals['_SKELETONSERVICE']._serialized_end=939
+  _globals['_SKELETONOPTIONS']._serialized_end=645
+  _globals['_ESTIMATEDEFORMATIONREQUEST']._serialized_start=648
+  _globals['_ESTIMATEDEFORMATIONREQUEST']._serialized_end=795
+  _globals['_SKELETONSERVICE']._serialized_start=798
+  _globals['_SKELETONSERVICE']._serialized_end=956
 # @@protoc_insertion_point(module_scope)

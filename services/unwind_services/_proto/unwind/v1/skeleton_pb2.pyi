@@ -35,7 +35,7 @@ class Ends(_message.Message):
     def __init__(self, head: _Optional[_Union[_common_pb2.Point, _Mapping]] = ..., tail: _Optional[_Union[_common_pb2.Point, _Mapping]] = ..., chain: _Optional[_Iterable[_Union[PointPair, _Mapping]]] = ...) -> None: ...
 
 class SkeletonOptions(_message.Message):
-    __slots__ = ("no_twist", "levels", "smoothing_iterations", "has_smoothing_iterations", "cage_radius", "tolerance", "snap_tolerance", "half_extent", "cage_margin", "has_cage_margin", "dorsal_points", "dorsal_direction")
+    __slots__ = ("no_twist", "levels", "smoothing_iterations", "has_smoothing_iterations", "cage_radius", "tolerance", "snap_tolerance", "half_extent", "cage_margin", "has_cage_margin", "dorsal_points", "dorsal_direction", "context")
     NO_TWIST_FIELD_NUMBER: _ClassVar[int]
     LEVELS_FIELD_NUMBER: _ClassVar[int]
     SMOOTHING_ITERATIONS_FIELD_NUMBER: _ClassVar[int]
@@ -48,6 +48,7 @@ class SkeletonOptions(_message.Message):
     HAS_CAGE_MARGIN_FIELD_NUMBER: _ClassVar[int]
     DORSAL_POINTS_FIELD_NUMBER: _ClassVar[int]
     DORSAL_DIRECTION_FIELD_NUMBER: _ClassVar[int]
+    CONTEXT_FIELD_NUMBER: _ClassVar[int]
     no_twist: bool
     levels: int
     smoothing_iterations: int
@@ -60,7 +61,8 @@ class SkeletonOptions(_message.Message):
     has_cage_margin: bool
     dorsal_points: _containers.RepeatedCompositeFieldContainer[_common_pb2.Point]
     dorsal_direction: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, no_twist: _Optional[bool] = ..., levels: _Optional[int] = ..., smoothing_iterations: _Optional[int] = ..., has_smoothing_iterations: _Optional[bool] = ..., cage_radius: _Optional[float] = ..., tolerance: _Optional[float] = ..., snap_tolerance: _Optional[float] = ..., half_extent: _Optional[_Iterable[float]] = ..., cage_margin: _Optional[float] = ..., has_cage_margin: _Optional[bool] = ..., dorsal_points: _Optional[_Iterable[_Union[_common_pb2.Point, _Mapping]]] = ..., dorsal_direction: _Optional[_Iterable[float]] = ...) -> None: ...
+    context: float
+    def __init__(self, no_twist: _Optional[bool] = ..., levels: _Optional[int] = ..., smoothing_iterations: _Optional[int] = ..., has_smoothing_iterations: _Optional[bool] = ..., cage_radius: _Optional[float] = ..., tolerance: _Optional[float] = ..., snap_tolerance: _Optional[float] = ..., half_extent: _Optional[_Iterable[float]] = ..., cage_margin: _Optional[float] = ..., has_cage_margin: _Optional[bool] = ..., dorsal_points: _Optional[_Iterable[_Union[_common_pb2.Point, _Mapping]]] = ..., dorsal_direction: _Optional[_Iterable[float]] = ..., context: _Optional[float] = ...) -> None: ...
 
 class EstimateDeformationRequest(_message.Message):
     __slots__ = ("mask_volume_id", "volume_id", "ends", "options")
