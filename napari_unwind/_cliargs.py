@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from .errors import UnwindError
+from .errors import InvalidInputError, UnwindError
 
 #: The options whose value may begin with "-" (tokens an older server issued do, one in 64): the parser of
 #: ``unwind`` (napari_unwind.cli._Parser) reads ``--token VALUE`` as ``--token=VALUE`` (see :func:`join_dash_values`).
@@ -269,6 +269,9 @@ def _skeleton_options(args: argparse.Namespace):
     """The :class:`~napari_unwind.pipeline.SkeletonOptions` of the skeleton options given (the rest default)."""
     from .pipeline import SkeletonOptions
 
+    if args.no_twist and (getattr(args, "dorsal", None) or getattr(args, "dorsal_direction", None)):
+        raise InvalidInputError("--dorsal and --dorsal-direction set the twist, and --no-twist asks for none: give "
+                                "one of them")
     given = dict(estimate_twist=False if args.no_twist else None, n_levels=args.levels,
                  smoothing_iterations=args.smoothing_iterations, cage_radius=args.cage_radius,
                  tolerance=args.tolerance, snap_tolerance=args.snap_tolerance, half_extent=getattr(args, "cage", None),

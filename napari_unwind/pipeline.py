@@ -253,8 +253,8 @@ class SkeletonOptions:
         if self.dorsal_points is not None and self.dorsal_direction is not None:
             raise InvalidInputError("give either dorsal points or a dorsal direction, not both")
         if self.estimate_twist is False and (self.dorsal_points is not None or self.dorsal_direction is not None):
-            raise InvalidInputError("dorsal landmarks set the twist, and estimate_twist=False (--no-twist) asks for "
-                                    "none: give one of them")
+            raise InvalidInputError("dorsal landmarks set the twist, and estimate_twist=False asks for none: give one "
+                                    "of them")
         if self.dorsal_points is not None:
             pts = _points3("dorsal_points", self.dorsal_points, MAX_DORSAL_POINTS)
             object.__setattr__(self, "dorsal_points", pts or None)

@@ -40,6 +40,11 @@ _ADVICE: tuple[tuple[str, str], ...] = (
     # pipeline.run_job: a fold refused after the session was saved
     (r": edit it, or export it as it is with unwind straighten --session \.\.\. --allow-folds",
      ": edit the keyframes there (Refine), or tick \"allow folds\" (Export)"),
+    # skeleton/_api.py: a line mask
+    (r"give the cage's half extents \(--cage RX,RY in [^,]+, half_extent=\) to straighten around the line, or the "
+     r"specimen's own mask", "select the specimen's own body (Select), or a mask of it"),
+    # skeleton/_twist.py: a round specimen
+    (r"give dorsal points or an up direction to set the roll", "turn the keyframes (Refine: twist) to set the roll"),
     # warp: the output size limit
     (r"the limit max_output=(\S+) bytes", r"the size limit of \1 bytes"),
     (r", or pass max_output=\.\.\. \(CLI: --max-output\) to raise the limit \(max_output=None: no limit\)",

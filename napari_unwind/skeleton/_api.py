@@ -618,7 +618,7 @@ def estimate_deformation_iter(
     if not (isinstance(context, (int, float, np.number)) and 0 <= context < np.inf):
         raise InvalidInputError(f"context must be a number >= 0 (physical units), got {context!r}")
     if context > 0 and (half_extent is not None or not fold_free):
-        raise InvalidInputError("context widens the fitted cages: give it without a cage (--cage, half_extent=)")
+        raise InvalidInputError("context widens the fitted cages: give it without fixed cage half extents")
     if not (isinstance(min_jacobian, (int, float, np.number)) and 0 < min_jacobian < 1):
         raise InvalidInputError(f"min_jacobian must be a number in (0, 1), got {min_jacobian!r}")
     if level_spacing not in ("arclength", "uniform"):

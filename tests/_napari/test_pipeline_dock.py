@@ -148,11 +148,15 @@ def test_partial_status_and_fold_rule_in_the_dock(make_napari_viewer, qtbot, tmp
         class skeleton:  # noqa: N801
             deformation = Deformation.from_polyline(np.array([[5.0, 20, 20], [20, 20, 20], [35, 20, 20]]),
                                                     spacing=1.0, cage_half_extent=4.0)
-            suggested, warnings, endpoints, folded = False, (), None, 0.0
+            suggested, warnings, endpoints, folded, context = False, (), None, 0.0, None
 
             @staticmethod
             def report():
                 return "min Jacobian 1"
+
+            @staticmethod
+            def twist_report():
+                return "twist: none (frames by parallel transport)"
 
     w.skeleton_step.skeleton_ready(Skeletonized(Fake, Fake.skeleton.deformation))
     assert w.status.text().startswith("skeleton: partial: coverage 95.0 %"), w.status.text()
@@ -175,3 +179,24 @@ def test_partial_status_and_fold_rule_in_the_dock(make_napari_viewer, qtbot, tmp
     w.export_step.allow_folds_box.setChecked(True)
     wait(qtbot, w, w.export(target))
     assert target.exists() and "\"allow folds\" is ticked" in w.export_step.export_info.text()
+
+
+def test_the_docks_context_is_the_pipelines(make_napari_viewer, qtbot, fish, scan_path):
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    viewer.window.add_dock_widget(w, name="Unwind")
+    wait(qtbot, w, w.open_scan(scan_path))
+    wait(qtbot, w, w.segment())
+    qtbot.waitUntil(lambda: w.idle and w.features is not None, timeout=60_000)
+    w.select_features([int(w.features.ids_at([tuple(fish_voxel(fish))])[0])])
+    wait(qtbot, w, w.suggest_ends())
+    ends = w.endpoints()
+    w.skeleton_step.context.setValue(3.0)
+    wait(qtbot, w, w.run_skeleton(), timeout=180_000)
+    vol = w.volume
+    direct = run(pipeline.skeleton_step(w.mask(), ends, spacing=vol.spacing, origin=vol.origin, unit=vol.unit,
+                                        volume=vol.data, options=pipeline.SkeletonOptions(context=3.0)))
+    assert dumps(w.model.deformation) == dumps(direct.deformation)
+    assert w.options.skeleton.context == 3.0
+    report = w.skeleton_step.skeleton_report.toPlainText()
+    assert "context: at least" in report and "twist:" in report

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
-from qtpy.QtWidgets import QLabel, QPlainTextEdit, QVBoxLayout
+from qtpy.QtWidgets import QDoubleSpinBox, QFormLayout, QLabel, QPlainTextEdit, QVBoxLayout
 
 from ...errors import UnwindError
 from ...io._volume import unit_label
@@ -39,6 +40,15 @@ class SkeletonStep(Step):
         self.skeleton_need = QLabel("")
         self.skeleton_need.setWordWrap(True)
         lay.addWidget(self.skeleton_need)
+        form = QFormLayout()
+        self.context = QDoubleSpinBox()
+        self.context.setRange(0.0, 1e6)
+        self.context.setDecimals(2)
+        self.context.setToolTip("widen the straight volume by this much (the scan's unit) beyond the specimen on every "
+                                "side and at both ends, to keep what surrounds it; given up where a bend would fold "
+                                "the cage, and reported")
+        form.addRow("context around the specimen", self.context)
+        lay.addLayout(form)
         self.skeleton_button, self.skeleton_cancel = self.job_buttons(lay, "Compute the skeleton", self.run_skeleton)
         self.skeleton_report = QPlainTextEdit()
         self.skeleton_report.setReadOnly(True)
@@ -58,6 +68,10 @@ class SkeletonStep(Step):
         try:
             dock._check_selection()
             self.workflow.set_ends(dock.endpoints())  # the ends layer as the user left it (None: suggested)
+            options = self.workflow.options
+            context = float(self.context.value())
+            if context != options.skeleton.context:
+                self.workflow.options = replace(options, skeleton=replace(options.skeleton, context=context))
             task = self.workflow.skeleton_task()
         except UnwindError as exc:
             self._fail(exc)
@@ -80,6 +94,10 @@ class SkeletonStep(Step):
                  + (" (suggested ends)" if result is not None and result.suggested else "") + where]
         if result is not None:
             lines.append(result.report())
+            lines.append(result.twist_report())
+            if result.context is not None:
+                lines.append(f"context: at least {max(result.context, 0.0):.4g} {unit_label(d.unit)} beyond the "
+                             "specimen on every side")
         folds = folds_line(d, specimen.folded, "edit the keyframes there (Refine)")
         if folds:
             lines.append(folds)
