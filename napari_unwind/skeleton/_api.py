@@ -465,7 +465,7 @@ def _part_curve(
 
 
 def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx: np.ndarray, eps: float,
-                     margin: float, context: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     margin: float, context: float = 0.0) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
     """Keyframe frames and cage sides ``(m, 4)``: cages fitted per side to the sections, their margins given up
     where a bend would fold them, and the keyframes' normals tilted where that is not enough (docs/design.md section
     3, ways 1 and 2; the caller shrinks what still folds, way 3).
@@ -476,7 +476,9 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
     takes the smallest window that reaches ``eps`` (or, when none does, the one that gets closest, if it beats
     no tilt), and the windows are then made to vary no faster than the arclength so that neighbouring normals
     stay consistent. ``context`` (physical) is added to every side beyond the margins, given up like them.
-    Returns the keyframe frames, the cage sides and the tissue's own sides (no margin) per keyframe.
+    Returns ``(frames, sides, tissue)`` (the keyframe frames, the cage sides and the tissue's own sides per
+    keyframe) for the tilt chosen, and the same for no tilt (the caller keeps whichever holds more of the mask
+    once the last fold is shrunk away: on a helix whose curvature never eases the tilt can cost coverage).
     """
     from ._cage import fit_cages
     from ._foldfree import tilted_frames, unfold
@@ -507,9 +509,12 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
     chosen = np.full(len(idx), -1)
     best_key = np.full(len(idx), -np.inf)
     best_level = np.zeros(len(idx), dtype=int)
+    untilted = None
     for level, sg in enumerate(ladder):
         checkpoint()
-        _, _, key, _ = build(np.full(len(idx), sg))
+        kf_l, b_l, key, tissue_l = build(np.full(len(idx), sg))
+        if level == 0:
+            untilted = (kf_l, b_l, tissue_l)
         better = key > best_key + 0.05  # a tilt must pay for itself
         best_key = np.where(better, key, best_key)
         best_level = np.where(better, level, best_level)
@@ -518,8 +523,90 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
             break
     sigma = np.asarray(ladder)[np.where(chosen >= 0, chosen, best_level)]
     sigma = np.max(sigma[None, :] - np.abs(a[:, None] - a[None, :]), axis=1).clip(min=0)
+    if not sigma.any():
+        return untilted, untilted
     kf, b, _, tissue = build(sigma)
-    return kf, b, tissue
+    return (kf, b, tissue), untilted
+
+
+_BRANCH_SLACK = 2.5  # inscribed radii: a voxel whose detour off the head-to-tail geodesic is larger is off the path
+_BRANCH_MIN_LENGTH = 0.2  # of the path's length: shorter side parts (fins, a caudal lobe) are kept
+_BRANCH_MIN_SHARE = 0.05  # of the mask: smaller side parts are kept
+_BRANCH_BACK = 1.0  # inscribed radii: a branch is cut where its detour exceeds this (back towards the junction)
+
+
+def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
+                  ) -> tuple[WorkingMask, list[tuple[float, float, np.ndarray]]]:
+    """The working mask without the branches off the path between the two ends, and each branch cut off as
+    ``(length, share of the mask, junction in working voxels)``.
+
+    A voxel's detour is ``d_head + d_tail - L`` (geodesic distances on the 26-neighbour graph, physical): about
+    0 along the path and at most a few radii across it, twice the distance along a side branch from where it
+    leaves. The parts whose detour exceeds :data:`_BRANCH_SLACK` inscribed radii are the candidates; one is a
+    branch when its length (half its largest detour, plus the slack) is at least :data:`_BRANCH_MIN_LENGTH` of L
+    and it holds :data:`_BRANCH_MIN_SHARE` of the mask, so that fins and a forked tail stay.
+    """
+    from scipy.sparse import csgraph
+
+    from ._endpoints import _graph
+
+    binary = wm.binary
+    if not binary.any():
+        return wm, []
+    wsp = np.asarray(wm.working_spacing)
+    graph, coords = _graph(binary, wsp)
+    from scipy.spatial import cKDTree
+
+    ends = [int(i) for i in cKDTree(coords * wsp).query(np.array([head_w, tail_w]) * wsp)[1]]  # nearest voxels
+    d = csgraph.dijkstra(graph, directed=False, indices=ends)
+    total = float(d[0, ends[1]])
+    if not np.isfinite(total) or total <= 0:
+        return wm, []
+    detour = d[0] + d[1] - total
+    radius = float(ndi.distance_transform_edt(np.pad(binary, 1), sampling=wsp).max())
+    slack = _BRANCH_SLACK * radius
+    off = np.zeros(binary.shape, dtype=bool)
+    far = np.isfinite(detour) & (detour > slack)
+    off[tuple(coords[far].T)] = True
+    lab, n = ndi.label(off, _STRUCT26)
+    if n == 0:
+        return wm, []
+    det = np.zeros(binary.shape)
+    det[tuple(coords.T)] = np.where(np.isfinite(detour), detour, 0.0)
+    dq = np.zeros(binary.shape)
+    dq[tuple(coords.T)] = np.where(np.isfinite(detour), d[0] - d[1], 0.0)
+    cut = np.zeros(binary.shape, dtype=bool)
+    branches = []
+    count = int(binary.sum())
+    for k, box in enumerate(ndi.find_objects(lab), start=1):
+        part = lab[box] == k
+        length = float(det[box][part].max()) / 2 + slack / 2
+        share = float(part.sum()) / count
+        # a side branch leaves the path in one place: along it d_head and d_tail grow together, so their
+        # difference stays that of its junction; a stretch of body that the geodesic skipped (two turns of a coil
+        # touching) meets the path at both its ends, and the difference runs from one end's to the other's
+        q = dq[box][part]
+        dead_end = float(np.percentile(q, 95) - np.percentile(q, 5)) <= 2.0 * slack
+        if length >= _BRANCH_MIN_LENGTH * total and share >= _BRANCH_MIN_SHARE and dead_end:
+            cut[box] |= part
+            where = np.argwhere(part)[np.argmin(det[box][part])] + np.array([b.start for b in box])
+            branches.append((length, share, where.astype(float)))
+    if not branches:
+        return wm, []
+    # back to the junction: the parts off the path by a smaller detour that touch a branch go with it (the stub
+    # a branch leaves within the slack would pull the sections' centroids towards it)
+    near = np.zeros(binary.shape, dtype=bool)
+    near[tuple(coords[np.isfinite(detour) & (detour > _BRANCH_BACK * radius)].T)] = True
+    lab3, _ = ndi.label(near, _STRUCT26)
+    touched = np.unique(lab3[cut])
+    cut |= np.isin(lab3, touched[touched > 0])
+    kept = binary & ~cut
+    lab2, _ = ndi.label(kept, _STRUCT26)  # what the cut leaves hanging (beyond the branch) goes with it
+    kept &= lab2 == lab2[tuple(coords[ends[0]])]
+    from dataclasses import replace as _replace
+
+    rim = ndi.binary_dilation(kept, _STRUCT26)  # the kept part's partial voxels stay with it
+    return _replace(wm, binary=kept, occupancy=np.where(rim, wm.occupancy, 0.0).astype(wm.occupancy.dtype)), branches
 
 
 def _context_given(bounds: np.ndarray, tissue: np.ndarray, knots: np.ndarray, asked: float, vox: float,
@@ -700,6 +787,18 @@ def estimate_deformation_iter(
                                     f"{what} are (nearly) the same point; click the two ends of the specimen")
         snapped.append((pa, pb))
     t = _stage("endpoints", timings, t)
+    if len(snapped) == 1:
+        # a specimen that branches between its ends (a Y-shaped graft, a vessel's side branch): the path between
+        # the ends is kept, the other branches are cut off at the junction and left out of the cage
+        wm, branches = _cut_branches(wm, wm.to_working(snapped[0][0]), wm.to_working(snapped[0][1]))
+        if branches:
+            labels, nlab = ndi.label(wm.binary, _STRUCT26)
+            u = unit_label(unit)
+            said = "; ".join(f"{length:.3g} {u} long, {100 * share:.2g} % of the mask, joining at "
+                             f"{np.round(wm.from_working(at), 1).tolist()} (voxels)" for length, share, at in branches)
+            note(f"the mask branches between the ends: {len(branches)} other branch(es) cut off at the junction and "
+                 f"left out of the cage ({said}); give the end of another branch as the tail to straighten along it")
+        t = _stage("branches", timings, t)
 
     # the ends of every part: a quadratic over about one body width instead of the kinks that the point-like
     # Dirichlet ends give the level-set centroids (the cage folds at such kinks)
@@ -785,15 +884,27 @@ def estimate_deformation_iter(
     key_frames = frames[idx]
     if fold_free and half_extent is None:
         yield Progress("keyframes", 0, 1, "per-side cages, tilting the sections where a bend would fold them")
-        key_frames, b, tissue = _fold_free_cages(wm, curve_w, frames, idx, float(min_jacobian), float(cage_margin),
-                                                 float(context))
-        he = np.stack([(b[:, 1] - b[:, 0]) / 2, (b[:, 3] - b[:, 2]) / 2], axis=1)
-        offsets = np.stack([(b[:, 1] + b[:, 0]) / 2, (b[:, 3] + b[:, 2]) / 2], axis=1)
-    deformation = Deformation.from_keyframes(curve[idx] + org, key_frames, he, pad=pd, spacing=tuple(sp),
-                                             origin=tuple(org), unit=unit, offsets=offsets)
-    if fold_free:
-        # where the inner side still reaches the centre of curvature: shrink it (the third way out)
-        deformation = unfold(deformation, eps=float(min_jacobian))
+        tilted, untilted = _fold_free_cages(wm, curve_w, frames, idx, float(min_jacobian), float(cage_margin),
+                                            float(context))
+        candidates = [tilted] if tilted is untilted else [tilted, untilted]
+    else:
+        candidates = [(key_frames, None, None)]
+    mask_pts = wm.from_working(np.argwhere(wm.binary)) * sp + org
+    best = None
+    for key_frames, b, tissue_c in candidates:
+        if b is not None:
+            he = np.stack([(b[:, 1] - b[:, 0]) / 2, (b[:, 3] - b[:, 2]) / 2], axis=1)
+            offsets = np.stack([(b[:, 1] + b[:, 0]) / 2, (b[:, 3] + b[:, 2]) / 2], axis=1)
+        d_c = Deformation.from_keyframes(curve[idx] + org, key_frames, he, pad=pd, spacing=tuple(sp),
+                                         origin=tuple(org), unit=unit, offsets=offsets)
+        if fold_free:
+            # where the inner side still reaches the centre of curvature: shrink it (the third way out)
+            d_c = unfold(d_c, eps=float(min_jacobian))
+        cov_c = coverage(d_c, mask_pts, bin_width=2 * float(max(wm.working_spacing))) if len(candidates) > 1 \
+            else None
+        if best is None or cov_c.fraction > best[0].fraction + 1e-4:  # the tilted cages unless no tilt holds more
+            best = (cov_c, d_c, tissue_c)
+    cov, deformation, tissue = best
     context_given = None
     if context > 0:
         context_given = _context_given(deformation.bounds, tissue, deformation.knots, float(context),
@@ -810,8 +921,8 @@ def estimate_deformation_iter(
     s_dense = np.union1d(np.arange(0.0, deformation.length, vox / 2), deformation.knots)
     jmin = float(deformation.jacobian_min(s_dense).min())
     tilt = max_tilt(deformation)
-    mask_pts = wm.from_working(np.argwhere(wm.binary)) * sp + org
-    cov = coverage(deformation, mask_pts, bin_width=2 * float(max(wm.working_spacing)))
+    if cov is None:
+        cov = coverage(deformation, mask_pts, bin_width=2 * float(max(wm.working_spacing)))
     if cov.lost and sum(f for *_, f in cov.lost) >= 1e-3:
         lost_at = format_lost(cov.lost, unit_label(unit))
         note(f"the cage leaves {100 * (1 - cov.fraction):.2g} % of the mask out ({lost_at}): give a larger cage "

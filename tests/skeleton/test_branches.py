@@ -1,0 +1,100 @@
+"""Branched specimens (issue 23 item 2): a Y-shaped mask is straightened along the path between its two ends, the
+other branch is cut off at the junction, left out of the cage and reported.
+
+The truth is the phantom's own polylines (the trunk and each leg); what the cage holds is measured by
+tests/cage_reference.py's inverse, independent of napari_unwind.warp.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from cage_reference import held
+from scipy.spatial import cKDTree
+
+from napari_unwind.datasets import fish_phantom
+from napari_unwind.progress import run
+from napari_unwind.skeleton import estimate_deformation_iter
+
+
+def y_phantom(seed: int, *, stent: bool = False, shape=(130, 90, 60)):
+    """A tube of radius 4-7 voxels that forks into two straight legs: ``(mask, head, leg A's end, leg B's end,
+    trunk + leg A polyline, trunk + leg B polyline, radius, where the legs part)``: the junction and the distance
+    from it beyond which the two legs' tubes no longer touch. ``stent``: the legs leave at 10-14 degrees
+    each side of the trunk (a bifurcated graft's legs, running side by side), else at 15-35 degrees."""
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(4, 5) if stent else rng.uniform(4, 7)
+    j = np.array([rng.uniform(50, 70), 45.0, 30.0])
+    head = np.array([8.0 + r, 45.0 + rng.uniform(-5, 5), 30.0])
+    ang = np.radians(rng.uniform(10, 14) if stent else rng.uniform(15, 35))
+    a_end = j + rng.uniform(45, 55) * np.array([np.cos(ang), -np.sin(ang), 0])
+    b_end = j + rng.uniform(45 if stent else 30, 55) * np.array([np.cos(ang), np.sin(ang), 0])
+
+    def seg(p0, p1):
+        return p0 + np.linspace(0, 1, 200)[:, None] * (p1 - p0)
+
+    trunk, leg_a, leg_b = seg(head, j), seg(j, a_end), seg(j, b_end)
+    g = np.stack(np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij"), -1).reshape(-1, 3)
+    dist, _ = cKDTree(np.vstack([trunk, leg_a, leg_b])).query(g)
+    mask = (dist <= r).reshape(shape)
+    apart = r / np.sin(ang) + r  # the legs' tubes touch until their centrelines are 2r apart
+    return mask, head, a_end, b_end, np.vstack([trunk, leg_a]), np.vstack([trunk, leg_b]), r, (j, apart)
+
+
+def _solve(mask, ends):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return run(estimate_deformation_iter(mask, ends, spacing=1.0))
+
+
+def _check_follows(result, mask, path, other, r, fork):
+    j, apart = fork
+    d = result.deformation
+    c, _ = d.sample(np.linspace(0, d.length, 600))
+    # where the legs' tubes touch the mask is one blob, whose sections' centres lie between the legs: the curve
+    # is held to the chosen leg from where they part (and on the trunk, three radii before the junction)
+    s_j = float(np.linalg.norm(j - path[0]))
+    along = np.linalg.norm(c - path[0], axis=1)
+    away = (along < s_j - 3 * r) | (np.linalg.norm(c - j, axis=1) > max(3 * r, apart + r))
+    away &= np.linalg.norm(c - path[-1], axis=1) > 2 * r  # the tip's end window (a quadratic over two radii)
+    dev = cKDTree(path).query(c[away])[0]
+    where = np.linalg.norm(c[away][np.argmax(dev)] - j)
+    assert dev.max() <= 1.5, f"the curve strays {dev.max():.1f} voxels from the chosen path, {where:.0f} from the fork"
+    g = np.argwhere(mask).astype(float)
+    on_path = cKDTree(path).query(g)[0] <= r
+    beyond = (cKDTree(other).query(g)[0] <= r) & ~on_path & (np.linalg.norm(g - j, axis=1) > max(3 * r, apart))
+    assert held(d, g[on_path]).mean() >= 0.99
+    # the other leg beyond three radii of the junction: out of the straight volume (all of it was in before)
+    assert held(d, g[beyond]).mean() <= 0.3, held(d, g[beyond]).mean()
+    notes = [w for w in result.warnings if "branches between the ends" in w]
+    assert len(notes) == 1 and "1 other branch" in notes[0] and "% of the mask" in notes[0]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_y_shaped_mask_is_straightened_along_the_chosen_leg(seed):
+    mask, head, a_end, b_end, path_a, path_b, r, fork = y_phantom(seed)
+    _check_follows(_solve(mask, (head, a_end)), mask, path_a, path_b, r, fork)
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_the_other_end_picks_the_other_leg(seed):
+    mask, head, a_end, b_end, path_a, path_b, r, fork = y_phantom(seed)
+    _check_follows(_solve(mask, (head, b_end)), mask, path_b, path_a, r, fork)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_bifurcated_graft_with_legs_side_by_side(seed):
+    mask, head, a_end, b_end, path_a, path_b, r, fork = y_phantom(100 + seed, stent=True)
+    _check_follows(_solve(mask, (head, a_end)), mask, path_a, path_b, r, fork)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_fish_with_its_fins_is_not_taken_for_a_branch(seed):
+    ph = fish_phantom(seed=seed, curve=("s-bend", "c-bend", "helix", "s-bend")[seed])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = run(estimate_deformation_iter(ph.mask, (ph.head, ph.tail), spacing=ph.spacing))
+    assert not any("branches" in w for w in result.warnings)
+    assert result.coverage >= 0.99
