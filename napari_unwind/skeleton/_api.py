@@ -6,7 +6,7 @@ import math
 import time
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -543,10 +543,13 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     A voxel's detour is ``d_head + d_tail - L`` (geodesic distances on the 26-neighbour graph, physical): about
     0 along the path and at most a few radii across it, twice the distance along a side branch from where it
     leaves. The parts whose detour exceeds :data:`_BRANCH_SLACK` inscribed radii are the candidates; one is a
-    branch when its length (half its largest detour, plus the slack) is at least :data:`_BRANCH_MIN_LENGTH` of L
-    and it holds :data:`_BRANCH_MIN_SHARE` of the mask, so that fins and a forked tail stay.
+    branch when its length (half its largest detour, plus the slack) is at least :data:`_BRANCH_MIN_LENGTH` of L,
+    it holds :data:`_BRANCH_MIN_SHARE` of the mask (so that fins and a forked tail stay) and it is a dead end
+    (``d_head - d_tail`` nearly constant over it; a stretch of a coil that the geodesic skipped is not). A branch
+    is cut back to where its detour passes :data:`_BRANCH_BACK` radii, with whatever the cut leaves hanging.
     """
     from scipy.sparse import csgraph
+    from scipy.spatial import cKDTree
 
     from ._endpoints import _graph
 
@@ -555,8 +558,6 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
         return wm, []
     wsp = np.asarray(wm.working_spacing)
     graph, coords = _graph(binary, wsp)
-    from scipy.spatial import cKDTree
-
     ends = [int(i) for i in cKDTree(coords * wsp).query(np.array([head_w, tail_w]) * wsp)[1]]  # nearest voxels
     d = csgraph.dijkstra(graph, directed=False, indices=ends)
     total = float(d[0, ends[1]])
@@ -603,10 +604,8 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     kept = binary & ~cut
     lab2, _ = ndi.label(kept, _STRUCT26)  # what the cut leaves hanging (beyond the branch) goes with it
     kept &= lab2 == lab2[tuple(coords[ends[0]])]
-    from dataclasses import replace as _replace
-
     rim = ndi.binary_dilation(kept, _STRUCT26)  # the kept part's partial voxels stay with it
-    return _replace(wm, binary=kept, occupancy=np.where(rim, wm.occupancy, 0.0).astype(wm.occupancy.dtype)), branches
+    return replace(wm, binary=kept, occupancy=np.where(rim, wm.occupancy, 0.0).astype(wm.occupancy.dtype)), branches
 
 
 def _context_given(bounds: np.ndarray, tissue: np.ndarray, knots: np.ndarray, asked: float, vox: float,
