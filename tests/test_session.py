@@ -663,3 +663,27 @@ def test_schema1_is_migrated_with_centred_cages_and_a_schema2_file_is_newer_for_
     monkeypatch.setattr(S, "SCHEMA_VERSION", 1)
     with pytest.raises(InvalidInputError, match="newer napari-unwind"):
         load_session(path)
+
+
+def test_the_twist_profile_round_trips_and_bad_ones_are_refused(tmp_path, scan):
+    from napari_unwind.session import TwistProfile
+
+    tw = TwistProfile(s=(0.0, 1.5, 3.0), angle=(0.0, 10.0, 20.5), confidence=(0.0, 0.5, 1.0), source="estimated")
+    session = Session(SourceInfo.from_path(scan), twist=tw)
+    path = save_session(session, tmp_path / "twist.unwind.json")
+    assert json.loads(path.read_text())["twist"]["angle"] == [0.0, 10.0, 20.5]
+    assert load_session(path).twist == tw
+    assert "twist" not in Session(SourceInfo.from_path(scan)).to_dict()  # files without it stay as they were
+    for kwargs, match in [(dict(s=(0.0, 1.0), angle=(0.0,), confidence=(0.0, 1.0)), "as long as"),
+                          (dict(s=(1.0, 1.0), angle=(0.0, 0.0), confidence=(0.0, 1.0)), "increase"),
+                          (dict(s=(0.0, 1.0), angle=(0.0, 0.0), confidence=(0.0, 1.5)), r"\[0, 1\]"),
+                          (dict(s=(0.0, 1.0), angle=(0.0, math.nan), confidence=(0.0, 1.0)), "angle"),
+                          (dict(s=(0.0,), angle=(0.0,), confidence=(1.0,), source="guess"), "source")]:
+        with pytest.raises(InvalidInputError, match=match):
+            TwistProfile(**kwargs)
+    d = json.loads(path.read_text())
+    d["twist"]["confidence"] = [0, 2, 1]  # a hand-edited file: the schema names the field
+    bad = tmp_path / "bad.unwind.json"
+    bad.write_text(json.dumps(d))
+    with pytest.raises(InvalidInputError, match="twist"):
+        load_session(bad)
