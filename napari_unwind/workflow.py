@@ -360,6 +360,7 @@ class Workflow:
         self.selection = Selection()
         self.ends: Any = None  # session.Endpoints
         self.skeleton: Skeletonized | None = None
+        self.twist: Any = None  # session.TwistProfile: as the skeleton set it (or a reopened session recorded it)
         self.source_info: Any = None  # SourceInfo of the scan, once its checksum is known
 
     # ---- backend and scan ---------------------------------------------------------------------------------------
@@ -376,7 +377,7 @@ class Workflow:
         self.volume, self.name = volume, name
         if changed:
             self.backend.forget()
-            self.tree = self.features = self.skeleton = self.ends = self.source_info = None
+            self.tree = self.features = self.skeleton = self.ends = self.source_info = self.twist = None
             self.selection = Selection(options=self.options.segment)
         self.scan_changed.emit(volume)
 
@@ -588,6 +589,7 @@ class Workflow:
 
         def apply(result: Skeletonized) -> None:
             self.skeleton = result
+            self.twist = result.twist
             if self.ends is None and result.endpoints is not None:
                 self.set_ends(result.endpoints)
             self.edit.set_deformation(result.deformation)
@@ -640,9 +642,8 @@ class Workflow:
                                seeds=tuple(s.seeds[i] for i in s.ids))
         elif s.mask is not None and s.source is not None:
             seg = Segmentation(mask=s.source, mask_label=s.label)
-        twist = None if self.skeleton is None else self.skeleton.twist  # as the skeleton set it, before edits
         return Session(source=source, deformation=self.edit.deformation, segmentation=seg, endpoints=self.ends,
-                       notes="napari-unwind dock", twist=twist)
+                       notes="napari-unwind dock", twist=self.twist)
 
     def session_or_none(self) -> Any:
         """The session written into an export (None: the scan's checksum is not known yet)."""

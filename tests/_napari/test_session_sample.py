@@ -56,6 +56,7 @@ def test_a_session_saved_from_the_sample_tank_reopens(make_napari_viewer, qtbot,
     assert "tank fish.scan.ome.zarr" in w.session_step.session_info.text()
     recorded = load_session(session)
     assert recorded.source.path == str(scan_file.absolute())
+    assert recorded.twist is not None and recorded.twist.source == "estimated"  # the skeleton's twist profile
     written = open_volume(scan_file)
     np.testing.assert_array_equal(np.asarray(written.data), np.asarray(image.data))
     assert written.spacing == pytest.approx(tuple(image.scale)) and written.unit == w.volume.unit
@@ -71,6 +72,9 @@ def test_a_session_saved_from_the_sample_tank_reopens(make_napari_viewer, qtbot,
     assert w2.model.deformation.to_dict() == d0.to_dict()
     assert w2.endpoints() == ends
     assert w2.selected == selected
+    again = tmp_path / "again.unwind.json"  # saved from the reopened session: the twist profile kept
+    wait(qtbot, w2, w2.save_session(again))
+    assert load_session(again).twist == recorded.twist
 
     # File > Open of the session in a third viewer: the scan, the ends and the curve as layers
     viewer3 = make_napari_viewer()

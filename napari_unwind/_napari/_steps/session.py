@@ -188,6 +188,7 @@ class SessionStep(Step):
             self.workflow.volume = None  # a fresh start, even on the same scan
             dock._set_scan(volume, layer)
             self.workflow.source_info = src if src.checksum else None
+            self.workflow.twist = session.twist
             if session.endpoints is not None:
                 dock.ends_step.show_session_ends(session.endpoints)
             if session.deformation is not None:
