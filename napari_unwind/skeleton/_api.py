@@ -287,6 +287,14 @@ def _across(wm: WorkingMask) -> float:
     return 2.0 * float(ndi.distance_transform_edt(np.pad(wm.binary, 1)).max()) * wm.factor
 
 
+def _slender_working_mask(mask: Any, sp: np.ndarray, volume: Any, max_side: int) -> WorkingMask:
+    """The working mask at ``max_side``, made finer where the body is slender (an eel keeps >= 6 working voxels
+    across, however long it is: :func:`_thin_factor`)."""
+    wm = working_mask(mask, spacing=tuple(sp), volume=volume, max_side=max_side)
+    thin = _thin_factor(wm)
+    return working_mask(mask, spacing=tuple(sp), volume=volume, factor=thin) if thin < wm.factor else wm
+
+
 def _thin_factor(wm: WorkingMask) -> int:
     """The working factor that keeps :data:`_MIN_ACROSS` working voxels across the body's widest section.
 
@@ -724,10 +732,7 @@ def estimate_deformation_iter(
         warnings.warn(msg, UserWarning, stacklevel=3)
 
     yield Progress("working mask", 0, 1, "cropping and averaging")
-    wm = working_mask(mask, spacing=tuple(sp), volume=volume, max_side=max_side)
-    thin = _thin_factor(wm)
-    if thin < wm.factor:  # a slender body (an eel) keeps >= 6 working voxels across, however long it is
-        wm = working_mask(mask, spacing=tuple(sp), volume=volume, factor=thin)
+    wm = _slender_working_mask(mask, sp, volume, max_side)
     across = _across(wm)
     line_voxels = None
     if across < _LINE_ACROSS:  # a centreline drawn as a mask: no cross-section to fit a cage or a twist to
@@ -744,8 +749,7 @@ def estimate_deformation_iter(
         line_voxels = np.argwhere(line != 0).astype(float)
         mask = ndi.distance_transform_edt(line == 0, sampling=sp) <= tube
         estimate_twist = False
-        wm = working_mask(mask, spacing=tuple(sp), volume=volume, max_side=max_side)
-        wm = working_mask(mask, spacing=tuple(sp), volume=volume, factor=min(wm.factor, _thin_factor(wm)))
+        wm = _slender_working_mask(mask, sp, volume, max_side)
     sides = _border_sides(wm)
     if sides:
         note(f"the mask touches the volume's border ({', '.join(sides)}): the specimen may be cut off by the scan's "
