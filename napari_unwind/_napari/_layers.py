@@ -223,12 +223,16 @@ class LabelsIn3D(_In3D):
         if self._closed:
             return
         layers = self.viewer.layers
+        if self.layer in layers:
+            # silenced in 2D already (the node draws in 3D only): napari's own handlers of the switch run before
+            # any plugin's, and its layer controls make Qt paint the canvas there, in 3D (that paint ray cast every
+            # Labels layer: 1.7 s of a 2.2 s switch on a 440 x 148 x 148 tank)
+            self._silence_volume()
         if self.layer not in layers or self.viewer.dims.ndisplay != 3:
             self._remove_surface()
             if self.layer in layers:
                 self._build_ahead()
             return
-        self._silence_volume()
         layer = self.layer
         key = self._data_key()
         if self._key != key:
