@@ -42,6 +42,11 @@ def curve_vectors(d: Deformation) -> np.ndarray:
     return _segments(c)
 
 
+def _curve_part(d: Deformation) -> tuple[np.ndarray, np.ndarray]:
+    curve = curve_vectors(d)
+    return curve, np.tile(_CURVE, (len(curve), 1))
+
+
 def frame_vectors(d: Deformation, selected: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Each keyframe's u and v from its position, as long as its cage's half-sizes; and their colours."""
     pos = d.positions
@@ -108,16 +113,27 @@ class BentOverlays:
             if active is not None and active in layers:
                 layers.selection.active = active
 
-    def update(self, d: Deformation | None, s: float | None = None, keyframe: int | None = None) -> None:
-        """Redraw for deformation ``d`` at position ``s`` with keyframe ``keyframe`` selected (None: remove)."""
+    def update(self, d: Deformation | None, s: float | None = None, keyframe: int | None = None, *,
+               new_layers: int | None = None) -> bool:
+        """Redraw for deformation ``d`` at position ``s`` with keyframe ``keyframe`` selected (None: remove).
+
+        At most ``new_layers`` of the three layers are added in this call (None: all): napari's cost of adding a
+        layer is 85-100 ms on software GL, so the dock adds one per turn of the event loop and calls again.
+        Returns True when all three are in the viewer and up to date."""
         if d is None:
             self.remove()
-            return
+            return True
         width = float(max(d.spacing))
-        curve = curve_vectors(d)
-        self._put(CURVE, curve, np.tile(_CURVE, (len(curve), 1)), width)
-        self._put(FRAMES, *frame_vectors(d, keyframe), width)
-        self._put(CAGE, *cage_vectors(d, s), 0.5 * width)
+        budget = 3 if new_layers is None else int(new_layers)
+        parts = ((CURVE, lambda: _curve_part(d), width), (FRAMES, lambda: frame_vectors(d, keyframe), width),
+                 (CAGE, lambda: cage_vectors(d, s), 0.5 * width))
+        for name, make, w in parts:
+            if name not in self.viewer.layers:
+                if budget <= 0:
+                    return False
+                budget -= 1
+            self._put(name, *make(), w)
+        return True
 
     def remove(self) -> None:
         for name in OVERLAY_NAMES:

@@ -431,7 +431,8 @@ class RefinePanel(QWidget):
             self._folds = (d, m.folds())
             self.strip.set_state(d.length, m.s, d.knots, self._folds[1], m.keyframe)
             self._label(d, self._folds[1])
-        self.overlays.update(d, m.s, m.keyframe)
+        if not self.overlays.update(d, m.s, m.keyframe, new_layers=1):
+            self._slow.start()  # one new wireframe layer per turn of the event loop (each costs napari ~0.1 s)
 
     def _label(self, d: Any, folds: list[tuple[float, float]]) -> None:
         m = self.model

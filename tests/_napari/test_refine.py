@@ -62,6 +62,7 @@ def corners(k):
 
 def test_the_bent_view_layers_follow_every_edit(panel, qtbot):
     p, model, viewer, vol, d = panel
+    qtbot.waitUntil(lambda: not p.pending)  # the three layers, one per turn of the event loop
     for name in (CURVE, FRAMES, CAGE):
         assert name in viewer.layers
     model.move(2.0, -1.5)
@@ -221,3 +222,20 @@ def test_the_live_view_says_why_when_it_cannot_start(panel, qtbot, monkeypatch):
     assert p.live is None and not p.live_check.isChecked()
     assert "not available: napari-unwind's live straight view needs napari 0.9.x" in p.live_label.text()
     assert p.preview.enabled
+
+
+def test_the_wireframe_layers_are_added_one_per_turn_of_the_event_loop(make_napari_viewer):
+    """Adding a layer costs napari 85-100 ms on software GL: three at once stalled the UI 0.3 s when a skeleton
+    arrived. Each call adds at most ``new_layers`` and says whether all three are there."""
+    from napari_unwind._napari._overlays import BentOverlays
+
+    viewer = make_napari_viewer()
+    overlays = BentOverlays(viewer)
+    d = bent_deformation()
+    added = []
+    viewer.layers.events.inserted.connect(lambda event: added.append(event.value.name))
+    done = [overlays.update(d, 0.0, None, new_layers=1) for _ in range(3)]
+    assert done == [False, False, True] and added == [CURVE, FRAMES, CAGE]
+    assert overlays.update(d, 1.0, 1, new_layers=1) and len(added) == 3   # all there: updated, none added
+    overlays.remove()
+    assert overlays.update(d) and len(added) == 6                          # no budget: all three at once
