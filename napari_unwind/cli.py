@@ -241,6 +241,57 @@ def cmd_straighten(args: argparse.Namespace) -> int:
     return 0
 
 
+def _channel_arg(text: str) -> tuple[str, str]:
+    """``NAME=PATH`` or ``PATH`` (named by its file name) for ``unwind measure --channel``."""
+    name, sep, path = text.partition("=")
+    if not sep:
+        path = text
+        name = Path(text).name.split(".")[0] or "intensity"
+    if not name or not path:
+        raise argparse.ArgumentTypeError(f"takes NAME=PATH or PATH, got {text!r}")
+    return name, path
+
+
+def cmd_measure(args: argparse.Namespace) -> int:
+    from .io import open_volume
+    from .io._atomic import check_writable
+    from .measure import measure_iter
+
+    if Path(args.output).suffix.lower() != ".csv":
+        raise UnwindError(f"the profile is written as CSV: give an output ending in .csv, got {args.output}")
+    check_writable(args.output, overwrite=args.overwrite)
+    session = _load_session_for(args, None, [args.output],
+                                [x for x in (args.mask, args.labels, *[c for _, c in args.channel]) if x])
+    seg = session.segmentation
+    mask_path = args.mask or (seg.mask if seg is not None else None)
+    if mask_path is None and not args.channel and args.labels is None:
+        print("note: no mask (the session's selection was not a mask file; give --mask): the curve and the cage only",
+              file=sys.stderr)
+    mask = None
+    if mask_path is not None:
+        mask = open_volume(mask_path)
+        label = seg.mask_label if (seg is not None and not args.mask) else None
+        if label is not None:
+            from .io import Volume
+
+            mask = Volume((mask.data == label).astype("uint8"), spacing=mask.spacing, origin=mask.origin,
+                          unit=mask.unit)
+    channels = {}
+    for name, path in args.channel:
+        if name in channels:
+            raise UnwindError(f"two channels are named {name!r}: name them with --channel NAME=PATH")
+        channels[name] = open_volume(path)
+    labels = open_volume(args.labels) if args.labels else None
+    t0 = time.perf_counter()
+    profile = _run_with_bar(measure_iter(session.deformation, mask=mask, labels=labels, channels=channels or None,
+                                         spacing=args.spacing), args.quiet)
+    written = profile.to_csv(args.output, overwrite=args.overwrite)
+    if not args.quiet:
+        print(f"measured {len(profile)} stations ({len(profile.columns)} columns) in "
+              f"{time.perf_counter() - t0:.1f} s -> {written}")
+    return 0
+
+
 def cmd_bend(args: argparse.Namespace) -> int:
     from types import SimpleNamespace
 
@@ -912,6 +963,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
     _add_input_options(p)
     p.set_defaults(func=cmd_straighten)
+
+    p = sub.add_parser("measure", help="measure the specimen along the session's centreline: a CSV profile")
+    p.add_argument("--session", required=True, help="the session file (*.unwind.json) holding the deformation")
+    p.add_argument("--mask", default=None,
+                   help="the specimen mask on the scan's grid (default: the session's mask file, when it has one)")
+    p.add_argument("--labels", default=None, help="a label image on the scan's grid: an area column per label")
+    p.add_argument("--channel", action="append", type=_channel_arg, default=[], metavar="[NAME=]PATH",
+                   help="an intensity image on the scan's grid (repeatable): mean, std, min, max per station")
+    p.add_argument("--spacing", type=_positive, default=None,
+                   help="station spacing and section pixel size (default: finest scan spacing)")
+    p.add_argument("-o", "--output", required=True, help="the profile (.csv)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+    p.set_defaults(func=cmd_measure)
 
     p = sub.add_parser("bend", help="put a straight volume back into the pose of the session's scan")
     p.add_argument("input", help="a straight volume (e.g. from unwind straighten, or stained and edited)")

@@ -1,0 +1,415 @@
+"""Measurements along the centreline of a deformation: a profile with one row per station ``s``.
+
+Per station (``s`` from 0 to the deformation's length, one output spacing apart):
+
+- the curve: arc length ``s``, the centre (physical, array axis order), the curvature and torsion of the centre
+  curve (a cubic spline through the keyframe positions, parametrised by their arc lengths), the twist the frames
+  apply (their roll about the tangent against rotation-minimising frames, cumulated from ``s = 0``, degrees) and
+  its rate;
+- the cage: its half-sizes and centre offset in the cross-section;
+- with a mask: the specimen's cross-section in the straight space (the mask resampled linearly, so a voxel cut by
+  the boundary counts by its share): area, perimeter (marching squares at 0.5), equivalent radius, the centroid's
+  offset from the curve, major and minor axes (4 sqrt of the area-weighted second moments' eigenvalues: a disk of
+  radius r gives 2r), eccentricity and the major axis's angle to u;
+- with labels: the area of each label (nearest-neighbour resampling);
+- with channels: intensity statistics (mean, standard deviation, minimum, maximum) of each channel over the
+  cross-section (inside the mask when one is given, the whole cage otherwise).
+
+The straight slices are computed chunk by chunk (:func:`napari_unwind.warp.straighten`), so memory is bounded by one
+chunk of the straight volume per input. Units: lengths in the deformation's unit, areas in its square, curvature
+and torsion in its inverse, angles in degrees.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Generator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .deformation import Deformation
+from .errors import InvalidInputError
+from .progress import Progress, run as run_with_progress
+
+__all__ = ["Profile", "measure", "measure_iter", "curve_geometry", "MAX_LABELS"]
+
+#: At most this many labels get an area column each (a label image with more is refused, naming the count).
+MAX_LABELS = 256
+
+
+@dataclass(frozen=True)
+class Profile:
+    """A table of measurements along the centreline.
+
+    Attributes
+    ----------
+    columns : dict of str to ndarray, each shape (K,)
+        Column name to values, in the order written; ``"s"`` first.
+    units : dict of str to str
+        Column name to its unit ("" for dimensionless numbers).
+    unit : str or None
+        The length unit of the deformation.
+    """
+
+    columns: dict[str, np.ndarray]
+    units: dict[str, str] = field(default_factory=dict)
+    unit: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.columns["s"])
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.columns[name]
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.columns)
+
+    def header(self) -> list[str]:
+        """Column names with their units, as written to CSV: ``"area [mm^2]"``."""
+        return [f"{n} [{self.units[n]}]" if self.units.get(n) else n for n in self.columns]
+
+    def to_csv(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+        """Write the table as CSV (a header of names with units, then one row per station), atomically."""
+        import csv
+        import io
+
+        from .io._atomic import atomic_output
+
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(self.header())
+        table = np.column_stack([np.asarray(v, dtype=float) for v in self.columns.values()])
+        for row in table:
+            w.writerow(["" if not np.isfinite(x) else f"{x:.9g}" for x in row])
+        path = Path(path)
+        with atomic_output(path, overwrite=overwrite) as tmp:
+            Path(tmp).write_text(buf.getvalue(), encoding="utf-8")
+        return path
+
+
+def _unit(unit: str | None, power: int = 1) -> str:
+    from .io._volume import unit_label
+
+    u = unit_label(unit) if unit else "voxel"
+    return u if power == 1 else (f"{u}^{power}" if power > 0 else f"1/{u}")
+
+
+def _rotvec_about_n(frames: np.ndarray) -> np.ndarray:
+    """Signed rotation (radians) about the tangent between consecutive frames (rows u, v, n), shape (K - 1,)."""
+    from scipy.spatial.transform import Rotation
+
+    r = Rotation.from_matrix(frames.transpose(0, 2, 1))         # columns u, v, n
+    rel = (r[:-1].inv() * r[1:]).as_rotvec()                     # in the first frame's coordinates
+    return rel[:, 2]                                             # the component about its n
+
+
+def curve_geometry(deformation: Deformation, s: np.ndarray) -> dict[str, np.ndarray]:
+    """Curvature, torsion and the frames' twist of a deformation at arc lengths ``s``.
+
+    Parameters
+    ----------
+    deformation : Deformation
+    s : ndarray, shape (K,)
+        Increasing arc lengths in ``[0, L]``.
+
+    Returns
+    -------
+    dict
+        ``"curvature"``, ``"torsion"`` (1/length, of a not-a-knot cubic spline through the keyframe positions at
+        their arc lengths; a deformation of two or three keyframes is a straight line or a parabola there),
+        ``"twist"`` (degrees, the frames' roll about the tangent cumulated from the first station) and
+        ``"twist_rate"`` (degrees per length), each shape (K,).
+    """
+    from scipy.interpolate import CubicSpline
+
+    s = np.asarray(s, dtype=float)
+    knots, pos = deformation.knots, deformation.positions
+    if len(knots) >= 4:
+        spline = CubicSpline(knots, pos, axis=0, bc_type="not-a-knot")
+        d1, d2, d3 = spline(s, 1), spline(s, 2), spline(s, 3)
+    else:  # a line (2) or a parabola (3) through the keyframes
+        deg = len(knots) - 1
+        coef = [np.polyfit(knots, pos[:, a], deg) for a in range(3)]
+        d1, d2, d3 = (np.stack([np.polyval(np.polyder(c, m), s) for c in coef], axis=1) for m in (1, 2, 3))
+    cross = np.cross(d1, d2)
+    speed = np.linalg.norm(d1, axis=1)
+    cn = np.linalg.norm(cross, axis=1)
+    curvature = cn / np.maximum(speed, 1e-12) ** 3
+    with np.errstate(invalid="ignore", divide="ignore"):
+        torsion = np.where(cn > 1e-12 * np.maximum(speed, 1e-12) ** 3,
+                           np.einsum("ij,ij->i", cross, d3) / np.maximum(cn, 1e-300) ** 2, 0.0)
+    _, frames = deformation.sample(s)
+    if len(s) > 1:
+        steps = np.degrees(_rotvec_about_n(frames))
+        twist = np.concatenate([[0.0], np.cumsum(steps)])
+        rate = np.gradient(twist, s) if len(s) > 2 else np.full(len(s), steps[0] / max(s[1] - s[0], 1e-12))
+    else:
+        twist, rate = np.zeros(1), np.zeros(1)
+    return {"curvature": curvature, "torsion": torsion, "twist": twist, "twist_rate": rate}
+
+
+def _section(f: np.ndarray, ds: float, grid_centre: tuple[float, float], sigma: float = 0.0,
+             blur: np.ndarray | float = 0.0) -> tuple[float, ...]:
+    """Area, perimeter, centroid (x, y), major, minor, eccentricity, angle of one straight slice ``f`` (y, x) of
+    mask shares in [0, 1], pixels ``ds`` apart, the curve at pixel ``grid_centre`` (i0, j0); the perimeter is
+    measured on ``f`` smoothed by a Gaussian of ``sigma`` pixels; ``blur`` (2 x 2, physical, x then y) is taken
+    from the second moments: what the linear resampling added to them."""
+    from scipy.ndimage import gaussian_filter
+    from skimage.measure import find_contours
+
+    total = float(f.sum())
+    if total <= 0:
+        return (0.0, 0.0) + (np.nan,) * 6
+    area = total * ds * ds
+    perimeter = 0.0
+    pad = 1 + int(np.ceil(3 * sigma))
+    padded = np.pad(f, pad)                       # closed contours where the section meets the cage's side
+    if sigma > 0:
+        padded = gaussian_filter(padded, sigma)
+    for c in find_contours(padded, 0.5):
+        perimeter += float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
+    perimeter *= ds
+    ii, jj = np.indices(f.shape, dtype=float)
+    ci, cj = float((f * ii).sum() / total), float((f * jj).sum() / total)
+    di, dj = ii - ci, jj - cj
+    mii, mjj, mij = (f * di * di).sum() / total, (f * dj * dj).sum() / total, (f * di * dj).sum() / total
+    cov = np.array([[mjj, mij], [mij, mii]]) * ds * ds - blur   # (x, y), physical; less the resampling's spread
+    w, vecs = np.linalg.eigh(cov)
+    lo, hi = max(float(w[0]), 0.0), max(float(w[1]), 0.0)
+    major, minor = 4.0 * np.sqrt(hi), 4.0 * np.sqrt(lo)
+    ecc = float(np.sqrt(max(0.0, 1.0 - lo / hi))) if hi > 0 else 0.0
+    vx, vy = vecs[:, 1]
+    angle = float(np.degrees(np.arctan2(vy, vx)))
+    angle = (angle + 90.0) % 180.0 - 90.0         # an axis, not a direction: (-90, 90]
+    x0, y0 = (cj - grid_centre[1]) * ds, (ci - grid_centre[0]) * ds
+    return area, perimeter, x0, y0, major, minor, ecc, angle
+
+
+def _as_channels(channels: Any) -> dict[str, Any]:
+    if channels is None:
+        return {}
+    if isinstance(channels, Mapping):
+        out = {str(k): v for k, v in channels.items()}
+    elif isinstance(channels, Sequence) and not isinstance(channels, (str, bytes)) and not hasattr(channels, "shape"):
+        out = {f"channel{i}": v for i, v in enumerate(channels)}
+    else:
+        out = {"intensity": channels}
+    for name in out:
+        if not name or any(ch in name for ch in ",\n\r\"[]"):
+            raise InvalidInputError(f"a channel name must be plain text without commas, quotes or brackets, "
+                                    f"got {name!r}")
+    return out
+
+
+def measure_iter(
+    deformation: Deformation,
+    *,
+    mask: Any = None,
+    labels: Any = None,
+    channels: Any = None,
+    spacing: float | None = None,
+    chunk: int = 64,
+) -> Generator[Progress, None, Profile]:
+    """:func:`measure` as a generator of :class:`~napari_unwind.progress.Progress`; returns the Profile."""
+    from .warp import map_labels, straighten
+
+    if not isinstance(deformation, Deformation):
+        raise InvalidInputError(f"measure needs a Deformation, got {type(deformation).__name__}")
+    chunk = int(chunk)
+    if chunk < 1:
+        raise InvalidInputError(f"chunk must be a positive number of stations, got {chunk}")
+    chans = _as_channels(channels)
+    d = deformation
+    ds = d._ds(spacing)
+    n_out, ny, nx = d.output_shape(ds)
+    s_lo = d.s_range[0]
+    # the stations: output slices with 0 <= s <= L (the deformation's own padding left out)
+    k0 = int(np.ceil((0.0 - s_lo) / ds - 1e-9))
+    k1 = int(np.floor((d.length - s_lo) / ds + 1e-9))
+    k0, k1 = max(k0, 0), min(k1, n_out - 1)
+    if k1 < k0:
+        raise InvalidInputError(f"the deformation is shorter ({d.length:g}) than one station ({ds:g}): give a "
+                                "smaller spacing")
+    ks = np.arange(k0, k1 + 1)
+    s = s_lo + ks * ds
+    unit = d.unit
+    L, A, inv = _unit(unit), _unit(unit, 2), _unit(unit, -1)
+    cols: dict[str, np.ndarray] = {"s": s}
+    units: dict[str, str] = {"s": L}
+    centres, _ = d.sample(s)
+    for a in range(3):
+        cols[f"centre_{a}"] = centres[:, a]
+        units[f"centre_{a}"] = L
+    geo = curve_geometry(d, s)
+    cols.update(geo)
+    units.update(curvature=inv, torsion=inv, twist="deg", twist_rate=f"deg/{L}")
+    he, off = d.half_extent_at(s), d.offset_at(s)
+    for name, values in (("cage_half_x", he[:, 0]), ("cage_half_y", he[:, 1]), ("cage_offset_x", off[:, 0]),
+                         ("cage_offset_y", off[:, 1])):
+        cols[name], units[name] = values, L
+
+    chunks = (chunk, ny, nx)
+    inputs: dict[str, Any] = {}
+    if mask is not None:
+        m = _as_array(mask)
+        if m.dtype != bool and not np.issubdtype(m.dtype, np.integer):
+            raise InvalidInputError(f"the mask must be boolean or integer (non-zero = specimen), got {m.dtype}")
+        inputs["mask"] = straighten(_on_grid(mask, m != 0, np.float32), d, order=1, spacing=ds, chunks=chunks,
+                                    max_output=None).data
+    label_ids: np.ndarray | None = None
+    if labels is not None:
+        lab = _as_array(labels)
+        if not np.issubdtype(lab.dtype, np.integer):
+            raise InvalidInputError(f"labels must be an integer image, got {lab.dtype}")
+        inputs["labels"] = map_labels(labels, d, spacing=ds, chunks=chunks, max_output=None)
+    for name, ch in chans.items():
+        inputs[f"channel:{name}"] = straighten(ch, d, order=1, spacing=ds, chunks=chunks, max_output=None).data
+    if chans and mask is None:  # the cross-section is the cage where it samples the scan
+        import dask.array as da
+
+        first = _as_array(next(iter(chans.values())))
+        inputs["mask"] = straighten(_on_grid(next(iter(chans.values())), da.ones(first.shape, chunks=64),
+                                             np.float32), d, order=1, spacing=ds, chunks=chunks,
+                                    max_output=None).data
+    grid_centre = d.grid_centre(ds)
+    # the perimeter's contour is taken on the section smoothed by half a scan voxel: the resampled binary mask is a
+    # staircase, whose 0.5-contour is 3-5 % longer than the boundary it samples (a disk of 6 voxels)
+    sigma = 0.5 * max(d.spacing) / ds
+    # linear resampling spreads each scan voxel over a tent of its size: h^2 / 6 more second moment along each scan
+    # axis, seen in the section through its frame (a disk of 5 voxels read 4 % wide without this)
+    _, fr = d.sample(s)
+    h2 = np.asarray(d.spacing) ** 2 / 6.0
+    uv = fr[:, :2, :]                                            # (K, 2, 3): u and v in scan axes
+    blur = np.einsum("kia,a,kja->kij", uv, h2, uv)
+    sect = np.full((len(s), 8), np.nan) if mask is not None else None
+    label_area: dict[int, np.ndarray] = {}
+    stats = {name: np.full((len(s), 4), np.nan) for name in chans}
+    n_chunks = -(-len(ks) // chunk)
+    yield Progress("measure", 0, n_chunks, f"{len(s)} stations")
+    import dask
+
+    for c in range(n_chunks):
+        a, b = k0 + c * chunk, min(k0 + (c + 1) * chunk, k1 + 1)
+        names = list(inputs)
+        blocks = dask.compute(*[inputs[n][a:b] for n in names], scheduler="threads")
+        got = dict(zip(names, blocks, strict=True))
+        rows = slice(a - k0, b - k0)
+        fm = got.get("mask")
+        if fm is not None:
+            fm = np.clip(np.asarray(fm, dtype=np.float64), 0.0, 1.0)
+            if sect is not None:
+                sect[rows] = [_section(sl, ds, grid_centre, sigma, blur[a - k0 + i]) for i, sl in enumerate(fm)]
+        if "labels" in got:
+            lb = np.asarray(got["labels"])
+            ids, counts = _label_counts(lb)
+            for i, row in zip(*np.nonzero(counts), strict=True):
+                label = int(ids[row])
+                label_area.setdefault(label, np.zeros(len(s)))[a - k0 + i] = counts[i, row] * ds * ds
+            if len(label_area) > MAX_LABELS:
+                raise InvalidInputError(f"the label image has more than {MAX_LABELS} labels along the specimen; "
+                                        "give a label image of the parts to measure")
+        for name in chans:
+            v = np.asarray(got[f"channel:{name}"], dtype=np.float64)
+            inside = fm >= 0.5
+            for i in range(v.shape[0]):
+                vals = v[i][inside[i]]
+                if vals.size:
+                    stats[name][a - k0 + i] = (vals.mean(), vals.std(), vals.min(), vals.max())
+        yield Progress("measure", c + 1, n_chunks)
+    if sect is not None:
+        for j, (name, u) in enumerate((("area", A), ("perimeter", L), ("centroid_x", L), ("centroid_y", L),
+                                       ("major_axis", L), ("minor_axis", L), ("eccentricity", ""),
+                                       ("major_angle", "deg"))):
+            cols[name], units[name] = sect[:, j], u
+            if name == "perimeter":
+                cols["radius"], units["radius"] = np.sqrt(sect[:, 0] / np.pi), L
+    for label in sorted(label_area):
+        cols[f"area_label_{label}"], units[f"area_label_{label}"] = label_area[label], A
+    for name, st in stats.items():
+        for j, what in enumerate(("mean", "std", "min", "max")):
+            cols[f"{name}_{what}"], units[f"{name}_{what}"] = st[:, j], ""
+    return Profile(columns=cols, units=units, unit=unit)
+
+
+def measure(deformation: Deformation, *, mask: Any = None, labels: Any = None, channels: Any = None,
+            spacing: float | None = None, chunk: int = 64, progress: Any = None) -> Profile:
+    """Measure a specimen along its deformation's centreline.
+
+    Parameters
+    ----------
+    deformation : Deformation
+        The centreline, its frames and cage.
+    mask : array-like or Volume, shape (N0, N1, N2), optional
+        The specimen on the deformation's scan grid (non-zero inside): gives the cross-section columns.
+    labels : integer array-like or Volume, shape (N0, N1, N2), optional
+        A label image on the same grid: one area column per label met along the specimen (at most
+        :data:`MAX_LABELS`).
+    channels : array-like, Volume, list or dict of them, optional
+        Intensity images on the same grid (a dict names them; a list is ``channel0, channel1, ...``; a single
+        image is ``intensity``): mean, std, min and max per station over the cross-section (inside the mask when
+        given).
+    spacing : float, optional
+        Station spacing and the cross-sections' pixel size (physical units); default the finest scan spacing.
+    chunk : int
+        Stations computed together (bounds memory: one chunk of the straight volume per input).
+    progress : callable, optional
+        Called with each :class:`~napari_unwind.progress.Progress`.
+
+    Returns
+    -------
+    Profile
+        One row per station ``s`` in ``[0, L]``, ``spacing`` apart.
+
+    Raises
+    ------
+    InvalidInputError
+        For inputs off the deformation's grid (their geometry is compared as in
+        :func:`~napari_unwind.warp.straighten`), a mask or labels of the wrong type, too many labels.
+    """
+    return run_with_progress(measure_iter(deformation, mask=mask, labels=labels, channels=channels,
+                                          spacing=spacing, chunk=chunk), progress)
+
+
+def _as_array(value: Any) -> Any:
+    from .io import Volume
+
+    if isinstance(value, (str, os.PathLike)):
+        from .io import open_volume
+
+        value = open_volume(value)
+    data = value.data if isinstance(value, Volume) else value
+    if not hasattr(data, "dtype"):
+        data = np.asarray(data)
+    return data
+
+
+def _on_grid(original: Any, data: Any, dtype: Any) -> Any:
+    """``data`` (derived from ``original``'s voxels) with ``original``'s geometry when it is a Volume."""
+    from .io import Volume
+
+    if isinstance(original, (str, os.PathLike)):
+        from .io import open_volume
+
+        original = open_volume(original)
+    data = data.astype(dtype)
+    if isinstance(original, Volume):
+        return Volume(data, spacing=original.spacing, origin=original.origin, unit=original.unit)
+    return data
+
+
+def _label_counts(lb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Labels present in a block (without 0) and their pixel count per slice, shape (n_slices, n_labels)."""
+    ids = np.unique(lb)
+    ids = ids[ids != 0]
+    if ids.size == 0:
+        return ids, np.zeros((lb.shape[0], 0), dtype=np.int64)
+    idx = np.searchsorted(ids, lb)
+    idx = np.where(lb == 0, len(ids), np.clip(idx, 0, len(ids)))
+    counts = np.zeros((lb.shape[0], len(ids) + 1), dtype=np.int64)
+    for i in range(lb.shape[0]):
+        counts[i] = np.bincount(idx[i].ravel(), minlength=len(ids) + 1)
+    return ids, counts[:, :-1]
