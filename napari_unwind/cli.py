@@ -219,16 +219,25 @@ def cmd_straighten(args: argparse.Namespace) -> int:
     from .warp import FoldWarning, export_iter
 
     _check_output(args.output, args.overwrite)
-    session = _load_session_for(args, args.input, [args.output], [args.input])
+    session = _load_session_for(args, None if args.same_grid else args.input, [args.output], [args.input])
     volume = open_volume(args.input, **_reader_options(args, args.input))
+    if args.same_grid:
+        _check_same_grid(session, volume, args.input)
     deformation = session.deformation
     _check_folds(deformation, args.allow_folds)
+    embedded = session
+    if args.same_grid:  # the output's own session records the image it was made from
+        from dataclasses import replace
+
+        from .session import SourceInfo
+
+        embedded = replace(session, channels=(*session.channels, SourceInfo.from_path(args.input, volume=volume)))
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FoldWarning)  # reported above
         written = _run_with_bar(
             export_iter(volume, deformation, args.output, order=args.order, spacing=args.spacing, pad=args.pad,
-                        chunks=args.chunks, overwrite=args.overwrite, session=session.to_dict(),
+                        chunks=args.chunks, overwrite=args.overwrite, session=embedded.to_dict(),
                         scheduler=args.scheduler, **_max_output(args)),
             args.quiet,
         )
@@ -290,6 +299,15 @@ def cmd_measure(args: argparse.Namespace) -> int:
         print(f"measured {len(profile)} stations ({len(profile.columns)} columns) in "
               f"{time.perf_counter() - t0:.1f} s -> {written}")
     return 0
+
+
+def _check_same_grid(session: Any, volume: Any, path: str) -> None:
+    """``--same-grid``: another image of the session's scan grid (a channel, a stain) has its shape; its spacing and
+    origin are compared with the deformation's by the warp itself."""
+    src = session.source
+    if tuple(volume.shape) != tuple(src.shape):
+        raise UnwindError(f"{path} has shape {_fmt_triple(volume.shape)}, the session's scan "
+                          f"{_fmt_triple(src.shape)}: --same-grid takes images of the scan's own grid")
 
 
 def cmd_bend(args: argparse.Namespace) -> int:
@@ -959,6 +977,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="dask.distributed scheduler address (tcp://host:8786) to run on a cluster")
     p.add_argument("--allow-folds", action="store_true", help="export even where the deformation folds")
     p.add_argument("--no-verify", action="store_true", help="skip checking the scan against the session's checksum")
+    p.add_argument("--same-grid", action="store_true",
+                   help="INPUT is another image of the session's scan grid (a channel, a stain): check its shape, "
+                        "spacing and origin instead of the scan's checksum; the output's session records it")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
     _add_input_options(p)

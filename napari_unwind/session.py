@@ -735,6 +735,9 @@ class Session:
         Free text.
     twist : TwistProfile or None
         The twist along the curve and where it was estimated (written by the skeleton solve).
+    channels : tuple of SourceInfo
+        Other images of the scan's grid (channels, stains) the deformation was applied to (``unwind straighten
+        OTHER --same-grid`` records its image in the session it embeds in the output).
     software, software_version : str
         The program that last wrote the file (set by :func:`save_session`).
     created, modified : str
@@ -754,6 +757,7 @@ class Session:
     created: str = field(default_factory=_utcnow)
     modified: str | None = None
     twist: TwistProfile | None = None
+    channels: tuple[SourceInfo, ...] = ()
 
     def __post_init__(self) -> None:
         for name, kind in (("source", SourceInfo), ("deformation", Deformation), ("segmentation", Segmentation),
@@ -762,6 +766,9 @@ class Session:
             if not isinstance(value, kind) and not (value is None and name != "source"):
                 raise InvalidInputError(f"session.{name} must be a {kind.__name__}"
                                         f"{'' if name == 'source' else ' or None'}, got {type(value).__name__}")
+        self.channels = tuple(self.channels)
+        if not all(isinstance(c, SourceInfo) for c in self.channels):
+            raise InvalidInputError("session.channels must hold SourceInfo records")
         _string(self.notes, "notes")
         _string(self.software, "software.name")
         _string(self.software_version, "software.version")
@@ -783,6 +790,7 @@ class Session:
             "endpoints": None if self.endpoints is None else self.endpoints.to_dict(),
             "notes": self.notes,
             **({} if self.twist is None else {"twist": self.twist.to_dict()}),  # files without it stay as they were
+            **({"channels": [c.to_dict() for c in self.channels]} if self.channels else {}),
         }
 
     @classmethod
@@ -813,6 +821,7 @@ class Session:
             created=_require(d, "created", ""),
             modified=_require(d, "modified", ""),
             twist=None if d.get("twist") is None else TwistProfile.from_dict(d["twist"]),
+            channels=tuple(SourceInfo.from_dict(c) for c in d.get("channels") or ()),
         )
 
 

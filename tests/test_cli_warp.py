@@ -103,3 +103,35 @@ def test_map_points_bad_csv(case, tmp_path):
     bad.write_text("1,2,3\n4,five,6\n")
     code, _, err = _run("map-points", bad, "--session", session)
     assert code == 1 and "line 2" in err
+
+
+def test_another_channel_of_the_same_grid_is_straightened_with_the_session(case, tmp_path):
+    """Issue 24 item 1: ``--same-grid`` takes another image of the scan's grid (here 2 x the scan, float32): checked
+    by shape, spacing and origin instead of the checksum, straightened with the session's deformation (linear
+    interpolation is linear: twice the scan's straight volume), and the output's own session records the image."""
+    import json
+
+    import zarr
+
+    tmp, fish, scan, session, d = case
+    other = write_volume(fish.volume.astype(np.float32) * 2, tmp_path / "channel2.nrrd", spacing=fish.spacing,
+                         unit=fish.unit)
+    code, _, err = _run("straighten", other, "--session", session, "-o", tmp_path / "refused.zarr", "-q")
+    assert code == 1 and "has changed since this session was made" in err      # without the flag: the checksum
+    out1, out2 = tmp_path / "scan.ome.zarr", tmp_path / "channel2.ome.zarr"
+    assert _run("straighten", scan, "--session", session, "-o", out1, "-q")[0] == 0
+    code, _, err = _run("straighten", other, "--session", session, "--same-grid", "-o", out2, "-q")
+    assert code == 0, err
+    a, b = open_volume(out1).data.compute(), open_volume(out2).data.compute()
+    np.testing.assert_allclose(b, 2.0 * a, rtol=0, atol=1.0 + 1e-3)   # the scan's straight volume is uint16 (rounded)
+    attrs = json.loads(json.dumps(dict(zarr.open_group(str(out2), mode="r").attrs)))
+    text = json.dumps(attrs)
+    assert "channel2.nrrd" in text and '"channels"' in text
+    # another grid is refused in one line, before any work
+    small = write_volume(fish.volume[:-4], tmp_path / "small.nrrd", spacing=fish.spacing, unit=fish.unit)
+    code, _, err = _run("straighten", small, "--session", session, "--same-grid", "-o", tmp_path / "x.zarr", "-q")
+    assert code == 1 and "--same-grid" in err and "shape" in err and len(err.strip().splitlines()) == 1
+    coarse = write_volume(fish.volume, tmp_path / "coarse.nrrd", spacing=(2.0, 2.0, 2.0), unit=fish.unit)
+    code, _, err = _run("straighten", coarse, "--session", session, "--same-grid", "-o", tmp_path / "y.zarr", "-q")
+    assert code == 1 and "Traceback" not in err and "spacing" in err
+    assert not (tmp_path / "x.zarr").exists() and not (tmp_path / "y.zarr").exists()

@@ -687,3 +687,22 @@ def test_the_twist_profile_round_trips_and_bad_ones_are_refused(tmp_path, scan):
     bad.write_text(json.dumps(d))
     with pytest.raises(InvalidInputError, match="twist"):
         load_session(bad)
+
+
+def test_the_channels_a_session_was_applied_to_round_trip(tmp_path, scan):
+    """Issue 24 item 1: a session records the other images of its grid it straightened; files without them stay as
+    they were, and a hand-edited record is refused by the schema naming the field."""
+    info = SourceInfo.from_path(scan)
+    session = Session(info, channels=(info,))
+    path = save_session(session, tmp_path / "channels.unwind.json")
+    assert json.loads(path.read_text())["channels"][0]["checksum"] == info.checksum
+    assert load_session(path).channels == (info,)
+    assert "channels" not in Session(info).to_dict()
+    d = json.loads(path.read_text())
+    d["channels"][0]["shape"] = [1, 2]
+    bad = tmp_path / "bad.unwind.json"
+    bad.write_text(json.dumps(d))
+    with pytest.raises(InvalidInputError, match="channels"):
+        load_session(bad)
+    with pytest.raises(InvalidInputError, match="channels"):
+        Session(info, channels=("scan.nrrd",))
