@@ -310,6 +310,81 @@ def _check_same_grid(session: Any, volume: Any, path: str) -> None:
                           f"{_fmt_triple(src.shape)}: --same-grid takes images of the scan's own grid")
 
 
+#: What ``unwind average`` takes from a folder: straight volumes in these formats.
+_STRAIGHT_SUFFIXES = (".ome.zarr", ".zarr", ".nrrd", ".nhdr", ".nii", ".nii.gz", ".tif", ".tiff")
+
+
+def _average_inputs(items: Sequence[str]) -> list[Path]:
+    found: list[Path] = []
+    for item in items:
+        path = Path(item)
+        if path.name.endswith(".unwind.json"):
+            raise UnwindError(f"{item} is a session: straighten it first (unwind straighten SCAN --session {item} -o "
+                              "straight.ome.zarr) and average the straight volumes")
+        if path.is_dir() and not path.name.endswith(".zarr"):
+            inside = sorted(p for p in path.iterdir()
+                            if p.name.lower().endswith(_STRAIGHT_SUFFIXES) and not p.name.startswith("."))
+            if not inside:
+                raise UnwindError(f"{item} holds no straight volume ({', '.join(_STRAIGHT_SUFFIXES)})")
+            found += inside
+        elif not path.exists():
+            raise UnwindError(f"{item} does not exist")
+        else:
+            found.append(path)
+    return found
+
+
+def _sibling(output: Path, what: str) -> Path:
+    """``mean.ome.zarr`` -> ``mean.median.ome.zarr``: the other outputs of ``unwind average`` beside the mean."""
+    name = output.name
+    for suffix in sorted(_STRAIGHT_SUFFIXES + (".dat", ".raw"), key=len, reverse=True):
+        if name.lower().endswith(suffix):
+            return output.with_name(f"{name[: -len(suffix)]}.{what}{name[-len(suffix):]}")
+    return output.with_name(f"{name}.{what}")
+
+
+def cmd_average(args: argparse.Namespace) -> int:
+    import csv
+    import io
+
+    import numpy as np
+
+    from .average import average_iter
+    from .io import write_volume
+    from .io._atomic import atomic_output, check_writable
+
+    inputs = _average_inputs(args.inputs)
+    out = Path(args.output)
+    _check_output(str(out), args.overwrite)
+    others = {what: _sibling(out, what) for what in ("median", "std")}
+    stem = _sibling(out, "residuals").name
+    table = out.with_name(stem[: stem.index(".residuals")] + ".residuals.csv")
+    for p in (*others.values(), table):
+        check_writable(p, overwrite=args.overwrite)
+    _check_io([out, *others.values(), table], inputs)
+    t0 = time.perf_counter()
+    res = _run_with_bar(average_iter([str(p) for p in inputs], stations=args.stations, scale=args.scale,
+                                     normalise=args.normalise, max_roll=args.max_roll), args.quiet)
+    spacing = (res.spacing,) * 3
+    write_volume(res.mean, out, spacing=spacing, unit=res.unit, overwrite=args.overwrite)
+    for what, path in others.items():
+        write_volume(getattr(res, what), path, spacing=spacing, unit=res.unit, overwrite=args.overwrite)
+    buf = io.StringIO()
+    rows = res.table()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    with atomic_output(table, overwrite=args.overwrite) as tmp:
+        Path(tmp).write_text(buf.getvalue(), encoding="utf-8")
+    if not args.quiet:
+        worst = int(np.argmin(res.correlation))
+        print(f"averaged {len(inputs)} specimens -> {out} (and {', '.join(p.name for p in others.values())}, "
+              f"{table.name}) in {time.perf_counter() - t0:.1f} s; shape {_fmt_triple(res.mean.shape)}; least "
+              f"like the mean: {res.names[worst]} (correlation {res.correlation[worst]:.3f})")
+    return 0
+
+
 def cmd_bend(args: argparse.Namespace) -> int:
     from types import SimpleNamespace
 
@@ -998,6 +1073,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
     p.set_defaults(func=cmd_measure)
+
+    p = sub.add_parser("average", help="the average straight specimen of a batch: mean, median, std, residuals")
+    p.add_argument("inputs", nargs="+", help="straight volumes, or folders of them (unwind straighten's outputs)")
+    p.add_argument("-o", "--output", required=True,
+                   help="the mean (suffix = format); the median, std and residuals.csv are written beside it")
+    p.add_argument("--stations", type=_whole(2), default=None, help="stations along s (default: the median length)")
+    p.add_argument("--scale", choices=("length", "none"), default="length",
+                   help="scale each cross-section with its length (default, compares shape) or keep its size")
+    p.add_argument("--normalise", choices=("robust", "none"), default="robust",
+                   help="per specimen: median -> 0, 99th percentile -> 1 (default), or keep the grey values")
+    p.add_argument("--max-roll", type=float, default=90.0, help="largest roll searched each way (degrees)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs once the new ones are complete")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
+    p.set_defaults(func=cmd_average)
 
     p = sub.add_parser("bend", help="put a straight volume back into the pose of the session's scan")
     p.add_argument("input", help="a straight volume (e.g. from unwind straighten, or stained and edited)")

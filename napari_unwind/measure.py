@@ -32,7 +32,8 @@ import numpy as np
 
 from .deformation import Deformation
 from .errors import InvalidInputError
-from .progress import Progress, run as run_with_progress
+from .progress import Progress
+from .progress import run as run_with_progress
 
 __all__ = ["Profile", "measure", "measure_iter", "curve_geometry", "MAX_LABELS"]
 
@@ -260,7 +261,6 @@ def measure_iter(
             raise InvalidInputError(f"the mask must be boolean or integer (non-zero = specimen), got {m.dtype}")
         inputs["mask"] = straighten(_on_grid(mask, m != 0, np.float32), d, order=1, spacing=ds, chunks=chunks,
                                     max_output=None).data
-    label_ids: np.ndarray | None = None
     if labels is not None:
         lab = _as_array(labels)
         if not np.issubdtype(lab.dtype, np.integer):

@@ -145,7 +145,8 @@ def test_labels_and_channels_per_station(helix_case):
     far_before, far_after = inner & (c0 < half - r - 2), inner & (c0 > half + r + 2)
     assert far_before.any() and far_after.any()
     assert np.all(p["area_label_9"][far_before] == 0) and np.all(p["area_label_3"][far_after] == 0)
-    # inside the mask's section the dye is 50 everywhere (the 5 around it is not counted); the ramp's mean is the axis0 index near the centre (the section is tilted against axis0, so it spreads)
+    # inside the mask's section the dye is 50 everywhere (the 5 around it is not counted); the ramp's mean is the
+    # axis0 index near the centre (the section is tilted against axis0, so it spreads)
     np.testing.assert_allclose(p["dye_mean"][inner], 50.0, atol=1e-3)
     np.testing.assert_allclose(p["dye_std"][inner], 0.0, atol=1e-3)
     np.testing.assert_allclose(p["ramp_mean"][inner], c0[inner], atol=1.0)
