@@ -654,9 +654,9 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
     source_path, source_vol = (args.volume, scan) if scan is not None else (args.mask, mask)
     source = _source_info(source_path, source_vol, args.quiet)
     refined = (mask.metadata.get("unwind") or {}).get("refined_mask") if isinstance(mask.metadata, dict) else None
-    segmentation = None
-    if isinstance(refined, dict) and refined.get("isovalue") is not None:
-        segmentation = Segmentation(isovalue=refined["isovalue"])
+    iso = refined.get("isovalue") if isinstance(refined, dict) else None
+    # the selection is the mask file (unwind measure and the dock find it again), at the isovalue that refined it
+    segmentation = Segmentation(isovalue=iso, mask=str(Path(args.mask).absolute()))
     session = Session(source=source, deformation=result.deformation, segmentation=segmentation,
                       endpoints=result.endpoints, twist=result.twist_profile(),
                       notes=f"unwind skeleton: mask {Path(args.mask).absolute()}"
@@ -768,13 +768,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     source = _source_info(args.input, volume, args.quiet)
     result = _run_with_bar(
         run_iter(volume, mask=mask, seeds=args.select, endpoints=endpoints, options=options, output=args.output,
-                 session_path=target, source=source, overwrite=args.overwrite,
+                 session_path=target, source=source, overwrite=args.overwrite, mask_source=args.mask,
                  notes="unwind run" + (f": mask {Path(args.mask).absolute()}" if args.mask else "")),
         args.quiet,
     )
     _warn_lines(notes + list(result.warnings))
     seg = result.session.segmentation
-    if seg is not None:
+    if seg is not None and seg.mask is None:
         say(f"segmented {args.input} at level {seg.level} into {seg.k} features; selected feature"
             f"{'s' if len(seg.selected) > 1 else ''} {', '.join(map(str, seg.selected))} under "
             f"{', '.join(_fmt_point(p) for p in seg.seeds)}, refined at full resolution (isovalue {seg.isovalue:.4g})")

@@ -224,19 +224,15 @@ def measure_iter(
     if chunk < 1:
         raise InvalidInputError(f"chunk must be a positive number of stations, got {chunk}")
     chans = _as_channels(channels)
-    d = deformation
+    d = deformation.with_pad(0.0, 0.0)      # the stations: s = 0, ds, 2 ds, ... <= L (the padding left out)
     ds = d._ds(spacing)
     n_out, ny, nx = d.output_shape(ds)
-    s_lo = d.s_range[0]
-    # the stations: output slices with 0 <= s <= L (the deformation's own padding left out)
-    k0 = int(np.ceil((0.0 - s_lo) / ds - 1e-9))
-    k1 = int(np.floor((d.length - s_lo) / ds + 1e-9))
-    k0, k1 = max(k0, 0), min(k1, n_out - 1)
-    if k1 < k0:
+    k0, k1 = 0, n_out - 1
+    if n_out < 2:
         raise InvalidInputError(f"the deformation is shorter ({d.length:g}) than one station ({ds:g}): give a "
                                 "smaller spacing")
     ks = np.arange(k0, k1 + 1)
-    s = s_lo + ks * ds
+    s = ks * ds
     unit = d.unit
     L, A, inv = _unit(unit), _unit(unit, 2), _unit(unit, -1)
     cols: dict[str, np.ndarray] = {"s": s}

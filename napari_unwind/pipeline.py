@@ -769,6 +769,7 @@ def run_iter(
     notes: str = "",
     overwrite: bool = False,
     scheduler: str | None = None,
+    mask_source: str | os.PathLike | None = None,
 ) -> Generator[Progress, None, SpecimenResult]:
     """Straighten one specimen: segment (unless given), select and refine (or a mask), skeleton, session, export.
 
@@ -801,6 +802,9 @@ def run_iter(
         Replace existing outputs.
     scheduler : str, optional
         The dask scheduler of the export.
+    mask_source : path, optional
+        The file ``mask`` was read from: the session records it as its selection (``segmentation.mask``), so that
+        ``unwind measure`` and the dock find it again (None: not recorded).
 
     Returns
     -------
@@ -838,6 +842,10 @@ def run_iter(
             raise InvalidInputError(f"the mask has shape {tuple(m.shape)} but the scan has {tuple(volume.shape)}; "
                                     "the mask must be at the scan's full resolution")
         mask = m
+        if mask_source is not None:
+            from .session import Segmentation
+
+            segmentation = Segmentation(mask=str(Path(mask_source).absolute()))
     else:
         if features is None:
             features = yield from segment_step(volume, options.segment)

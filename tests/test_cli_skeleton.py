@@ -222,7 +222,9 @@ def test_run_with_a_mask_and_given_ends(tank):
     assert code == 0, err
     assert stdout == "" and not (tmp / "fish1.unwind.json").exists()
     session = load_session(session_path)
-    assert session.segmentation is None and session.source.path == str(scan.absolute())
+    # the selection was the mask file: the session records it (unwind measure and the dock find it again)
+    assert session.segmentation.mask == str(mask.absolute()) and session.segmentation.k is None
+    assert session.source.path == str(scan.absolute())
     assert np.linalg.norm(np.subtract(session.endpoints.head, fish.head)) < 3
     _check_straight(out, session, fish)
 
