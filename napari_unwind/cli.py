@@ -273,8 +273,8 @@ def cmd_measure(args: argparse.Namespace) -> int:
                                 [x for x in (args.mask, args.labels, *[c for _, c in args.channel]) if x])
     seg = session.segmentation
     mask_path = args.mask or (seg.mask if seg is not None else None)
-    if mask_path is None and not args.channel and args.labels is None:
-        print("note: no mask (the session's selection was not a mask file; give --mask): the curve and the cage only",
+    if mask_path is None and not args.quiet:
+        print("note: no mask (the session's selection was not a mask file; give --mask): no cross-section columns",
               file=sys.stderr)
     mask = None
     if mask_path is not None:
@@ -337,24 +337,25 @@ def _average_inputs(items: Sequence[str]) -> list[Path]:
 def _sibling(output: Path, what: str) -> Path:
     """``mean.ome.zarr`` -> ``mean.median.ome.zarr``: the other outputs of ``unwind average`` beside the mean."""
     name = output.name
-    for suffix in sorted(_STRAIGHT_SUFFIXES + (".dat", ".raw"), key=len, reverse=True):
+    for suffix in sorted(_STRAIGHT_SUFFIXES, key=len, reverse=True):
         if name.lower().endswith(suffix):
             return output.with_name(f"{name[: -len(suffix)]}.{what}{name[-len(suffix):]}")
     return output.with_name(f"{name}.{what}")
 
 
 def cmd_average(args: argparse.Namespace) -> int:
-    import csv
-    import io
-
     import numpy as np
 
     from .average import average_iter
     from .io import write_volume
-    from .io._atomic import atomic_output, check_writable
+    from .io._atomic import check_writable
+    from .pipeline import _write_table
 
     inputs = _average_inputs(args.inputs)
     out = Path(args.output)
+    if not out.name.lower().endswith(_STRAIGHT_SUFFIXES):
+        raise UnwindError(f"the average is written beside its median and std: give an output ending in one of "
+                          f"{', '.join(_STRAIGHT_SUFFIXES)}, got {args.output}")
     _check_output(str(out), args.overwrite)
     others = {what: _sibling(out, what) for what in ("median", "std")}
     stem = _sibling(out, "residuals").name
@@ -369,14 +370,8 @@ def cmd_average(args: argparse.Namespace) -> int:
     write_volume(res.mean, out, spacing=spacing, unit=res.unit, overwrite=args.overwrite)
     for what, path in others.items():
         write_volume(getattr(res, what), path, spacing=spacing, unit=res.unit, overwrite=args.overwrite)
-    buf = io.StringIO()
     rows = res.table()
-    w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
-    w.writeheader()
-    for r in rows:
-        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
-    with atomic_output(table, overwrite=args.overwrite) as tmp:
-        Path(tmp).write_text(buf.getvalue(), encoding="utf-8")
+    _write_table(rows, table, list(rows[0]), overwrite=args.overwrite)
     if not args.quiet:
         worst = int(np.argmin(res.correlation))
         print(f"averaged {len(inputs)} specimens -> {out} (and {', '.join(p.name for p in others.values())}, "

@@ -223,7 +223,8 @@ def measure_iter(
     chunk = int(chunk)
     if chunk < 1:
         raise InvalidInputError(f"chunk must be a positive number of stations, got {chunk}")
-    chans = _as_channels(channels)
+    mask, labels = _opened(mask), _opened(labels)
+    chans = {name: _opened(ch) for name, ch in _as_channels(channels).items()}
     d = deformation.with_pad(0.0, 0.0)      # the stations: s = 0, ds, 2 ds, ... <= L (the padding left out)
     ds = d._ds(spacing)
     n_out, ny, nx = d.output_shape(ds)
@@ -370,13 +371,18 @@ def measure(deformation: Deformation, *, mask: Any = None, labels: Any = None, c
                                           spacing=spacing, chunk=chunk), progress)
 
 
-def _as_array(value: Any) -> Any:
-    from .io import Volume
-
+def _opened(value: Any) -> Any:
+    """A path opened as a Volume (once); anything else as it is."""
     if isinstance(value, (str, os.PathLike)):
         from .io import open_volume
 
-        value = open_volume(value)
+        return open_volume(value)
+    return value
+
+
+def _as_array(value: Any) -> Any:
+    from .io import Volume
+
     data = value.data if isinstance(value, Volume) else value
     if not hasattr(data, "dtype"):
         data = np.asarray(data)
@@ -387,10 +393,6 @@ def _on_grid(original: Any, data: Any, dtype: Any) -> Any:
     """``data`` (derived from ``original``'s voxels) with ``original``'s geometry when it is a Volume."""
     from .io import Volume
 
-    if isinstance(original, (str, os.PathLike)):
-        from .io import open_volume
-
-        original = open_volume(original)
     data = data.astype(dtype)
     if isinstance(original, Volume):
         return Volume(data, spacing=original.spacing, origin=original.origin, unit=original.unit)

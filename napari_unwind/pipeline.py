@@ -929,19 +929,21 @@ def _check_outdir(outdir: Path, overwrite: bool) -> None:
             raise OutputError(f"cannot create the output folder {outdir}: {parent} is not writable")
 
 
-def _write_table(rows: list[dict[str, Any]], path: Path) -> Path:
+def _write_table(rows: list[dict[str, Any]], path: Path, columns: Sequence[str] = CSV_COLUMNS, *,
+                 overwrite: bool = True) -> Path:
+    """``rows`` as CSV (``columns`` in order, floats to 6 significant digits, None empty), written atomically."""
     import csv
     import io
 
     from .io._atomic import atomic_output
 
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    w = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n")
     w.writeheader()
     for r in rows:
         w.writerow({k: ("" if r.get(k) is None else (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k]))
-                    for k in CSV_COLUMNS})
-    with atomic_output(path, overwrite=True) as tmp:
+                    for k in columns})
+    with atomic_output(path, overwrite=overwrite) as tmp:
         Path(tmp).write_text(buf.getvalue(), encoding="utf-8")
     return path
 
