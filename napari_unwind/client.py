@@ -746,6 +746,18 @@ class Client:
                                          options=self._export_options(**export))
         return self.submit(jobs_pb2.SubmitRequest(straighten=req), wait=wait)
 
+    def measure(self, session_id: str, *, mask_volume_id: str = "", labels_volume_id: str = "",
+                channels: dict[str, str] | None = None, spacing: float | None = None, wait: bool = True):
+        """Measure along the session's centreline (a job; ``result.table_csv``: the CSV ``unwind measure``
+        writes). ``channels`` maps a column name to a volume id; every volume on the session's scan grid."""
+        from unwind_services._proto.unwind.v1 import jobs_pb2, warp_pb2
+
+        req = warp_pb2.MeasureRequest(session_id=session_id, mask_volume_id=mask_volume_id,
+                                      labels_volume_id=labels_volume_id, spacing=float(spacing or 0.0),
+                                      channels=[warp_pb2.MeasureChannel(name=n, volume_id=v)
+                                                for n, v in (channels or {}).items()])
+        return self.submit(jobs_pb2.SubmitRequest(measure=req), wait=wait)
+
     def bend(self, volume_id: str, session_id: str, *, order: int = 1, output_name: str = "", wait: bool = True):
         """Bend a straight volume into the session's pose (a job; ``result.volume_id``)."""
         from unwind_services._proto.unwind.v1 import jobs_pb2, warp_pb2

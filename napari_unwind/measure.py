@@ -73,12 +73,11 @@ class Profile:
         """Column names with their units, as written to CSV: ``"area [mm^2]"``."""
         return [f"{n} [{self.units[n]}]" if self.units.get(n) else n for n in self.columns]
 
-    def to_csv(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
-        """Write the table as CSV (a header of names with units, then one row per station), atomically."""
+    def csv_text(self) -> str:
+        """The table as CSV text: a header of names with units, then one row per station (9 significant digits,
+        empty where there is no value). The same text on every face: the command line, the API and the server."""
         import csv
         import io
-
-        from .io._atomic import atomic_output
 
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
@@ -86,9 +85,15 @@ class Profile:
         table = np.column_stack([np.asarray(v, dtype=float) for v in self.columns.values()])
         for row in table:
             w.writerow(["" if not np.isfinite(x) else f"{x:.9g}" for x in row])
+        return buf.getvalue()
+
+    def to_csv(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+        """Write :meth:`csv_text` to ``path`` atomically."""
+        from .io._atomic import atomic_output
+
         path = Path(path)
         with atomic_output(path, overwrite=overwrite) as tmp:
-            Path(tmp).write_text(buf.getvalue(), encoding="utf-8")
+            Path(tmp).write_text(self.csv_text(), encoding="utf-8")
         return path
 
 

@@ -64,6 +64,8 @@ MAX_COORDINATE = 1e9
 MAX_POINTS, MAX_WIRE_POINTS, MAX_CHAIN = 10_000, 1_000_000, 1_000
 #: Largest `limit` of a listing (the server sends at most 1000) and `after_seq` of a watch.
 MAX_LIMIT, MAX_SEQ = 1_000_000, 2**53
+#: Most channels of a Measure job.
+MAX_CHANNELS = 16
 #: Largest side of an upload, voxels (the server's --max-voxels bounds the product).
 MAX_SIDE = 2**31 - 1
 
@@ -82,7 +84,7 @@ def bounds() -> dict[str, Bound]:
     table = {
         "Point": dict(axis0=coordinate, axis1=coordinate, axis2=coordinate),
         "SubmitRequest": dict(segment=anything, select=anything, estimate_deformation=anything, straighten=anything,
-                              bend=anything, pipeline=anything, request_id=name,
+                              bend=anything, pipeline=anything, measure=anything, request_id=name,
                               timeout_seconds=Bound(0, MAX_TIMEOUT_SECONDS), name=Bound(max_bytes=255)),
         "PipelineRequest": dict(volume_id=ident, select=Bound(max_items=MAX_POINTS),
                                 ids=Bound(1, MAX_FEATURES, max_items=MAX_FEATURES), segmentation_id=ident,
@@ -127,6 +129,9 @@ def bounds() -> dict[str, Bound]:
                               pad=Bound(0, P.MAX_PAD), chunks=Bound(1, P.MAX_CHUNK, counts=(0, 3)),
                               allow_folds=anything, output_name=name),
         "StraightenRequest": dict(volume_id=ident, session_id=ident, options=anything),
+        "MeasureRequest": dict(session_id=ident, mask_volume_id=ident, labels_volume_id=ident,
+                               channels=Bound(max_items=MAX_CHANNELS), spacing=Bound(0, P.MAX_LENGTH)),
+        "MeasureChannel": dict(name=Bound(max_bytes=64), volume_id=ident),
         "BendRequest": dict(volume_id=ident, session_id=ident, order=Bound(0, 3), has_order=anything,
                             output_name=name),
         "MapPointsRequest": dict(session_id=ident, points=Bound(max_items=MAX_WIRE_POINTS), direction=anything,

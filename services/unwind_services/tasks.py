@@ -60,6 +60,7 @@ KINDS = {
     "straighten": pb.JOB_KIND_STRAIGHTEN,
     "bend": pb.JOB_KIND_BEND,
     "pipeline": pb.JOB_KIND_PIPELINE,
+    "measure": pb.JOB_KIND_MEASURE,
 }
 
 
@@ -208,6 +209,34 @@ def bend(ctx: TaskContext, req: Any) -> TaskGen:
     return pb.JobResult(volume_id=ctx.register(written, out.name))
 
 
+def _channel_names(req: Any) -> list[str]:
+    """The measure request's channel names (each given, distinct)."""
+    names = [c.name for c in req.channels]
+    if any(not n for n in names):
+        raise InvalidInputError("every channel needs a name (the columns are <name>_mean, ...)")
+    if len(set(names)) != len(names):
+        raise InvalidInputError("two channels have the same name: name each channel once")
+    return names
+
+
+def measure(ctx: TaskContext, req: Any) -> TaskGen:
+    """``unwind measure`` as a job: :func:`napari_unwind.measure.measure_iter`; the CSV in the result."""
+    from napari_unwind.measure import measure_iter
+
+    _, session = ctx.catalog.session(ctx.owner, req.session_id)
+
+    def volume(volume_id: str) -> Any:
+        return ctx.catalog.volume(ctx.owner, volume_id)[1] if volume_id else None
+
+    channels = {n: volume(c.volume_id) for n, c in zip(_channel_names(req), req.channels, strict=True)}
+    t0 = time.perf_counter()
+    profile = yield from measure_iter(session.deformation, mask=volume(req.mask_volume_id),
+                                      labels=volume(req.labels_volume_id), channels=channels or None,
+                                      spacing=req.spacing or None)
+    return pb.JobResult(table_csv=profile.csv_text(),
+                        figures=_figures(stations=len(profile), seconds=time.perf_counter() - t0))
+
+
 def _one_specimen(req: Any) -> None:
     """A pipeline request says which specimen in exactly one way."""
     ways = sum((len(req.select) > 0, bool(req.mask_volume_id), len(req.ids) > 0))
@@ -264,18 +293,18 @@ def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
                         warnings=list(r.warnings), figures=_figures(**figures), verdict=convert.verdict_msg(r))
 
 
-_REFS = (("volume_id", "volume"), ("mask_volume_id", "volume"), ("segmentation_id", "segmentation"),
-         ("session_id", "session"))
+_REFS = (("volume_id", "volume"), ("mask_volume_id", "volume"), ("labels_volume_id", "volume"),
+         ("segmentation_id", "segmentation"), ("session_id", "session"))
 _REQUIRED = {"segment": ("volume_id",), "select": ("segmentation_id",), "estimate_deformation": ("mask_volume_id",),
              "straighten": ("volume_id", "session_id"), "bend": ("volume_id", "session_id"),
-             "pipeline": ("volume_id",)}
+             "pipeline": ("volume_id",), "measure": ("session_id",)}
 
 
 #: The core's options of each kind of job, built from its request (a bad value is refused as the job runs would).
 _OPTIONS = {"segment": convert.segment_options, "select": convert.segment_options,
             "estimate_deformation": lambda r: convert.skeleton_options(r.options),
             "straighten": lambda r: convert.export_options(r.options), "bend": convert.order,
-            "pipeline": convert.pipeline_options}
+            "pipeline": convert.pipeline_options, "measure": _channel_names}
 
 
 def precheck(catalog: Catalog, owner: str, spec: jobs_pb2.SubmitRequest) -> None:
@@ -304,10 +333,12 @@ def precheck(catalog: Catalog, owner: str, spec: jobs_pb2.SubmitRequest) -> None
     for field_name, kind in _REFS:
         if hasattr(req, field_name) and (getattr(req, field_name) or field_name in required):
             catalog.store.get_object(owner, getattr(req, field_name), kind)
+    for channel in getattr(req, "channels", ()):
+        catalog.store.get_object(owner, channel.volume_id, "volume")
 
 
 _TASKS = {"segment": segment, "select": select, "estimate_deformation": estimate_deformation,
-          "straighten": straighten, "bend": bend, "pipeline": pipeline}
+          "straighten": straighten, "bend": bend, "pipeline": pipeline, "measure": measure}
 
 
 def run_task(ctx: TaskContext, spec: jobs_pb2.SubmitRequest) -> TaskGen:

@@ -139,9 +139,23 @@ def test_each_step_on_the_server_matches_the_core(setup, tmp_path):
         np.testing.assert_array_equal(remote, map_points(pts, d))
         back = c.map_points(sk.result.session_id, remote, to="scan")
         np.testing.assert_allclose(back, pts, atol=1e-3)
+        # measurements along the centreline (issue 24): the bytes unwind measure writes for the same inputs
+        from napari_unwind.measure import measure
+
+        mj = c.measure(sk.result.session_id, mask_volume_id=mask_job.result.volume_id, channels={"scan": vid})
+        expected_csv = measure(d, mask=mask.astype(np.uint8), channels={"scan": volume}).csv_text()
+        assert mj.result.table_csv == expected_csv
+        assert "area [" in mj.result.table_csv.splitlines()[0] and int(mj.result.figures["stations"]) > 50
+        from napari_unwind.client import RemoteError
+
+        for bad, code in (({"": vid}, "INVALID_ARGUMENT"), ({"a,b": vid}, "INVALID_ARGUMENT"),
+                          ({"scan": "v_nothere"}, "NOT_FOUND")):
+            with pytest.raises(RemoteError) as err:
+                c.measure(sk.result.session_id, channels=bad)
+            assert err.value.code == code, (bad, err.value.code, str(err.value))
         kinds = {pb.JobKind.Name(j.kind) for j in c.jobs()}
         assert {"JOB_KIND_SEGMENT", "JOB_KIND_SELECT", "JOB_KIND_ESTIMATE_DEFORMATION", "JOB_KIND_STRAIGHTEN",
-                "JOB_KIND_BEND"} <= kinds
+                "JOB_KIND_BEND", "JOB_KIND_MEASURE"} <= kinds
 
 
 def test_a_batch_straightens_every_fish_of_a_tank_and_writes_a_summary(setup, tmp_path):

@@ -46,6 +46,28 @@ class StraightenRequest(_message.Message):
     options: ExportOptions
     def __init__(self, volume_id: _Optional[str] = ..., session_id: _Optional[str] = ..., options: _Optional[_Union[ExportOptions, _Mapping]] = ...) -> None: ...
 
+class MeasureRequest(_message.Message):
+    __slots__ = ("session_id", "mask_volume_id", "labels_volume_id", "channels", "spacing")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    MASK_VOLUME_ID_FIELD_NUMBER: _ClassVar[int]
+    LABELS_VOLUME_ID_FIELD_NUMBER: _ClassVar[int]
+    CHANNELS_FIELD_NUMBER: _ClassVar[int]
+    SPACING_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    mask_volume_id: str
+    labels_volume_id: str
+    channels: _containers.RepeatedCompositeFieldContainer[MeasureChannel]
+    spacing: float
+    def __init__(self, session_id: _Optional[str] = ..., mask_volume_id: _Optional[str] = ..., labels_volume_id: _Optional[str] = ..., channels: _Optional[_Iterable[_Union[MeasureChannel, _Mapping]]] = ..., spacing: _Optional[float] = ...) -> None: ...
+
+class MeasureChannel(_message.Message):
+    __slots__ = ("name", "volume_id")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    VOLUME_ID_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    volume_id: str
+    def __init__(self, name: _Optional[str] = ..., volume_id: _Optional[str] = ...) -> None: ...
+
 class BendRequest(_message.Message):
     __slots__ = ("volume_id", "session_id", "order", "has_order", "output_name")
     VOLUME_ID_FIELD_NUMBER: _ClassVar[int]
