@@ -1271,6 +1271,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("unwind: interrupted; no partial output was left behind", file=sys.stderr)
         return 130
     finally:
+        if _Interrupt.signum is not None:
+            # the interrupted work has unwound here (its generators closed, each output's own removal run): what a
+            # write still in flight left or made again is removed before the command says it is gone
+            import gc
+
+            from .io._atomic import sweep
+
+            gc.collect()  # generators held in reference cycles close now, running their own removal first
+            sweep()
         restore_signals(ignore=argv is None and _Interrupt.signum is not None)
 
 

@@ -486,3 +486,26 @@ def test_remove_path_of_nothing_is_quiet_and_check_writable_says_what_to_do(tmp_
     with pytest.raises(OutputError, match="^" + re.escape(f"cannot write {tmp_path}/x: the folder {tmp_path} is not "
                                                           "writable; choose another output path") + "$"):
         _atomic.check_writable(tmp_path / "x")
+
+
+def test_sweep_removes_what_a_write_in_flight_made_again(tmp_path):
+    """An interrupted command sweeps its temporary outputs once its work has unwound: a chunk still in flight in a
+    library's IO thread (here 0.2 s after the removal began) makes the folder again; it must be gone at the end."""
+    import threading
+
+    from napari_unwind.io._atomic import sweep, temp_path
+
+    tmp = temp_path(tmp_path / "out.zarr")
+    tmp.mkdir()
+    (tmp / "c0").write_bytes(b"x")
+
+    def late_chunk():
+        tmp.mkdir(exist_ok=True)
+        (tmp / "c1").write_bytes(b"y")
+
+    late = threading.Timer(0.2, late_chunk)
+    late.start()
+    left = sweep(settle=3.0, quiet=0.5)
+    late.join()
+    assert tmp.absolute() in left and not tmp.exists()
+    assert sweep() == []                       # nothing left to sweep, and the record is forgotten

@@ -92,10 +92,33 @@ def _owner_alive(pid: int, start: int, host: str) -> bool:
     return not (start and now and now != start)
 
 
+#: Temporary outputs of this process not yet renamed into place or removed (see :func:`sweep`).
+_OPEN_TEMPS: set[Path] = set()
+
+
 def temp_path(path: str | os.PathLike, *, old: bool = False) -> Path:
     """A new hidden sibling name for writing ``path`` (``old``: for moving the previous output aside)."""
     path = Path(path)
-    return path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.{_owner_tag()}{'.old' if old else ''}{TMP_MARK}")
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.{_owner_tag()}{'.old' if old else ''}{TMP_MARK}")
+    if len(_OPEN_TEMPS) >= 1000:  # a long-lived process (the server): forget the ones renamed or removed
+        _OPEN_TEMPS.difference_update({p for p in _OPEN_TEMPS if not os.path.lexists(p)})
+    _OPEN_TEMPS.add(tmp.absolute())
+    return tmp
+
+
+def sweep(*, settle: float = 5.0, quiet: float = 0.5) -> list[Path]:
+    """Remove every temporary output of this process that is still there; returns them.
+
+    For a command that was interrupted, once its work has unwound: each output's own removal already ran, but a
+    write still in flight (a chunk in a library's IO thread, an interrupt landing in the middle of a removal) can
+    have left or made one again, most often on a loaded machine. Each is removed until it stays gone for ``quiet``
+    seconds (for up to ``settle`` seconds).
+    """
+    left = sorted(p for p in _OPEN_TEMPS if os.path.lexists(p))
+    for p in left:
+        remove_path(p, settle=settle, quiet=quiet)
+    _OPEN_TEMPS.difference_update({p for p in _OPEN_TEMPS if not os.path.lexists(p)})
+    return left
 
 
 def remove_stale_temps(path: str | os.PathLike) -> list[Path]:
@@ -218,11 +241,11 @@ def _replace(src: Path, dst: Path) -> None:
     remove_path(old)
 
 
-def remove_path(path: Path, *, settle: float = 0.0) -> None:
+def remove_path(path: Path, *, settle: float = 0.0, quiet: float = 0.1) -> None:
     """Remove a file or a folder tree, if it exists.
 
-    With ``settle`` > 0 a folder is removed again until it stays gone for 0.1 s (for up to ``settle`` seconds):
-    after an interrupt, the threads of a computation can still finish the chunk they were writing into it.
+    With ``settle`` > 0 a folder is removed again until it stays gone for ``quiet`` seconds (for up to ``settle``
+    seconds): after an interrupt, the threads of a computation can still finish the chunk they were writing into it.
     """
     if path.is_dir() and not path.is_symlink():
         deadline = time.monotonic() + settle
@@ -230,7 +253,7 @@ def remove_path(path: Path, *, settle: float = 0.0) -> None:
             shutil.rmtree(path, ignore_errors=True)
             if settle <= 0 or time.monotonic() > deadline:
                 return
-            time.sleep(0.1)
+            time.sleep(quiet)
             if not os.path.lexists(path):
                 return
     else:
