@@ -97,6 +97,7 @@ __all__ = [
     "bend",
     "export",
     "export_iter",
+    "export_channels_iter",
     "map_labels",
     "map_mesh",
     "map_points",
@@ -683,6 +684,103 @@ def _linear_block(flat, s0, s1, s2, r0, r1, r2, o0, o1, o2, n0, n1, n2, base, dv
                          u0, u1, u2, out[k, ii], tmp, idx, fr, vals, fill, kind)
 
 
+@njit(nogil=True, cache=True, fastmath={"contract"})
+def _linear_run_channels(flat, sc, nc, s0, s1, s2, q0, q1, q2, u0, u1, u2, fa, fb, tmp, idx, fr, vals):
+    """:func:`_linear_run` for ``nc`` channels ``sc`` elements apart in ``flat``: the cells and fractions are
+    computed once, then gathered and weighted per channel into ``tmp[ch]``."""
+    n = fb + 1 - fa
+    us0, us1, us2 = np.uint64(s0), np.uint64(s1), np.uint64(s2)
+    for t in range(n):
+        ft = float(t + fa)
+        x0 = q0 + ft * u0
+        x1 = q1 + ft * u1
+        x2 = q2 + ft * u2
+        a = math.floor(x0)
+        b = math.floor(x1)
+        c = math.floor(x2)
+        fr[0, t] = x0 - a
+        fr[1, t] = x1 - b
+        fr[2, t] = x2 - c
+        idx[t] = np.uint64(a) * us0 + np.uint64(b) * us1 + np.uint64(c) * us2
+    for ch in range(nc):
+        off = np.uint64(ch * sc)
+        for t in range(n):
+            i000 = idx[t] + off
+            i010 = i000 + us1
+            i100 = i000 + us0
+            i110 = i100 + us1
+            vals[0, t] = flat[i000]
+            vals[1, t] = flat[i000 + us2]
+            vals[2, t] = flat[i010]
+            vals[3, t] = flat[i010 + us2]
+            vals[4, t] = flat[i100]
+            vals[5, t] = flat[i100 + us2]
+            vals[6, t] = flat[i110]
+            vals[7, t] = flat[i110 + us2]
+        row = tmp[ch]
+        for t in range(n):
+            f0 = fr[0, t]
+            f1 = fr[1, t]
+            f2 = fr[2, t]
+            v000 = float(vals[0, t])
+            v001 = float(vals[1, t])
+            v010 = float(vals[2, t])
+            v011 = float(vals[3, t])
+            v100 = float(vals[4, t])
+            v101 = float(vals[5, t])
+            v110 = float(vals[6, t])
+            v111 = float(vals[7, t])
+            c00 = v000 + f2 * (v001 - v000)
+            c01 = v010 + f2 * (v011 - v010)
+            c10 = v100 + f2 * (v101 - v100)
+            c11 = v110 + f2 * (v111 - v110)
+            e0 = c00 + f1 * (c01 - c00)
+            e1 = c10 + f1 * (c11 - c10)
+            row[t + fa] = e0 + f0 * (e1 - e0)
+
+
+@njit(nogil=True, cache=True)
+def _linear_block_channels(flat, sc, s0, s1, s2, r0, r1, r2, o0, o1, o2, n0, n1, n2, base, dv, du, i0, j0, out,
+                           fill, kind):
+    """Order 1 into ``out`` (nc, nk, ni, nj) from ``nc`` channels of one region (channel ``ch`` starts at element
+    ``ch * sc`` of ``flat``); each line's runs, cells and fractions are computed once for every channel."""
+    nc, nk, ni, nj = out.shape
+    tmp = np.empty((nc, nj), dtype=np.float64)
+    idx = np.empty(nj, dtype=np.uint64)
+    fr = np.empty((3, nj), dtype=np.float64)
+    vals = np.empty((8, nj), dtype=flat.dtype)
+    fj = float(j0)
+    fillf = float(fill)
+    for k in range(nk):
+        b0, b1, b2 = base[k, 0], base[k, 1], base[k, 2]
+        v0, v1, v2 = dv[k, 0], dv[k, 1], dv[k, 2]
+        u0, u1, u2 = du[k, 0], du[k, 1], du[k, 2]
+        for ii in range(ni):
+            fi = float(i0 + ii)
+            p0 = b0 + fi * v0 + fj * u0
+            p1 = b1 + fi * v1 + fj * u1
+            p2 = b2 + fi * v2 + fj * u2
+            la, lb, fa, fb = _runs(p0, p1, p2, u0, u1, u2, nj, o0, o1, o2, r0, r1, r2, n0, n1, n2, 0.0)
+            for ch in range(nc):
+                line = out[ch, k, ii]
+                for t in range(0, la):
+                    line[t] = fill
+                for t in range(max(lb + 1, 0), nj):
+                    line[t] = fill
+            if fb >= fa:
+                _linear_run_channels(flat, sc, nc, s0, s1, s2, p0 - o0, p1 - o1, p2 - o2, u0, u1, u2, fa, fb, tmp,
+                                     idx, fr, vals)
+            for ch in range(nc):
+                part = flat[ch * sc:]
+                for t in range(la, lb + 1):
+                    if fa <= t <= fb:
+                        continue
+                    ft = float(t)
+                    tmp[ch, t] = _linear_checked(part, s0, s1, s2, r0, r1, r2, o0, o1, o2, n0, n1, n2,
+                                                 p0 + ft * u0, p1 + ft * u1, p2 + ft * u2, fillf)
+                _store_run(out[ch, k, ii], tmp[ch], la, lb, kind)
+
+
 def _flat_view(region: np.ndarray) -> tuple[np.ndarray, int, int, int]:
     """A 1D view of ``region``'s memory and its element strides (a C-contiguous copy when that is impossible)."""
     region = np.asarray(region)
@@ -743,6 +841,32 @@ def _warp_block(region: np.ndarray, offset: tuple[int, int, int], scan_shape: tu
                 else _KIND_SIGNED if np.issubdtype(dt, np.signedinteger) else _KIND_UNSIGNED)
         _linear_block(flat, s0, s1, s2, r0, r1, r2, o0, o1, o2, n0, n1, n2, base, dv, du, int(i0), int(j0), out,
                       fill, kind)
+    return out
+
+
+def _warp_block_channels(region: np.ndarray, offset: tuple[int, int, int], scan_shape: tuple[int, int, int],
+                         base: np.ndarray, dv: np.ndarray, du: np.ndarray, i0: int, j0: int,
+                         block_shape: tuple[int, int, int], order: int, fill: Any, dtype: str) -> np.ndarray:
+    """:func:`_warp_block` for every channel of ``region`` (nc, r0, r1, r2): an (nc, nk, ni, nj) block. Order 1
+    computes each sample's cell and weights once for all channels; orders 0 and 3 resample channel by channel."""
+    nc = region.shape[0]
+    if order != 1:
+        out = np.empty((nc, *block_shape), dtype=np.dtype(dtype))
+        for ch in range(nc):
+            out[ch] = _warp_block(region[ch], offset, scan_shape, base, dv, du, i0, j0, block_shape, order, fill,
+                                  dtype)
+        return out
+    dt = np.dtype(dtype)
+    out = np.empty((nc, *block_shape), dtype=dt)
+    o0, o1, o2 = (int(v) for v in offset)
+    n0, n1, n2 = (int(v) for v in scan_shape)
+    _, r0, r1, r2 = region.shape
+    flat, sc, s0, s1, s2 = _flat_view(region)
+    kind = (_KIND_FLOAT if not np.issubdtype(dt, np.integer)
+            else _KIND_SIGNED if np.issubdtype(dt, np.signedinteger) else _KIND_UNSIGNED)
+    _linear_block_channels(flat, sc, s0, s1, s2, r0, r1, r2, o0, o1, o2, n0, n1, n2,
+                           np.ascontiguousarray(base, dtype=np.float64), np.ascontiguousarray(dv, dtype=np.float64),
+                           np.ascontiguousarray(du, dtype=np.float64), int(i0), int(j0), out, dt.type(fill), kind)
     return out
 
 
@@ -823,6 +947,22 @@ def _warp_chunks(blocks: list, bounds: tuple, lo: tuple[int, int, int], hi: tupl
                  *args: Any) -> np.ndarray:
     """Task: assemble the region from its input chunks, then :func:`_warp_block`."""
     return _warp_block(_assemble(blocks, bounds, lo, hi), lo, *args)
+
+
+def _warp_chunks_channels(blocks: list, bounds: list, lo: tuple[int, int, int], hi: tuple[int, int, int],
+                          *args: Any) -> np.ndarray:
+    """Task: assemble the region of every channel (from each channel's own input chunks) into one (nc, ...) array,
+    then :func:`_warp_block_channels`."""
+    first = _assemble(blocks[0], bounds[0], lo, hi)
+    region = np.empty((len(blocks), *first.shape), dtype=first.dtype)
+    region[0] = first
+    for ch in range(1, len(blocks)):
+        region[ch] = _assemble(blocks[ch], bounds[ch], lo, hi)
+    return _warp_block_channels(region, lo, *args)
+
+
+def _fill_channels(nc: int, block_shape: tuple[int, int, int], fill: Any, dtype: str) -> np.ndarray:
+    return np.full((nc, *block_shape), fill, dtype=np.dtype(dtype))
 
 
 def _output_array(name: str, layer: dict, data: da.Array, chunks: tuple, dtype: np.dtype) -> da.Array:
@@ -927,6 +1067,45 @@ def _straighten_array(data: da.Array, deformation: Deformation, ds: float, order
     return _output_array(name, layer, data, out_chunks, dtype)
 
 
+def _straighten_channels_array(datas: list[da.Array], deformation: Deformation, ds: float, order: int, chunks: Any,
+                               fill: Any, geometry: tuple[np.ndarray, np.ndarray, np.ndarray]) -> da.Array:
+    """The lazy (nc, Ns, Ny, Nx) straight array of channels ``datas`` (dask arrays of one shape and dtype on the
+    deformation's scan grid): one task per output block resamples every channel from one region."""
+    dtype = np.dtype(datas[0].dtype)
+    fill = _check_fill(fill, dtype)
+    nc = len(datas)
+    shape = deformation.output_shape(ds)
+    base, dv, du = geometry
+    out_chunks = _normalise_out_chunks(chunks, shape)
+    scan_shape = tuple(int(n) for n in datas[0].shape)
+    scan_hi = np.asarray(scan_shape)
+    lo_m, hi_m = _margins(order)
+    edges = [_chunk_edges(d) for d in datas]
+    name = "straighten-channels-" + dask.base.tokenize([d.name for d in datas], base, dv, du, scan_shape, order, fill,
+                                                       dtype.str, out_chunks)
+    starts = [np.concatenate([[0], np.cumsum(c)[:-1]]).astype(int) for c in out_chunks]
+    layer: dict = {}
+    for a, (k0, nk) in enumerate(zip(starts[0], out_chunks[0], strict=True)):
+        for b, (i0, ni) in enumerate(zip(starts[1], out_chunks[1], strict=True)):
+            for c, (j0, nj) in enumerate(zip(starts[2], out_chunks[2], strict=True)):
+                bshape = (int(nk), int(ni), int(nj))
+                cmin, cmax = _block_boxes(base, dv, du, (k0, k0 + nk), (i0, i0 + ni), (j0, j0 + nj))
+                if np.any(cmax < -_EDGE_EPS) or np.any(cmin > scan_hi - 1 + _EDGE_EPS):
+                    layer[(name, 0, a, b, c)] = (_fill_channels, nc, bshape, fill, dtype.str)
+                    continue
+                lo = np.clip(np.floor(cmin).astype(int) - lo_m, 0, scan_hi)
+                hi = np.clip(np.floor(cmax).astype(int) + hi_m, 0, scan_hi)
+                refs, bounds = zip(*[_region_refs(d, e, lo, hi) for d, e in zip(datas, edges, strict=True)],
+                                   strict=True)
+                layer[(name, 0, a, b, c)] = (
+                    _warp_chunks_channels, list(refs), list(bounds), tuple(int(v) for v in lo),
+                    tuple(int(v) for v in hi), scan_shape, base[k0:k0 + nk].copy(), dv[k0:k0 + nk].copy(),
+                    du[k0:k0 + nk].copy(), int(i0), int(j0), bshape, order, fill, dtype.str,
+                )
+    graph = HighLevelGraph.from_collections(name, layer, dependencies=list(datas))
+    return da.Array(graph, name, chunks=((nc,), *out_chunks), dtype=dtype, meta=np.empty((0, 0, 0, 0), dtype=dtype))
+
+
 # ------------------------------------------------------------------------------------------------------------------
 # straighten
 # ------------------------------------------------------------------------------------------------------------------
@@ -1021,6 +1200,77 @@ def straighten(
     }
     return Volume(out, spacing=(ds, ds, ds), unit=unit, origin=origin, source=source, format=None,
                   metadata=meta)
+
+
+def straighten_channels(
+    volumes: Sequence[Any],
+    deformation: Deformation,
+    *,
+    order: int = 1,
+    spacing: float | None = None,
+    pad: int = 0,
+    chunks: Any = None,
+    fill: float = 0,
+    max_output: float | None = DEFAULT_MAX_OUTPUT,
+) -> list[Volume]:
+    """Straighten several channels of one scan grid with one deformation, in one pass over the output's blocks.
+
+    Parameters
+    ----------
+    volumes : sequence of Volume, path or array-like, each shape (N0, N1, N2)
+        The channels (:func:`napari_unwind.io.open_channels` opens them), each as for :func:`straighten`; they
+        must share shape and voxel type (a :class:`~napari_unwind.io.Volume` also its geometry, checked against the
+        deformation's).
+    deformation, order, spacing, pad, chunks, fill, max_output
+        As for :func:`straighten`; ``max_output`` bounds the channels' output together.
+
+    Returns
+    -------
+    list of Volume
+        One per channel, as :func:`straighten` returns it (``metadata["channel"]`` keeps the input's name). Their
+        ``data`` are slices of one lazy (nc, Ns, Ny, Nx) array: each output block is one task that reads the
+        region it needs from every channel and resamples them together (order 1 computes each sample's cell and
+        weights once for every channel), so computing the channels together, as
+        :func:`napari_unwind.io.write_channels_iter` does, costs one pass.
+
+    Raises
+    ------
+    InvalidInputError
+        No channels; channels of different shapes or voxel types; as :func:`straighten`.
+    """
+    vols = list(volumes)
+    if not vols:
+        raise InvalidInputError("straighten_channels needs at least one channel, got none")
+    order = _check_order(order)
+    pad = _check_pad(pad)
+    max_output = _check_max_output(max_output)
+    inputs = [_input_array(v, deformation) for v in vols]
+    datas = [x[0] for x in inputs]
+    for k, d in enumerate(datas[1:], start=1):
+        if tuple(d.shape) != tuple(datas[0].shape) or d.dtype != datas[0].dtype:
+            raise InvalidInputError(f"channel {k} has shape {tuple(d.shape)} and type {d.dtype} but channel 0 has "
+                                    f"{tuple(datas[0].shape)} and {datas[0].dtype}: channels must share one grid "
+                                    "and voxel type")
+    unit = inputs[0][1]
+    ds = deformation._ds(spacing)
+    d2 = _padded(deformation, pad, ds)
+    out_shape = d2.output_shape(ds)
+    _check_output_size(f"straight volume of {len(vols)} channels", (len(vols), *out_shape), datas[0].dtype,
+                       max_output, f"check the output spacing ({ds:g}) and the padding (pad {pad} slices)")
+    _check_padding(deformation, d2, pad, ds, datas[0].shape)
+    _warn_folds(deformation, "straight volume")
+    geometry = _check_coverage(d2, ds, datas[0].shape, "straight volume")
+    stack = _straighten_channels_array(datas, d2, ds, order, chunks, fill, geometry)
+    i0, j0 = d2.grid_centre(ds)
+    origin = (d2.s_range[0], -i0 * ds, -j0 * ds)
+    out = []
+    for k, (v, (_, _, source)) in enumerate(zip(vols, inputs, strict=True)):
+        name = (v.metadata.get("channel") if isinstance(v, Volume) else None) or f"c{k}"
+        meta = {"deformation": d2.to_dict(), "order": order, "output_spacing": ds, "pad": pad, "fill": float(fill),
+                "source": source, "channel": name}
+        out.append(Volume(stack[k], spacing=(ds, ds, ds), unit=unit, origin=origin, source=source, format=None,
+                          metadata=meta))
+    return out
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -1180,6 +1430,77 @@ def export_iter(
             yield from write_volume_iter(straight, tmp, format="ome-zarr", attributes=attributes, **write_options)
             yield Progress("map", 0, 1, "writing the straightening map")
             _write_map_arrays(tmp, _straight_map(straight, d2, ds), {"description": "straightening map"})
+            yield Progress("map", 1, 1, "map written")
+        return target
+
+
+def export_channels_iter(
+    volumes: Sequence[Any],
+    deformation: Deformation,
+    path: str | os.PathLike,
+    *,
+    order: int = 1,
+    spacing: float | None = None,
+    pad: int = 0,
+    chunks: Any = None,
+    fill: float = 0,
+    overwrite: bool = False,
+    session: Any = None,
+    scheduler: str | None = None,
+    max_output: float | None = DEFAULT_MAX_OUTPUT,
+    **write_options: Any,
+) -> Iterator[Progress]:
+    """Straighten several channels with one deformation into one multi-channel image; yields progress, returns
+    the path.
+
+    ``volumes`` as for :func:`straighten_channels`; ``path`` a ``.zarr`` (OME-Zarr, axes ``c, z, y, x``, the
+    channel names in ``omero.channels``, the straightening record and map as :func:`export` stores them) or a
+    ``.tif`` (ImageJ hyperstack ``ZCYX``). Each slab of output planes is computed for every channel in one pass.
+    Other options as for :func:`export` (``file_chunks``: the OME-Zarr chunk of one channel).
+    """
+    from .io.channels import CHANNEL_FORMATS, write_channels_iter
+
+    fmt = output_format(path, write_options.get("format"))
+    if fmt not in CHANNEL_FORMATS:
+        raise InvalidInputError(f"{Path(path).name}: {fmt} holds one channel; write {len(volumes)} channels as "
+                                "OME-Zarr (.zarr) or an ImageJ hyperstack (.tif)")
+    straight = straighten_channels(volumes, deformation, order=order, spacing=spacing, pad=pad, chunks=chunks,
+                                   fill=fill, max_output=max_output)
+    first = straight[0]
+    d2 = Deformation.from_dict(first.metadata["deformation"])
+    ds = first.metadata["output_spacing"]
+    whole = Volume(da.stack([v.data for v in straight]).reshape((-1, *first.shape[1:])), spacing=first.spacing,
+                   unit=first.unit, origin=first.origin)
+    _check_disk(path, whole, fmt, write_options)
+    write_options.pop("format", None)
+    with use_scheduler(scheduler):
+        if fmt != "ome-zarr":
+            if "file_chunks" in write_options:
+                raise InvalidInputError(f"file_chunks is an option of OME-Zarr outputs, not of {fmt}")
+            written = yield from write_channels_iter(straight, path, format=fmt, overwrite=overwrite,
+                                                     **write_options)
+            return written
+        info = {
+            "deformation": d2.to_dict(),
+            "order": order,
+            "output_spacing": ds,
+            "pad": pad,
+            "fill": float(fill),
+            "source": first.source,
+            "sources": [v.source for v in straight],
+            "channels": [v.metadata["channel"] for v in straight],
+            "session": _session_dict(session),
+            **_map_attributes(first, d2, ds),
+        }
+        attributes = dict(write_options.pop("attributes", None) or {})
+        attributes["straightening"] = info
+        if "file_chunks" in write_options:
+            write_options["chunks"] = write_options.pop("file_chunks")
+        target = check_writable(path, overwrite=overwrite)
+        with atomic_output(target, overwrite=overwrite) as tmp:
+            yield from write_channels_iter(straight, tmp, format="ome-zarr", attributes=attributes, **write_options)
+            yield Progress("map", 0, 1, "writing the straightening map")
+            _write_map_arrays(tmp, _straight_map(first, d2, ds), {"description": "straightening map"})
             yield Progress("map", 1, 1, "map written")
         return target
 

@@ -18,6 +18,8 @@ _LAZY = {
     "detect_format": "_formats",
     "Volume": "_volume",
     "read_points": "points",
+    "open_channels": "channels",
+    "write_channels_iter": "channels",
 }
 
 __getattr__, __dir__ = lazy_attributes(__name__, _LAZY, globals())
@@ -31,8 +33,10 @@ __all__ = [
     "import_slabs_iter",
     "import_volume",
     "import_volume_iter",
+    "open_channels",
     "open_volume",
     "read_points",
     "write_volume",
+    "write_channels_iter",
     "write_volume_iter",
 ]

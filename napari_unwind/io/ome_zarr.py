@@ -428,7 +428,7 @@ def _lazy(array: zarr.Array, store: Path, *, complete: bool, index: tuple = ()) 
                      tuple(array.chunks[ax] for ax in keep))
 
 
-def read_ome_zarr(path: Path, *, level: int | None = None) -> Volume:
+def read_ome_zarr(path: Path, *, level: int | None = None, channel: int | None = None) -> Volume:
     """Open an OME-Zarr image (NGFF 0.4 or 0.5) or a plain 3D zarr array, lazily.
 
     Parameters
@@ -438,6 +438,10 @@ def read_ome_zarr(path: Path, *, level: int | None = None) -> Volume:
     level : int, optional
         Return only this pyramid level and the coarser ones (default: full resolution, all levels kept). The
         volume's spacing and origin are that level's.
+    channel : int, optional
+        For an image with a channel axis (``c``, or an axis of type ``"channel"``) longer than 1: which channel
+        (0-based). Its name (``omero.channels[i].label``) is in ``metadata["channel"]``. See
+        :func:`napari_unwind.io.open_channels` for all of them.
 
     Raises
     ------
@@ -470,7 +474,8 @@ def read_ome_zarr(path: Path, *, level: int | None = None) -> Volume:
             arrays = sorted(name for name, _ in node.arrays())
             hint = f" It holds arrays {arrays}; open one of them as {path}/<name>." if arrays else ""
             raise UnknownFormatError(f"{path} is a zarr group without OME-Zarr 'multiscales' metadata.{hint}")
-        return _read_multiscales(path, node, multiscales[0], version, level, unwind_attrs, complete)
+        return _read_multiscales(path, node, multiscales[0], version, level, unwind_attrs, complete, channel,
+                                 channel_labels(attrs))
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
         if isinstance(exc, InvalidInputError):
             raise
@@ -479,8 +484,24 @@ def read_ome_zarr(path: Path, *, level: int | None = None) -> Volume:
         ) from None
 
 
+def channel_labels(attrs: dict[str, Any]) -> list[str]:
+    """The channel names an OME-Zarr image's ``omero`` metadata gives (NGFF 0.4 and 0.5), [] when none."""
+    omero = (attrs.get("ome") or {}).get("omero") or attrs.get("omero") or {}
+    labels = []
+    for c in (omero.get("channels") if isinstance(omero, dict) else None) or []:
+        label = c.get("label") if isinstance(c, dict) else None
+        labels.append(str(label) if label not in (None, "") else "")
+    return labels
+
+
+def _is_channel_axis(axis: Any) -> bool:
+    if isinstance(axis, dict):
+        return axis.get("type") == "channel" or (axis.get("type") is None and axis.get("name") == "c")
+    return str(axis) == "c"
+
+
 def _read_multiscales(path: Path, node: Any, ms: dict, version: str, level: int | None, unwind_attrs: dict,
-                      complete: bool) -> Volume:
+                      complete: bool, channel: int | None = None, labels: list[str] | None = None) -> Volume:
     axes = ms.get("axes", [{"name": a} for a in AXES])
     axis_names = [a["name"] if isinstance(a, dict) else str(a) for a in axes]
     space = [i for i, a in enumerate(axes) if not isinstance(a, dict) or a.get("type", "space") == "space"]
@@ -504,17 +525,27 @@ def _read_multiscales(path: Path, node: Any, ms: dict, version: str, level: int 
             raise InvalidInputError(f"{path}/{ds['path']} is not an array")
         if arr.ndim != len(axes):
             raise InvalidInputError(f"{path}/{ds['path']} has {arr.ndim} dimensions but {len(axes)} axes")
-        # drop non-spatial axes of length 1 (t, c); refuse real channels or time points
+        # drop non-spatial axes of length 1 (t, c); pick the channel asked for; refuse time points
         index = []
         for ax in range(arr.ndim):
             if ax in space:
                 index.append(slice(None))
+            elif channel is not None and _is_channel_axis(axes[ax]):
+                if isinstance(channel, bool) or not isinstance(channel, int | np.integer) \
+                        or not 0 <= channel < arr.shape[ax]:
+                    raise InvalidInputError(f"{path} has channels 0..{arr.shape[ax] - 1}, got channel={channel!r}")
+                index.append(int(channel))
             elif arr.shape[ax] == 1:
                 index.append(0)
+            elif _is_channel_axis(axes[ax]):
+                raise InvalidInputError(
+                    f"{path} has {arr.shape[ax]} channels (axis {axis_names[ax]!r}); straighten them all with "
+                    "`unwind straighten` (or napari_unwind.io.open_channels), or pick one with channel=<index>"
+                )
             else:
                 raise InvalidInputError(
                     f"{path} has a non-spatial axis {axis_names[ax]!r} of length {arr.shape[ax]}; "
-                    "export one channel/time point as its own 3D image first"
+                    "export one time point as its own 3D image first"
                 )
         d = _lazy(arr, path, complete=complete, index=tuple(index))
         # physical = (index * scale + translation) of the dataset, then the multiscale's own transformations
@@ -538,8 +569,35 @@ def _read_multiscales(path: Path, node: Any, ms: dict, version: str, level: int 
         level_origins=tuple(origins),
         source=str(path),
         format="ome-zarr",
-        metadata={"ngff_version": version, "name": ms.get("name"), "unwind": unwind_attrs},
+        metadata={"ngff_version": version, "name": ms.get("name"), "unwind": unwind_attrs,
+                  **({} if channel is None else {"channel": _label(labels, int(channel))})},
     )
+
+
+def _label(labels: list[str] | None, k: int) -> str:
+    return labels[k] if labels and k < len(labels) and labels[k] else f"c{k}"
+
+
+def channel_axis_length(path: Path) -> int:
+    """How many channels an OME-Zarr image has along its channel axis (1 when it has none)."""
+    path = Path(path).expanduser().absolute()
+    try:
+        node = zarr.open(store=_RegularFileStore.opened(path, current_confinement()), mode="r")
+        attrs = dict(node.attrs)
+        if isinstance(node, zarr.Array):
+            return 1
+        multiscales, _ = _multiscales(attrs)
+        ms = multiscales[0]
+        axes = ms.get("axes", [])
+        arr = node[ms["datasets"][0]["path"]]
+    except ConfinementError:
+        raise
+    except Exception:  # noqa: BLE001 - read_ome_zarr gives the proper error for a broken store
+        return 1
+    for ax, a in enumerate(axes):
+        if _is_channel_axis(a) and ax < arr.ndim:
+            return int(arr.shape[ax])
+    return 1
 
 
 # ------------------------------------------------------------------------------------------------------------------

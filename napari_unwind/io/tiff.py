@@ -337,6 +337,56 @@ class _TiffPlanes:
         return out[0] if single else out
 
 
+def tiff_channel_names(tif: tifffile.TiffFile, count: int) -> list[str]:
+    """Channel names from ImageJ ``Labels`` (one per channel, or one per plane in ZCYX order) or OME ``Channel``
+    names; ``c<k>`` where none is given."""
+    names: list[str] = []
+    try:
+        if tif.is_imagej:
+            labels = (tif.imagej_metadata or {}).get("Labels") or []
+            if labels and len(labels) % count == 0:  # per channel, or per plane in ImageJ's ZCYX order
+                names = [str(x) for x in labels[:count]]
+        elif tif.is_ome:
+            import xml.etree.ElementTree as ET
+
+            root = ET.fromstring(tif.ome_metadata or "")
+            chans = [el for el in root.iter() if el.tag.endswith("}Channel") or el.tag == "Channel"]
+            if len(chans) == count:
+                names = [str(el.get("Name") or "") for el in chans]
+    except Exception:  # noqa: BLE001 - names are a convenience; malformed metadata gives c<k>
+        names = []
+    return [n if n else f"c{k}" for k, n in enumerate(names or [""] * count)]
+
+
+def tiff_channel_count(path: Path, series: int = 0) -> int:
+    """How many channels a TIFF series has along a ``C`` axis (1 when it has none)."""
+    with tifffile.TiffFile(path) as tif:
+        if not tif.series or not 0 <= series < len(tif.series):
+            return 1
+        s = tif.series[series]
+        return int(dict(zip(s.axes, s.shape, strict=True)).get("C", 1))
+
+
+def _channel_pages(s: Any, keep: list[tuple[str, int]], channel: Any, path: Path) -> tuple[list[int], str]:
+    """The IFD index of every plane of one channel of a ``ZCYX``/``CZYX`` series, and the channel's name."""
+    plane_axes = [(a, n) for a, n in keep if a not in "YX"]
+    count = dict(plane_axes)["C"]
+    if isinstance(channel, bool) or not isinstance(channel, int | np.integer) or not 0 <= channel < count:
+        raise InvalidInputError(f"{path} has channels 0..{count - 1}, got channel={channel!r}")
+    pages = list(s.pages)
+    nplanes = int(np.prod([n for _, n in plane_axes]))
+    if len(pages) != nplanes or any(p is None for p in pages):
+        raise InvalidInputError(f"{path}: its {count} channels are not stored one plane per page; save it as an "
+                                "ImageJ hyperstack or OME-TIFF (Fiji: File > Save As > Tiff...)")
+    shape = tuple(n for _, n in plane_axes)
+    other = next(n for a, n in plane_axes if a != "C")
+    index = []
+    for z in range(other):
+        pos = tuple(int(channel) if a == "C" else z for a, _ in plane_axes)
+        index.append(pages[int(np.ravel_multi_index(pos, shape))].index)
+    return index, tiff_channel_names(s.parent, count)[int(channel)]
+
+
 def _colour_error(path: Path, axes: str, shape: tuple[int, ...], what: str) -> InvalidInputError:
     return InvalidInputError(
         f"{path} holds {what} (axes {axes}, shape {shape}); napari-unwind needs one grey value per voxel: "
@@ -346,7 +396,7 @@ def _colour_error(path: Path, axes: str, shape: tuple[int, ...], what: str) -> I
 
 
 def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
-              chunk_planes: int | None = None) -> Volume:
+              chunk_planes: int | None = None, channel: int | None = None) -> Volume:
     """Open a multi-page TIFF / BigTIFF (ImageJ hyperstack, OME-TIFF, plain page stack) lazily.
 
     A single-page 2D TIFF that belongs to a numbered series (``fish_0001.tif``, ``fish_0002.tif``...) opens the
@@ -362,6 +412,10 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
         For a 2D slice: the glob choosing its stack (see :func:`~napari_unwind.io.stack.read_stack`).
     chunk_planes : int, optional
         Planes per dask chunk (default: about 64 MB per chunk).
+    channel : int, optional
+        For a multi-channel stack (ImageJ hyperstack ``ZCYX``, OME-TIFF ``CZYX``...): which channel (0-based); its
+        name (ImageJ ``Labels``, OME ``Channel Name``, else ``c<k>``) is in ``metadata["channel"]``. See
+        :func:`napari_unwind.io.open_channels` for all of them.
 
     Returns
     -------
@@ -411,9 +465,20 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
             raise _colour_error(path, axes, shape, "RGB colour images" if n in (3, 4) else f"{n} samples per pixel")
         if len(planes) == 1 and planes[0][0] == "C":
             raise _colour_error(path, axes, shape, f"{planes[0][1]} channels and one plane each")
-        if len(planes) > 1:
-            if any(a == "C" for a, _ in planes):
-                raise _colour_error(path, axes, shape, f"{dict(planes)['C']} channels")
+        pick = None
+        if len(planes) == 2 and any(a == "C" for a, _ in planes) and channel is not None:
+            pick = _channel_pages(s, keep, channel, path)
+            keep = [(a, n) for a, n in keep if a != "C"]
+            kaxes = "".join(a for a, _ in keep)
+            kshape = tuple(n for _, n in keep)
+        elif channel is not None:
+            raise InvalidInputError(f"{path} has no channel axis (axes {axes}), got channel={channel!r}")
+        elif len(planes) > 1 and any(a == "C" for a, _ in planes):
+            raise InvalidInputError(
+                f"{path} holds {dict(planes)['C']} channels (axes {axes}, shape {shape}); straighten them all with "
+                "`unwind straighten` (or napari_unwind.io.open_channels), or pick one with channel=<index>"
+            )
+        if len(planes) > 1 and pick is None:
             raise InvalidInputError(
                 f"{path} is {len(planes) + 2}D (axes {axes}, shape {shape}); napari-unwind opens one 3D volume: "
                 "export one time point (Fiji: Image > Duplicate... with one frame)"
@@ -436,7 +501,21 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
         chunks = (min(depth, n), ny, nx)
         offset = s.dataoffset
         out_dtype = {np.dtype(bool): np.dtype("uint8"), np.dtype("float16"): np.dtype("float32")}.get(dtype, dtype)
-        if offset is not None and out_dtype == dtype and not s.pages[0].is_tiled:
+        if pick is not None:
+            meta["channel"] = pick[1]
+            meta["memmap"] = False
+            planes_arr = _TiffPlanes(str(path), series, pick[0], (n, ny, nx), out_dtype)
+
+            def build_channel(planes_arr: Any = planes_arr) -> da.Array:
+                import dask.array as da
+                from dask.base import tokenize
+
+                token = tokenize(str(path), stat.st_mtime_ns, stat.st_size, series, channel)
+                return da.from_array(planes_arr, chunks=chunks, name=f"tiff-{token}", asarray=False, fancy=False,
+                                     meta=np.empty((0, 0, 0), dtype=out_dtype))
+
+            data = LazyArray(build_channel, (n, ny, nx), out_dtype, chunks)
+        elif offset is not None and out_dtype == dtype and not s.pages[0].is_tiled:
             arr = RawFileArray(path, dtype.newbyteorder(tif.byteorder), (n, ny, nx), int(offset))
             data = arr.to_lazy(depth=chunks[0], name="tiff")  # dask built on first use
             meta["memmap"] = True
@@ -560,14 +639,19 @@ class _Aborted(Exception):
 
 
 def _write_pages(path: Path, volume: Volume, *, bigtiff: bool, imagej: bool,
-                 options: dict[str, Any]) -> Iterator[Progress]:
+                 options: dict[str, Any], shape: tuple[int, ...] | None = None,
+                 slab: Any = None) -> Iterator[Progress]:
     """Stream ``volume`` plane by plane into one TIFF series, yielding progress per slab.
 
     tifffile consumes an iterator of pages in a single ``write`` call, so it runs in a worker thread fed
-    through a one-slab queue while this generator computes the next slab and reports progress.
+    through a one-slab queue while this generator computes the next slab and reports progress. A hyperstack
+    passes its series ``shape`` (``(Z, C, Y, X)``) and ``slab(z0, z1)``, the planes ``z0 .. z1 - 1`` of ``volume``
+    (its pages in file order, shape (Z * C, Y, X)); ``z0`` and ``z1`` are then multiples of C.
     """
     n = volume.shape[0]
     depth = slab_depth(volume.shape[1:], volume.dtype)
+    if shape is not None and len(shape) == 4:
+        depth = max(1, depth // shape[1]) * shape[1]  # whole Z planes of every channel
     total = -(-n // depth)
     plane_bytes = volume.shape[1] * volume.shape[2] * volume.dtype.itemsize
     feed: queue.Queue = queue.Queue(maxsize=1)
@@ -585,7 +669,7 @@ def _write_pages(path: Path, volume: Volume, *, bigtiff: bool, imagej: bool,
     def work() -> None:
         try:
             with tifffile.TiffWriter(path, bigtiff=bigtiff, imagej=imagej) as tw:
-                tw.write(pages(), shape=volume.shape, dtype=volume.dtype, **options)
+                tw.write(pages(), shape=volume.shape if shape is None else shape, dtype=volume.dtype, **options)
         except BaseException as exc:  # noqa: BLE001 - re-raised in the generator's thread
             failure.append(_short_write(exc, path, plane_bytes))
 
@@ -603,10 +687,12 @@ def _write_pages(path: Path, volume: Volume, *, bigtiff: bool, imagej: bool,
     try:
         for i, z0 in enumerate(range(0, n, depth)):
             z1 = min(n, z0 + depth)
-            slab = np.ascontiguousarray(volume.data[z0:z1].compute(), dtype=volume.dtype)
-            if not put(slab):
+            planes = volume.data[z0:z1].compute() if slab is None else slab(z0, z1)
+            slab_ = np.ascontiguousarray(planes, dtype=volume.dtype)
+            del planes
+            if not put(slab_):
                 break
-            del slab
+            del slab_
             yield Progress("write tiff", i + 1, total, f"planes {z0}-{z1 - 1} of {n}")
         put(None)
         worker.join()
