@@ -214,10 +214,71 @@ def _check_folds(deformation, allow: bool, folded: float | None = None) -> None:
     print(f"unwind: warning: {verdict.message}", file=sys.stderr)
 
 
+def _channel_count(path: str, args: argparse.Namespace) -> int:
+    from .io._formats import detect_format
+    from .io.channels import _count
+
+    p = Path(path).expanduser().absolute()
+    if not p.exists():
+        return 1  # open_volume says it does not exist
+    opts = _reader_options(args, path)
+    return _count(p, opts.get("format") or detect_format(p), opts)
+
+
+def _straighten_channels(args: argparse.Namespace) -> int:
+    """``unwind straighten`` of several channels (several inputs, or one with a channel axis) into one image."""
+    from dataclasses import replace
+
+    from .io import open_channels
+    from .session import SourceInfo
+    from .warp import FoldWarning, export_channels_iter
+
+    _check_output(args.output, args.overwrite)
+    names = [n.strip() for n in args.channel_names.split(",")] if args.channel_names else None
+    # without --same-grid the first input is the session's scan (checked against its checksum); the others are
+    # images of its grid (shape here; spacing and origin by the warp)
+    session = _load_session_for(args, None if args.same_grid else args.input[0], [args.output], args.input)
+    first_opts = _reader_options(args, args.input[0])
+    channels = open_channels(args.input, names=names, **first_opts)
+    for v in channels:
+        _check_same_grid(session, v, str(v.source))
+    deformation = session.deformation
+    _check_folds(deformation, args.allow_folds)
+    # the session's scan itself (the first input, checked above, when it holds one channel) is its source already
+    skip_first = not args.same_grid and _channel_count(args.input[0], args) == 1
+    records, digests = [], {}
+    for k, v in enumerate(channels):
+        if k == 0 and skip_first:
+            continue
+        key = str(v.source)
+        if key not in digests:
+            digests[key] = SourceInfo.from_path(key, volume=v)
+        records.append(replace(digests[key], channel=str(v.metadata["channel"]), dtype=str(v.dtype),
+                               shape=tuple(v.shape)))
+    embedded = replace(session, channels=(*session.channels, *records))
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FoldWarning)  # reported above
+        written = _run_with_bar(
+            export_channels_iter(channels, deformation, args.output, order=args.order, spacing=args.spacing,
+                                 pad=args.pad, chunks=args.chunks, overwrite=args.overwrite,
+                                 session=embedded.to_dict(), scheduler=args.scheduler, **_max_output(args)),
+            args.quiet,
+        )
+    if not args.quiet:
+        print(f"straightened {len(channels)} channels ({', '.join(v.metadata['channel'] for v in channels)}) -> "
+              f"{written} in {time.perf_counter() - t0:.1f} s")
+        print(f"length {deformation.length:.4g} {channels[0].unit_abbreviation}, {len(deformation)} keyframes")
+    return 0
+
+
 def cmd_straighten(args: argparse.Namespace) -> int:
     from .io import open_volume
     from .warp import FoldWarning, export_iter
 
+    if len(args.input) > 1 or args.channel_names or _channel_count(args.input[0], args) > 1:
+        return _straighten_channels(args)
+    args.input = args.input[0]
     _check_output(args.output, args.overwrite)
     session = _load_session_for(args, None if args.same_grid else args.input, [args.output], [args.input])
     volume = open_volume(args.input, **_reader_options(args, args.input))
@@ -264,12 +325,19 @@ def _channel_arg(text: str) -> tuple[str, str]:
 def cmd_measure(args: argparse.Namespace) -> int:
     from .io import open_volume
     from .io._atomic import check_writable
-    from .measure import measure_iter
+    from .measure import _need, measure_iter, profile_format
 
-    if Path(args.output).suffix.lower() != ".csv":
-        raise UnwindError(f"the profile is written as CSV: give an output ending in .csv, got {args.output}")
-    check_writable(args.output, overwrite=args.overwrite)
-    session = _load_session_for(args, None, [args.output],
+    kind = profile_format(args.output, formats=(".csv", ".parquet"))
+    if kind == ".parquet":
+        _need("pyarrow", "tables", "Parquet")
+    if args.plot is not None:
+        if Path(args.plot).suffix.lower() != ".png":
+            raise UnwindError(f"the plot is written as PNG: give --plot a path ending in .png, got {args.plot}")
+        _need("matplotlib", "plot", "the plot")
+    outputs = [x for x in (args.output, args.plot) if x is not None]
+    for out in outputs:
+        check_writable(out, overwrite=args.overwrite)
+    session = _load_session_for(args, None, outputs,
                                 [x for x in (args.mask, args.labels, *[c for _, c in args.channel]) if x])
     seg = session.segmentation
     mask_path = args.mask or (seg.mask if seg is not None else None)
@@ -294,10 +362,18 @@ def cmd_measure(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     profile = _run_with_bar(measure_iter(session.deformation, mask=mask, labels=labels, channels=channels or None,
                                          spacing=args.spacing), args.quiet)
-    written = profile.to_csv(args.output, overwrite=args.overwrite)
+    if kind == ".parquet":  # provenance in the schema's metadata (the CSV stays the server's bytes)
+        from dataclasses import replace
+
+        profile = replace(profile, meta={"session": str(args.session), "mask": str(mask_path or ""),
+                                         "labels": str(args.labels or ""), "spacing": str(args.spacing or ""),
+                                         "channels": ";".join(f"{n}={c}" for n, c in args.channel)})
+    written = profile.save(args.output, overwrite=args.overwrite)
+    if args.plot is not None:
+        profile.plot(args.plot, overwrite=args.overwrite)
     if not args.quiet:
         print(f"measured {len(profile)} stations ({len(profile.columns)} columns) in "
-              f"{time.perf_counter() - t0:.1f} s -> {written}")
+              f"{time.perf_counter() - t0:.1f} s -> {written}" + (f", {args.plot}" if args.plot else ""))
     return 0
 
 
@@ -1034,9 +1110,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("straighten", help="export the straight volume of a session's deformation")
-    p.add_argument("input", help="the scan the session was made on (any supported format)")
+    p.add_argument("input", nargs="+",
+                   help="the scan the session was made on (any supported format); more images of its grid (other "
+                        "channels, stains) or a scan with a channel axis give one multi-channel output (.zarr with a "
+                        "c axis, or an ImageJ hyperstack .tif), straightened in one pass")
     p.add_argument("--session", required=True, help="the session file (*.unwind.json) holding the deformation")
     p.add_argument("-o", "--output", required=True, help="output path; the suffix chooses the format")
+    p.add_argument("--channel-names", default=None, metavar="A,B,...",
+                   help="names of the channels, in order (default: the file's channel names, else the file names)")
     p.add_argument("--order", type=int, choices=(0, 1, 3), default=1,
                    help="interpolation: 0 nearest (labels), 1 linear (default), 3 cubic")
     p.add_argument("--pad", type=_whole(0), default=0, help="extra slices at both ends (default 0)")
@@ -1055,7 +1136,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_input_options(p)
     p.set_defaults(func=cmd_straighten)
 
-    p = sub.add_parser("measure", help="measure the specimen along the session's centreline: a CSV profile")
+    p = sub.add_parser("measure", help="measure the specimen along the session's centreline: a CSV or Parquet "
+                                       "profile, and its plot")
     p.add_argument("--session", required=True, help="the session file (*.unwind.json) holding the deformation")
     p.add_argument("--mask", default=None,
                    help="the specimen mask on the scan's grid (default: the session's mask file, when it has one)")
@@ -1064,7 +1146,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="an intensity image on the scan's grid (repeatable): mean, std, min, max per station")
     p.add_argument("--spacing", type=_positive, default=None,
                    help="station spacing and section pixel size (default: finest scan spacing)")
-    p.add_argument("-o", "--output", required=True, help="the profile (.csv)")
+    p.add_argument("-o", "--output", required=True,
+                   help="the profile: .csv, or .parquet (pip install napari-unwind[tables]); units with each column")
+    p.add_argument("--plot", default=None, metavar="PNG",
+                   help="also plot the profiles against s to this .png (pip install napari-unwind[plot])")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output once the new one is complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
     p.set_defaults(func=cmd_measure)

@@ -458,6 +458,8 @@ class SourceInfo:
         NGFF length unit name.
     format : str or None
         The reader that opened it (a key of ``napari_unwind.io.FORMATS``).
+    channel : str or None
+        For one channel of a multi-channel file: the channel's name (None for a single-channel image).
     """
 
     path: str
@@ -468,6 +470,7 @@ class SourceInfo:
     checksum: str | None = None
     size: int | None = None
     format: str | None = None
+    channel: str | None = None
 
     def __post_init__(self) -> None:
         path = os.fspath(self.path) if isinstance(self.path, os.PathLike) else self.path
@@ -501,6 +504,7 @@ class SourceInfo:
         if self.size is not None:
             object.__setattr__(self, "size", _integer(self.size, "source.size", 0))
         _string(self.format, "source.format", optional=True)
+        _string(self.channel, "source.channel", optional=True)
 
     @classmethod
     def from_path(
@@ -531,19 +535,23 @@ class SourceInfo:
             raise InvalidInputError(f"volume must be a napari_unwind Volume, got {type(volume).__name__}")
         members, manifest = _source_files(p)
         digest, size = run(_digest_iter(members, manifest), progress)
+        channel = volume.metadata.get("channel") if isinstance(volume.metadata, dict) else None
         return cls(path=str(p), shape=tuple(volume.shape), dtype=np.dtype(volume.dtype).name,
-                   spacing=volume.spacing, unit=volume.unit, checksum=digest, size=size, format=volume.format)
+                   spacing=volume.spacing, unit=volume.unit, checksum=digest, size=size, format=volume.format,
+                   channel=str(channel) if channel else None)
 
     def to_dict(self) -> dict[str, Any]:
         return {"path": self.path, "checksum": self.checksum, "size": self.size, "shape": list(self.shape),
-                "dtype": self.dtype, "spacing": list(self.spacing), "unit": self.unit, "format": self.format}
+                "dtype": self.dtype, "spacing": list(self.spacing), "unit": self.unit, "format": self.format,
+                **({"channel": self.channel} if self.channel is not None else {})}
 
     @classmethod
     def from_dict(cls, d: Any) -> SourceInfo:
         d = _object(d, "source")
         return cls(path=_require(d, "path", "source"), shape=_require(d, "shape", "source"),
                    dtype=_require(d, "dtype", "source"), spacing=_require(d, "spacing", "source"),
-                   unit=d.get("unit"), checksum=d.get("checksum"), size=d.get("size"), format=d.get("format"))
+                   unit=d.get("unit"), checksum=d.get("checksum"), size=d.get("size"), format=d.get("format"),
+                   channel=d.get("channel"))
 
 
 @dataclass(frozen=True)

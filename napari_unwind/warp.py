@@ -1219,8 +1219,9 @@ def straighten_channels(
     ----------
     volumes : sequence of Volume, path or array-like, each shape (N0, N1, N2)
         The channels (:func:`napari_unwind.io.open_channels` opens them), each as for :func:`straighten`; they
-        must share shape and voxel type (a :class:`~napari_unwind.io.Volume` also its geometry, checked against the
-        deformation's).
+        must share a shape (a :class:`~napari_unwind.io.Volume` also its geometry, checked against the
+        deformation's). Channels of different voxel types are resampled in their common type (numpy's
+        ``result_type``: uint8 and uint16 give uint16).
     deformation, order, spacing, pad, chunks, fill, max_output
         As for :func:`straighten`; ``max_output`` bounds the channels' output together.
 
@@ -1247,10 +1248,14 @@ def straighten_channels(
     inputs = [_input_array(v, deformation) for v in vols]
     datas = [x[0] for x in inputs]
     for k, d in enumerate(datas[1:], start=1):
-        if tuple(d.shape) != tuple(datas[0].shape) or d.dtype != datas[0].dtype:
-            raise InvalidInputError(f"channel {k} has shape {tuple(d.shape)} and type {d.dtype} but channel 0 has "
-                                    f"{tuple(datas[0].shape)} and {datas[0].dtype}: channels must share one grid "
-                                    "and voxel type")
+        if tuple(d.shape) != tuple(datas[0].shape):
+            raise InvalidInputError(f"channel {k} has shape {tuple(d.shape)} but channel 0 has "
+                                    f"{tuple(datas[0].shape)}: channels must share one scan grid")
+    common = np.result_type(*[d.dtype for d in datas])  # one block holds every channel: their common type
+    if common not in SUPPORTED_DTYPES:
+        raise InvalidInputError(f"channels of types {sorted({str(d.dtype) for d in datas})} have no common voxel type "
+                                "napari-unwind writes; convert them to one type first (unwind convert)")
+    datas = [d if d.dtype == common else d.astype(common) for d in datas]
     unit = inputs[0][1]
     ds = deformation._ds(spacing)
     d2 = _padded(deformation, pad, ds)

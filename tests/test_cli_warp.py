@@ -135,3 +135,56 @@ def test_another_channel_of_the_same_grid_is_straightened_with_the_session(case,
     code, _, err = _run("straighten", coarse, "--session", session, "--same-grid", "-o", tmp_path / "y.zarr", "-q")
     assert code == 1 and "Traceback" not in err and "spacing" in err
     assert not (tmp_path / "x.zarr").exists() and not (tmp_path / "y.zarr").exists()
+
+
+def test_several_channels_are_straightened_in_one_pass_into_one_image(case, tmp_path):
+    """Issue 24 item 1: the scan plus two images of its grid (2 x the scan as float32, the true mask as uint8) give
+    one OME-Zarr with a c axis (channels named, types promoted to the common float32) and one ImageJ hyperstack;
+    each channel equals that image straightened alone; the output's session records the two other channels."""
+    import json
+
+    import tifffile
+    import zarr
+
+    from napari_unwind.io import open_channels
+
+    tmp, fish, scan, session, d = case
+    double = write_volume(fish.volume.astype(np.float32) * 2, tmp_path / "double.nrrd", spacing=fish.spacing,
+                          unit=fish.unit)
+    mask = write_volume(fish.mask.astype(np.uint8), tmp_path / "mask.nrrd", spacing=fish.spacing, unit=fish.unit)
+    alone = tmp_path / "alone.ome.zarr"
+    assert _run("straighten", scan, "--session", session, "-o", alone, "-q")[0] == 0
+    ref = open_volume(alone).data.compute().astype(np.float32)
+    out = tmp_path / "all.ome.zarr"
+    code, stdout, err = _run("straighten", scan, double, mask, "--session", session, "--channel-names",
+                             "ct,double,mask", "-o", out)
+    assert code == 0, err
+    assert "3 channels (ct, double, mask)" in stdout
+    chans = open_channels(out)
+    assert [c.metadata["channel"] for c in chans] == ["ct", "double", "mask"]
+    got = [np.asarray(c.data) for c in chans]
+    assert got[0].dtype == np.float32 and got[0].shape == ref.shape
+    np.testing.assert_allclose(got[0], ref, atol=0.5 + 1e-3)          # the scan alone is uint16 (rounded)
+    np.testing.assert_allclose(got[1], 2 * got[0], rtol=1e-6, atol=1e-3)
+    assert 0 <= got[2].min() and got[2].max() <= 1 and got[2].max() > 0.99
+    attrs = json.loads(json.dumps(dict(zarr.open_group(str(out), mode="r").attrs)))
+    rec = attrs["unwind"]["straightening"]
+    recorded = rec["session"]["channels"]
+    assert [c["channel"] for c in recorded] == ["double", "mask"]
+    assert recorded[0]["path"].endswith("double.nrrd") and recorded[0]["checksum"].startswith("sha256:")
+    # the hyperstack: Fiji's ZCYX with the names as labels
+    tif = tmp_path / "all.tif"
+    code, _, err = _run("straighten", scan, mask, "--session", session, "-o", tif, "-q")
+    assert code == 0, err
+    with tifffile.TiffFile(tif) as t:
+        assert t.is_imagej and t.series[0].axes == "ZCYX" and t.series[0].shape[1] == 2
+        data = t.series[0].asarray()
+    np.testing.assert_array_equal(data[:, 0], open_volume(alone).data.compute())
+    # a format with one channel is refused in one line, nothing written
+    code, _, err = _run("straighten", scan, mask, "--session", session, "-o", tmp_path / "x.nrrd", "-q")
+    assert code == 1 and "OME-Zarr" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.nrrd").exists()
+    # another grid among the channels: refused before any work
+    small = write_volume(fish.volume[:-4], tmp_path / "small.nrrd", spacing=fish.spacing, unit=fish.unit)
+    code, _, err = _run("straighten", scan, small, "--session", session, "-o", tmp_path / "y.zarr", "-q")
+    assert code == 1 and "shape" in err and not (tmp_path / "y.zarr").exists()

@@ -148,16 +148,14 @@ def check_same_grid(volumes: Sequence[Volume], what: Sequence[str] | None = None
             raise InvalidInputError(
                 f"{name} has spacing {tuple(v.spacing)} and origin {tuple(v.origin)} but {what[0]} has "
                 f"{tuple(ref.spacing)} and {tuple(ref.origin)}: channels must share one scan grid")
-        if np.dtype(v.dtype) != np.dtype(ref.dtype):
-            raise InvalidInputError(f"{name} holds {v.dtype} voxels but {what[0]} holds {ref.dtype}: one multi-channel "
-                                    "image has one voxel type; convert one of them (e.g. unwind convert)")
 
 
 def _stacked(volumes: Sequence[Volume]) -> Any:
     """The channels as one dask array (C, N0, N1, N2): slicing it computes every channel of the slab at once."""
     import dask.array as da
 
-    return da.stack([v.data for v in volumes], axis=0)
+    common = np.result_type(*[v.dtype for v in volumes])
+    return da.stack([v.data if v.dtype == common else v.data.astype(common) for v in volumes], axis=0)
 
 
 def write_channels_iter(volumes: Sequence[Volume], path: str | os.PathLike, *, format: str | None = None,
@@ -168,7 +166,8 @@ def write_channels_iter(volumes: Sequence[Volume], path: str | os.PathLike, *, f
     Parameters
     ----------
     volumes : sequence of Volume, each shape (N0, N1, N2)
-        The channels (names from ``metadata["channel"]``), sharing shape, spacing, origin, unit and dtype.
+        The channels (names from ``metadata["channel"]``), sharing shape, spacing, origin and unit; channels of
+        different voxel types are written in their common type (numpy's ``result_type``).
     path : str or path-like
         ``.zarr`` (OME-Zarr, axes ``c, z, y, x``) or ``.tif``/``.tiff`` (ImageJ hyperstack ``ZCYX``; uint8, uint16
         or float32 below 4 GB). Other formats hold one channel: refused.
@@ -228,7 +227,7 @@ def _write_zarr(volumes: list[Volume], names: list[str], path: Path, *, attribut
     from ._straight_record import straightening_record
 
     first = volumes[0]
-    shape, dtype = tuple(first.shape), np.dtype(first.dtype)
+    shape, dtype = tuple(first.shape), np.result_type(*[v.dtype for v in volumes])
     chunk_shape = oz._normalise_chunks(chunks, shape)
     shapes = oz.pyramid_shapes(shape, oz.DEFAULT_MAX_SIDE if max_side is None else max_side) if pyramid else [shape]
     spacings = [tuple(first.spacing)]
@@ -289,7 +288,7 @@ def _write_hyperstack(volumes: list[Volume], names: list[str], path: Path, *, co
     first = volumes[0]
     nz, ny, nx = first.shape
     nc = len(volumes)
-    dtype = np.dtype(first.dtype)
+    dtype = np.result_type(*[v.dtype for v in volumes])
     if dtype not in tiff.IMAGEJ_DTYPES:
         raise InvalidInputError(f"an ImageJ hyperstack holds uint8, uint16 or float32, not {dtype}: write "
                                 f"{Path(path).name} as OME-Zarr (.zarr) instead")
