@@ -18,12 +18,19 @@ Per station (``s`` from 0 to the deformation's length, one output spacing apart)
 The straight slices are computed chunk by chunk (:func:`napari_unwind.warp.straighten`), so memory is bounded by one
 chunk of the straight volume per input. Units: lengths in the deformation's unit, areas in its square, curvature
 and torsion in its inverse, angles in degrees.
+
+Outputs (:meth:`Profile.save` picks one by the suffix): CSV (:meth:`Profile.to_csv`, units in the header), Parquet
+(:meth:`Profile.to_parquet`, needs ``pyarrow``: the ``tables`` extra; each field's unit in its metadata) and a PNG
+plot of the profiles against ``s`` (:meth:`Profile.plot`, needs ``matplotlib``: the ``plot`` extra). Each is
+written atomically, and the same profile gives the same bytes. :func:`read_profile` reads CSV and Parquet back.
 """
 
 from __future__ import annotations
 
+import json
 import os
-from collections.abc import Generator, Mapping, Sequence
+import re
+from collections.abc import Generator, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,10 +42,14 @@ from .errors import InvalidInputError
 from .progress import Progress
 from .progress import run as run_with_progress
 
-__all__ = ["Profile", "measure", "measure_iter", "curve_geometry", "MAX_LABELS"]
+__all__ = ["Profile", "measure", "measure_iter", "curve_geometry", "read_profile", "profile_format", "MAX_LABELS",
+           "PROFILE_FORMATS"]
 
 #: At most this many labels get an area column each (a label image with more is refused, naming the count).
 MAX_LABELS = 256
+
+#: A profile's outputs by suffix: the two tables and the plot.
+PROFILE_FORMATS = {".csv": "CSV", ".parquet": "Parquet", ".png": "PNG"}
 
 
 @dataclass(frozen=True)
@@ -53,11 +64,15 @@ class Profile:
         Column name to its unit ("" for dimensionless numbers).
     unit : str or None
         The length unit of the deformation.
+    meta : dict of str to str
+        Provenance (the session, the mask, the channels: what the caller records), written in the Parquet
+        schema's metadata; never anything that changes between two runs of the same measurement.
     """
 
     columns: dict[str, np.ndarray]
     units: dict[str, str] = field(default_factory=dict)
     unit: str | None = None
+    meta: dict[str, str] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.columns["s"])
@@ -95,6 +110,263 @@ class Profile:
         with atomic_output(path, overwrite=overwrite) as tmp:
             Path(tmp).write_text(self.csv_text(), encoding="utf-8")
         return path
+
+    def to_parquet(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+        """Write the table to ``path`` as Parquet, atomically (needs ``pyarrow``: ``pip install
+        napari-unwind[tables]``).
+
+        One float64 column per profile column, in order; a value that is not finite (no section at a station) is
+        null, as it is empty in the CSV. Each field's metadata holds its unit (``b"unit"``, ``""`` for a
+        dimensionless number); the schema's metadata holds the length unit (``b"unit"``) and, under
+        ``b"napari_unwind"``, JSON with the writer's version, the units and :attr:`meta`. The same profile gives
+        the same bytes.
+        """
+        from .io._atomic import atomic_output
+
+        pa, pq = _need("pyarrow", "tables", "Parquet"), _need("pyarrow.parquet", "tables", "Parquet")
+        path = Path(path)
+        table = self._arrow_table(pa)
+        with atomic_output(path, overwrite=overwrite) as tmp:
+            pq.write_table(table, str(tmp), compression="zstd")
+        return path
+
+    def _arrow_table(self, pa: Any) -> Any:
+        from . import __version__
+
+        fields, arrays = [], []
+        for name, values in self.columns.items():
+            v = np.ascontiguousarray(values, dtype=np.float64)
+            arrays.append(pa.array(v, type=pa.float64(), mask=~np.isfinite(v)))
+            fields.append(pa.field(name, pa.float64(), metadata={b"unit": self.units.get(name, "").encode()}))
+        about = {"format": "napari-unwind profile", "version": __version__, "unit": self.unit,
+                 "units": {n: self.units.get(n, "") for n in self.columns}, "meta": dict(self.meta)}
+        schema = pa.schema(fields, metadata={b"unit": (self.unit or "").encode(),
+                                             b"napari_unwind": json.dumps(about, sort_keys=True).encode()})
+        return pa.Table.from_arrays(arrays, schema=schema)
+
+    def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+        """Write the profile in the format its suffix names: ``.csv``, ``.parquet`` or ``.png`` (the plot)."""
+        kind = profile_format(path)
+        if kind == ".csv":
+            return self.to_csv(path, overwrite=overwrite)
+        if kind == ".parquet":
+            return self.to_parquet(path, overwrite=overwrite)
+        self.plot(path, overwrite=overwrite)
+        return Path(path)
+
+    def plot(self, path: str | os.PathLike | None = None, *, columns: Iterable[str] | None = None,
+             figure: Any = None, overwrite: bool = False) -> Any:
+        """Plot the profiles against the arc length ``s``, one panel per quantity group (needs ``matplotlib``:
+        ``pip install napari-unwind[plot]``).
+
+        Panels, those present only: curvature and torsion; twist; area with the equivalent radius (right axis);
+        major and minor axes with the eccentricity (right axis); each channel's mean (with mean +- std shaded);
+        the area of each label. Every axis is labelled with its unit.
+
+        Parameters
+        ----------
+        path : str or PathLike, optional
+            A ``.png`` file to write (atomically; the same profile gives the same bytes).
+        columns : iterable of str, optional
+            Plot these columns only (each in its group's panel; a column of no group gets a panel per unit).
+        figure : matplotlib.figure.Figure, optional
+            Draw into this figure (cleared first; the dock's canvas), else a new one sized for the panels.
+        overwrite : bool
+            Replace an existing ``path``.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+            The figure; each curve's ``gid`` is its column's name.
+        """
+        if path is not None and Path(path).suffix.lower() != ".png":
+            raise InvalidInputError(f"the plot is written as PNG: give a path ending in .png, got {path}")
+        panels = _plot_panels(self, columns)
+        _need("matplotlib", "plot", "the plot")
+        import matplotlib
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        with matplotlib.rc_context(_PLOT_STYLE):
+            if figure is None:
+                figure = Figure(figsize=(8.0, 0.9 + 1.9 * len(panels)), dpi=100, layout="constrained")
+                FigureCanvasAgg(figure)
+            else:
+                figure.clear()
+            _draw_panels(figure, self, panels)
+            if path is not None:
+                from .io._atomic import atomic_output
+
+                with atomic_output(Path(path), overwrite=overwrite) as tmp:
+                    figure.savefig(str(tmp), format="png", metadata={"Software": None})
+        return figure
+
+
+def profile_format(path: str | os.PathLike, *, formats: Iterable[str] = tuple(PROFILE_FORMATS)) -> str:
+    """The suffix (lower case) of a profile output among ``formats``, or a one-line error listing them."""
+    formats = tuple(formats)
+    suffix = Path(path).suffix.lower()
+    if suffix not in formats:
+        names = " or ".join(f"{PROFILE_FORMATS[f]} ({f})" for f in formats)
+        raise InvalidInputError(f"a profile is written as {names}: give a path ending in "
+                                f"{' or '.join(formats)}, got {os.fspath(path)}")
+    return suffix
+
+
+def read_profile(path: str | os.PathLike) -> Profile:
+    """Read a profile written by :meth:`Profile.to_csv` or :meth:`Profile.to_parquet` (by its suffix).
+
+    A CSV has no length unit of its own: the profile's ``unit`` is then the label of ``s``'s unit ("um"). Empty
+    cells and nulls read as NaN.
+    """
+    import csv
+
+    kind = profile_format(path, formats=(".csv", ".parquet"))
+    path = Path(path)
+    if not path.is_file():
+        raise InvalidInputError(f"no profile at {path}")
+    if kind == ".parquet":
+        pq = _need("pyarrow.parquet", "tables", "Parquet")
+        table = pq.read_table(str(path))
+        cols = {f.name: np.asarray(table.column(f.name).to_numpy(zero_copy_only=False), dtype=np.float64)
+                for f in table.schema}
+        units = {f.name: (f.metadata or {}).get(b"unit", b"").decode() for f in table.schema}
+        smeta = table.schema.metadata or {}
+        about = json.loads(smeta.get(b"napari_unwind", b"{}"))
+        unit = smeta.get(b"unit", b"").decode() or None
+        return Profile(columns=cols, units=units, unit=unit, meta=dict(about.get("meta", {})))
+    with open(path, newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    if not rows or not rows[0] or rows[0][0].split(" [")[0] != "s":
+        raise InvalidInputError(f"{path} is no profile: its first column is not the arc length s")
+    names, units = [], {}
+    for h in rows[0]:
+        m = re.fullmatch(r"(.*) \[(.*)\]", h)
+        name, unit = (m.group(1), m.group(2)) if m else (h, "")
+        names.append(name)
+        units[name] = unit
+    values = np.array([[float(x) if x else np.nan for x in r] for r in rows[1:]], dtype=np.float64)
+    values = values.reshape(len(rows) - 1, len(names))
+    cols = {n: values[:, i].copy() for i, n in enumerate(names)}
+    return Profile(columns=cols, units=units, unit=units.get("s") or None)
+
+
+def _need(module: str, extra: str, what: str) -> Any:
+    """Import an optional dependency, or a one-line error naming the extra that installs it."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        top = module.split(".")[0]
+        from .errors import UnwindError
+
+        raise UnwindError(f"{what} needs {top}, which is not installed: pip install napari-unwind[{extra}]") from None
+
+
+#: The plot's look: small type that stays legible in the dock's ~380 px and in an 800 px PNG.
+_PLOT_STYLE = {"font.size": 9, "axes.titlesize": 9, "axes.labelsize": 9, "legend.fontsize": 8,
+               "xtick.labelsize": 8, "ytick.labelsize": 8, "axes.grid": True, "grid.alpha": 0.3,
+               "lines.linewidth": 1.3, "legend.frameon": False}
+
+
+def _channel_names(names: Sequence[str]) -> list[str]:
+    """Channels of a profile: ``NAME`` with ``NAME_mean``, ``NAME_std``, ``NAME_min`` and ``NAME_max``."""
+    present = set(names)
+    return [n[:-5] for n in names if n.endswith("_mean")
+            and all(f"{n[:-5]}_{w}" in present for w in ("std", "min", "max"))]
+
+
+def _plot_panels(profile: Profile, columns: Iterable[str] | None) -> list[tuple[str, list[str], list[str]]]:
+    """The panels to draw: (key, left-axis columns, right-axis columns), those with a column present only."""
+    names = [n for n in profile.names if n != "s"]
+    chans = _channel_names(names)
+    labels = [n for n in names if n.startswith("area_label_")]
+    groups = [("curvature", ["curvature", "torsion"], []), ("twist", ["twist"], []),
+              ("area", ["area"], ["radius"]), ("axes", ["major_axis", "minor_axis"], ["eccentricity"]),
+              ("channels", [f"{c}_mean" for c in chans], []), ("labels", labels, [])]
+    if columns is None:
+        wanted = None
+    else:
+        wanted = [str(c) for c in ([columns] if isinstance(columns, str) else columns)]
+        missing = [c for c in wanted if c not in profile.columns or c == "s"]
+        if missing or not wanted:
+            raise InvalidInputError(f"no column {', '.join(map(repr, missing)) or 'given'} to plot; the profile has "
+                                    f"{', '.join(names)}")
+    panels = []
+    for key, left, right in groups:
+        left = [c for c in left if c in profile.columns and (wanted is None or c in wanted)]
+        right = [c for c in right if c in profile.columns and (wanted is None or c in wanted)]
+        if left or right:
+            panels.append((key, left or right, right if left else []))
+    placed = {c for _, left, right in panels for c in left + right}
+    for c in wanted or ():  # columns of no group: a panel per unit
+        if c not in placed:
+            key = f"unit:{profile.units.get(c, '')}"
+            panel = next((p for p in panels if p[0] == key), None)
+            if panel is None:
+                panels.append((key, [c], []))
+            else:
+                panel[1].append(c)
+            placed.add(c)
+    if not panels:
+        raise InvalidInputError("the profile has no column to plot (curvature, twist, area, ...)")
+    return panels
+
+
+def _ylabel(profile: Profile, columns: list[str], key: str) -> str:
+    if key == "channels":
+        return f"{columns[0][:-5]} mean +- std" if len(columns) == 1 else "mean intensity (+- std)"
+    if key == "labels":
+        text = "label area"
+    elif len(columns) == 1:
+        text = columns[0].replace("_", " ")
+    else:
+        text = ", ".join(c.replace("_axis", "").replace("_", " ") for c in columns)
+        text += " axis" if key == "axes" else ""
+    units = {profile.units.get(c, "") for c in columns}
+    unit = units.pop() if len(units) == 1 else ""
+    return f"{text} [{unit}]" if unit else text
+
+
+def _legend_name(column: str) -> str:
+    if column.startswith("area_label_"):
+        return f"label {column[len('area_label_'):]}"
+    if column.endswith("_mean"):
+        return column[:-5]
+    return column.replace("_", " ")
+
+
+def _draw_panels(figure: Any, profile: Profile, panels: list[tuple[str, list[str], list[str]]]) -> None:
+    s = np.asarray(profile.columns["s"], dtype=float)
+    axes = figure.subplots(len(panels), 1, sharex=True, squeeze=False)[:, 0]
+    colours = [f"C{i}" for i in range(10)]
+    for ax, (key, left, right) in zip(axes, panels, strict=True):
+        handles = []
+        for i, c in enumerate(left):
+            y = np.asarray(profile.columns[c], dtype=float)
+            colour = colours[i % len(colours)]
+            (line,) = ax.plot(s, y, color=colour, label=_legend_name(c), gid=c)
+            handles.append(line)
+            std = profile.columns.get(c[:-5] + "_std") if key == "channels" else None
+            if std is not None:
+                ax.fill_between(s, y - std, y + std, color=colour, alpha=0.2, linewidth=0)
+        ax.set_ylabel(_ylabel(profile, left, key))
+        if right:
+            twin = ax.twinx()
+            twin.grid(False)
+            for j, c in enumerate(right):
+                colour = colours[(len(left) + j) % len(colours)]
+                (line,) = twin.plot(s, np.asarray(profile.columns[c], dtype=float), color=colour, linestyle="--",
+                                    label=_legend_name(c), gid=c)
+                handles.append(line)
+            twin.set_ylabel(_ylabel(profile, right, key), color=colours[len(left) % len(colours)])
+        if len(handles) > 1 and len(handles) <= 12:
+            (twin if right else ax).legend(handles=handles, loc="best", ncols=min(len(handles), 4))
+    unit = profile.units.get("s", "")
+    axes[-1].set_xlabel(f"arc length s [{unit}]" if unit else "arc length s")
+    if len(s):
+        axes[-1].set_xlim(float(s[0]), float(s[-1]))
 
 
 def _unit(unit: str | None, power: int = 1) -> str:
