@@ -4,7 +4,9 @@ Every specimen is a straight volume (axis0 = s, axis1 = y, axis2 = x, as :func:`
 writes it). They are brought onto one grid and averaged:
 
 1. **length**: each is resampled along s to the common number of stations (the median of the batch, or
-   ``stations=``), linearly by arc length, head to head and tail to tail;
+   ``stations=``), linearly by arc length, head to head and tail to tail; with ``landmarks=`` (the same K positions
+   along s in every specimen: the gill, the dorsal fin's start, the anus) piecewise linearly, each specimen's
+   landmark k onto the batch's mean position of landmark k (as a fraction of the length);
 2. **size**: with ``scale="length"`` (default) the cross-section is scaled by the same factor, so a fish twice as
    long is also halved across (shape is compared, not size); ``scale="none"`` keeps the physical cross-section;
 3. **centre and roll**: each specimen's cross-section centre is its intensity-weighted centroid (after
@@ -14,10 +16,14 @@ writes it). They are brought onto one grid and averaged:
 4. **intensity**: ``normalise="robust"`` (default) maps each specimen's median to 0 and its 99th percentile to 1;
    ``"none"`` keeps the grey values.
 
-The mean, median and standard deviation volumes are computed chunk by chunk along s (each specimen is read in
-its stored chunks, each once per pass: one pass for the percentiles and the mean cross-section, one for the
-average); the cross-section map is the same at every station, so it is four bilinear taps computed once per
-specimen. Per specimen the residual: the RMS difference to the mean and the correlation with it.
+It runs on dask in two passes, on the threads of this process or on a ``dask.distributed`` cluster
+(``scheduler=``, as :func:`napari_unwind.warp.export`): the first reads each specimen block by block (its sum
+along s and a subsample for the percentiles), the second is one task per chunk of output stations that resamples
+every specimen's slab (linear in s, and the cross-section map as four bilinear taps, the same at every station)
+and computes the mean, median, standard deviation and the residual sums in one numba loop. Locally the batch is
+read once: it is held in memory between the passes while it fits in :data:`HOLD_BYTES`; on a cluster the workers
+read it twice. Per specimen the residual: the RMS difference to the mean and the correlation with it. The result
+does not depend on where it ran (the tasks are the same functions of the same blocks).
 """
 
 from __future__ import annotations
@@ -28,15 +34,18 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from .errors import InvalidInputError
 from .progress import Progress
 from .progress import run as _run
 
-__all__ = ["AverageResult", "average", "average_iter", "SCALES", "NORMALISATIONS"]
+__all__ = ["AverageResult", "average", "average_iter", "SCALES", "NORMALISATIONS", "HOLD_BYTES"]
 
 SCALES = ("length", "none")
 NORMALISATIONS = ("robust", "none")
+#: The batch (in its stored dtype) is read once and held in memory between the two passes up to this size.
+HOLD_BYTES = 4 * 2**30
 
 
 @dataclass(frozen=True)
@@ -60,6 +69,8 @@ class AverageResult:
         The factor its physical length was multiplied by.
     rms, correlation : ndarray, shape (N,)
         Residual: RMS difference to the mean (normalised grey values) and Pearson correlation with the mean.
+    landmarks : ndarray, shape (K,), or None
+        With ``landmarks=``: where each landmark lies along the average's s (its unit), the batch's mean position.
     """
 
     mean: np.ndarray
@@ -73,6 +84,7 @@ class AverageResult:
     scale: np.ndarray
     rms: np.ndarray
     correlation: np.ndarray
+    landmarks: np.ndarray | None = None
 
     def table(self) -> list[dict[str, Any]]:
         """One row per specimen: name, scale, roll, shift, rms, correlation."""
@@ -97,87 +109,285 @@ def _as_volume(item: Any, i: int) -> tuple[Any, str]:
     return Volume(arr), f"specimen{i}"
 
 
-def _rotate2(img: np.ndarray, angle: float, centre: np.ndarray, out_shape: tuple[int, int], out_centre: np.ndarray,
-             zoom: float = 1.0) -> np.ndarray:
-    """Sample ``img`` so that output pixel p shows input pixel centre + R(-angle) (p - out_centre) / zoom."""
-    from scipy.ndimage import map_coordinates
+@njit(nogil=True, cache=True, inline="always")
+def _tap(cy: float, cx: float, c: float, s: float, zoom: float, yy: int, xx: int, ocy: float, ocx: float, Ny: int,
+         Nx: int) -> tuple:  # pragma: no cover - numba
+    """The cross-section map at output pixel (yy, xx): it shows input pixel ``centre + R(-angle) ((yy, xx) -
+    out_centre) / zoom`` (c, s: cos and sin of the angle), sampled bilinearly: 4 flat indices into the (Ny, Nx)
+    section and their weights, all 0 beyond the edge as scipy's ``map_coordinates(mode="constant")`` (a sample is
+    valid iff 0 <= c <= n - 1 on both axes)."""
+    dy, dx = (yy - ocy) / zoom, (xx - ocx) / zoom
+    iy = cy + c * dy - s * dx
+    ix = cx + s * dy + c * dx
+    y0 = min(max(int(np.floor(max(min(iy, 1e9), -1e9))), 0), max(Ny - 2, 0))
+    x0 = min(max(int(np.floor(max(min(ix, 1e9), -1e9))), 0), max(Nx - 2, 0))
+    fy = min(max(iy - y0, 0.0), 1.0)
+    fx = min(max(ix - x0, 0.0), 1.0)
+    y1, x1 = min(y0 + 1, Ny - 1), min(x0 + 1, Nx - 1)
+    v = 1.0 if (0.0 <= iy <= Ny - 1 and 0.0 <= ix <= Nx - 1) else 0.0
+    return (y0 * Nx + x0, y0 * Nx + x1, y1 * Nx + x0, y1 * Nx + x1,
+            v * (1 - fy) * (1 - fx), v * (1 - fy) * fx, v * fy * (1 - fx), v * fy * fx)
 
-    yy, xx = np.indices(out_shape, dtype=float)
-    dy, dx = (yy - out_centre[0]) / zoom, (xx - out_centre[1]) / zoom
-    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
-    iy = centre[0] + c * dy - s * dx
-    ix = centre[1] + s * dy + c * dx
-    return map_coordinates(img, [iy, ix], order=1, mode="constant", cval=0.0)
 
-
-def _bilinear_taps(iy: np.ndarray, ix: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Flat indices (M, 4) into a (shape) image and weights (M, 4) of bilinear sampling at (iy, ix) (order 1, 0
-    beyond the edge as scipy's ``mode="constant"``: a sample is valid iff 0 <= c <= n - 1 on both axes)."""
-    iy, ix = iy.ravel(), ix.ravel()
-    ny, nx = shape
-    valid = (iy >= 0) & (iy <= ny - 1) & (ix >= 0) & (ix <= nx - 1)
-    y0 = np.clip(np.floor(iy).astype(int), 0, max(ny - 2, 0))
-    x0 = np.clip(np.floor(ix).astype(int), 0, max(nx - 2, 0))
-    fy, fx = np.clip(iy - y0, 0, 1), np.clip(ix - x0, 0, 1)
-    y1, x1 = np.minimum(y0 + 1, ny - 1), np.minimum(x0 + 1, nx - 1)
-    idx = np.stack([y0 * nx + x0, y0 * nx + x1, y1 * nx + x0, y1 * nx + x1], axis=1)
-    wt = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=1) * valid[:, None]
+@njit(nogil=True, cache=True)
+def _bilinear_taps(cy: float, cx: float, angle: float, zoom: float, ny: int, nx: int, ocy: float, ocx: float,
+                   Ny: int, Nx: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """The cross-section map of one specimen (:func:`_tap`, angle in degrees) for every pixel of a (ny, nx) output
+    section: flat indices (P, 4) into the (Ny, Nx) input section and weights (P, 4), P = ny * nx. The map is the
+    same at every station, so the resampling computes it once per specimen; the roll search uses the same
+    :func:`_tap` pixel by pixel."""
+    P = ny * nx
+    idx = np.empty((P, 4), np.int64)
+    wt = np.empty((P, 4), np.float64)
+    c, s = np.cos(angle * np.pi / 180.0), np.sin(angle * np.pi / 180.0)
+    for yy in range(ny):
+        for xx in range(nx):
+            p = yy * nx + xx
+            i0, i1, i2, i3, w0, w1, w2, w3 = _tap(cy, cx, c, s, zoom, yy, xx, ocy, ocx, Ny, Nx)
+            idx[p, 0], idx[p, 1], idx[p, 2], idx[p, 3] = i0, i1, i2, i3
+            wt[p, 0], wt[p, 1], wt[p, 2], wt[p, 3] = w0, w1, w2, w3
     return idx, wt
 
 
-class _SlabReader:
-    """Reads stations [lo, hi) of a (lazy) straight volume, normalised, whole storage chunks at a time, keeping the
-    last chunks read (the output chunks walk along s, so each stored chunk is read and decompressed once)."""
-
-    def __init__(self, data: Any, lo: float, hi: float) -> None:
-        self.data, self.lo, self.scale = data, lo, 1.0 / (hi - lo)
-        chunks = getattr(data, "chunks", None)
-        self.step = int(chunks[0][0]) if chunks else 64
-        self.start, self.block = 0, np.empty((0,) + tuple(data.shape[1:]), np.float32)
-
-    def read(self, a: int, b: int) -> tuple[int, np.ndarray]:
-        """``(a, stations a..b-1)``, normalised, float32."""
-        b = min(b, self.data.shape[0])
-        if a < self.start or b > self.start + len(self.block):
-            start = (a // self.step) * self.step
-            stop = min(self.data.shape[0], -(-b // self.step) * self.step)
-            keep = self.block[max(0, start - self.start):] if start >= self.start else self.block[:0]
-            kept_from = max(start, self.start) if len(keep) else start
-            new_from = kept_from + len(keep)
-            fresh = (np.asarray(self.data[new_from:stop], dtype=np.float32) - self.lo) * self.scale
-            self.start, self.block = kept_from, np.concatenate([keep, fresh]) if len(keep) else fresh
-        return a, self.block[a - self.start:b - self.start]
-
-
-def _ncc(a: np.ndarray, b: np.ndarray) -> float:
-    a = a - a.mean()
-    b = b - b.mean()
-    den = np.sqrt((a * a).sum() * (b * b).sum())
-    return float((a * b).sum() / den) if den > 0 else 0.0
+@njit(nogil=True, cache=True)
+def _roll_score(img: np.ndarray, cy: float, cx: float, angle: float, zoom: float, ref: np.ndarray, ocy: float,
+                ocx: float, stride: int) -> float:  # pragma: no cover - numba
+    """Pearson correlation of ``ref`` (ny, nx) with the (Ny, Nx) section ``img`` mapped by :func:`_tap`, over every
+    ``stride``-th pixel on both axes (no arrays of taps: the search tries some 80 angles per specimen)."""
+    ny, nx = ref.shape
+    Ny, Nx = img.shape
+    flat = img.ravel()
+    c, s = np.cos(angle * np.pi / 180.0), np.sin(angle * np.pi / 180.0)
+    sa = sb = sab = saa = sbb = 0.0
+    P = 0
+    for yy in range(0, ny, stride):
+        for xx in range(0, nx, stride):
+            P += 1
+            i0, i1, i2, i3, w0, w1, w2, w3 = _tap(cy, cx, c, s, zoom, yy, xx, ocy, ocx, Ny, Nx)
+            a = w0 * flat[i0] + w1 * flat[i1] + w2 * flat[i2] + w3 * flat[i3]
+            b = ref[yy, xx]
+            sa += a
+            sb += b
+            sab += a * b
+            saa += a * a
+            sbb += b * b
+    cov = sab - sa * sb / P
+    den = np.sqrt(max(saa - sa * sa / P, 0.0) * max(sbb - sb * sb / P, 0.0))
+    return cov / den if den > 0 else 0.0
 
 
-def _best_roll(img: np.ndarray, centre: np.ndarray, ref: np.ndarray, ref_centre: np.ndarray, zoom: float,
-               max_roll: float) -> float:
-    best = (-2.0, 0.0)
-    for angle in np.unique(np.clip(np.arange(-max_roll, max_roll + 4.0, 4.0), -max_roll, max_roll)):
-        best = max(best, (_ncc(_rotate2(img, angle, centre, ref.shape, ref_centre, zoom), ref), float(angle)))
-    for step, reach in ((1.0, 3.0), (0.25, 0.75)):
-        around = best[1]
-        for angle in np.arange(around - reach, around + reach + 1e-9, step):
-            if abs(angle) <= max_roll:
-                best = max(best, (_ncc(_rotate2(img, angle, centre, ref.shape, ref_centre, zoom), ref),
-                                  float(angle)))
-    return best[1]
+@njit(nogil=True, cache=True)
+def _sample_section(img: np.ndarray, idx: np.ndarray, wt: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    flat, o = img.ravel(), out.ravel()
+    for p in range(o.size):
+        o[p] = wt[p, 0] * flat[idx[p, 0]] + wt[p, 1] * flat[idx[p, 1]] + wt[p, 2] * flat[idx[p, 2]] \
+            + wt[p, 3] * flat[idx[p, 3]]
+
+
+@njit(nogil=True, cache=True, fastmath={"reassoc", "contract"})
+def _resample(slab: np.ndarray, k0: np.ndarray, w: np.ndarray, idx: np.ndarray, wt: np.ndarray, lo: float,
+              inv: float, out: np.ndarray) -> None:  # pragma: no cover - numba
+    """Stations of one specimen on the average's grid: linear in s between input stations ``k0[j]`` and
+    ``k0[j] + 1`` of ``slab`` (m_in, Ny * Nx, raw grey values) with weight ``w[j]`` (one row of the input section),
+    then bilinear across by the taps, normalised ``(v - lo) * inv`` (0 outside the specimen: the taps' weights there
+    are 0). ``out`` (m, P)."""
+    m, P = out.shape
+    row = np.empty(slab.shape[1], np.float32)
+    taps = np.empty(P)
+    for p in range(P):
+        taps[p] = wt[p, 0] + wt[p, 1] + wt[p, 2] + wt[p, 3]
+    for j in range(m):
+        r0 = k0[j]
+        wj = np.float32(w[j])
+        a, b = slab[r0], slab[r0 + 1]
+        for q in range(row.size):
+            row[q] = a[q] + wj * (np.float32(b[q]) - np.float32(a[q]))
+        for p in range(P):
+            if taps[p] == 0.0:
+                out[j, p] = 0.0
+                continue
+            acc = wt[p, 0] * row[idx[p, 0]] + wt[p, 1] * row[idx[p, 1]] + wt[p, 2] * row[idx[p, 2]] \
+                + wt[p, 3] * row[idx[p, 3]]
+            out[j, p] = (acc - lo * taps[p]) * inv
+
+
+def _sorting_network(n: int) -> np.ndarray:
+    """Comparators (i, j), i < j, of Batcher's odd-even merge sort of ``n`` values (the network of the next power
+    of two with the pairs beyond ``n`` dropped: those would compare with +inf and change nothing), shape (C, 2)."""
+    p2 = 1 << max(0, (n - 1).bit_length())
+    comps = []
+    p = 1
+    while p < p2:
+        k = p
+        while k >= 1:
+            for j in range(k % p, p2 - k, 2 * k):
+                for i in range(min(k, p2 - j - k)):
+                    if (i + j) // (2 * p) == (i + j + k) // (2 * p) and i + j + k < n:
+                        comps.append((i + j, i + j + k))
+            k //= 2
+        p *= 2
+    return np.array(comps, np.int64).reshape(-1, 2)
+
+
+@njit(nogil=True, cache=True, fastmath={"reassoc", "contract"})
+def _voxel_stats(stack: np.ndarray, comps: np.ndarray, mean: np.ndarray, median: np.ndarray, std: np.ndarray,
+                 sums: np.ndarray, msums: np.ndarray) -> None:  # pragma: no cover - numba
+    """Per voxel over the N specimens of ``stack`` (N, m, P): mean, median (numpy's: the middle two averaged for
+    even N) and standard deviation (population) into (m, P); per specimen the sums of (x - mean)^2, x, x^2 and
+    x * mean into ``sums`` (N, 4), and of mean, mean^2 into ``msums`` (2,).
+
+    Station by station, each loop runs along a row of P pixels (vectorised); the median sorts the N rows with the
+    sorting network ``comps`` (:func:`_sorting_network`), min and max pixel by pixel.
+    """
+    N, m, P = stack.shape
+    buf = np.empty((N, P), np.float32)
+    acc = np.empty(P)
+    mm = np.empty(P)
+    sq = np.empty(P)
+    half = N // 2
+    for j in range(m):
+        acc[:] = 0.0
+        for i in range(N):
+            for p in range(P):
+                acc[p] += stack[i, j, p]
+        for p in range(P):
+            mean[j, p] = np.float32(acc[p] / N)
+            mm[p] = np.float64(mean[j, p])
+            acc[p] = acc[p] / N
+        sq[:] = 0.0
+        for i in range(N):
+            for p in range(P):
+                d = stack[i, j, p] - acc[p]
+                sq[p] += d * d
+        for p in range(P):
+            std[j, p] = np.sqrt(sq[p] / N)
+        for i in range(N):
+            s0 = s1 = s2 = s3 = 0.0
+            for p in range(P):
+                x = np.float64(stack[i, j, p])
+                d = x - mm[p]
+                s0 += d * d
+                s1 += x
+                s2 += x * x
+                s3 += x * mm[p]
+            sums[i, 0] += s0
+            sums[i, 1] += s1
+            sums[i, 2] += s2
+            sums[i, 3] += s3
+        t0 = t1 = 0.0
+        for p in range(P):
+            t0 += mm[p]
+            t1 += mm[p] * mm[p]
+        msums[0] += t0
+        msums[1] += t1
+        for i in range(N):
+            for p in range(P):
+                buf[i, p] = stack[i, j, p]
+        for c in range(comps.shape[0]):
+            lo, hi = buf[comps[c, 0]], buf[comps[c, 1]]
+            for p in range(P):
+                x, y = lo[p], hi[p]
+                lo[p], hi[p] = min(x, y), max(x, y)
+        if N % 2:
+            for p in range(P):
+                median[j, p] = buf[half, p]
+        else:
+            for p in range(P):
+                median[j, p] = np.float32((np.float64(buf[half - 1, p]) + buf[half, p]) / 2)
+
+
+def _block_stats(block: np.ndarray, first: int, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """One stored block of a specimen (stations first.., whole sections): its sum over s and a subsample (every
+    ``step``-th station of the specimen, every ``step``-th pixel across) for the percentiles."""
+    block = np.asarray(block)
+    return (block.sum(axis=0, dtype=np.float64),
+            np.asarray(block[(-first) % step::step, ::step, ::step], dtype=np.float32).ravel())
+
+
+def _average_chunk(slabs: Sequence[Sequence[np.ndarray]], plan: Sequence[tuple], shape: tuple[int, int, int],
+                   out_c: tuple[float, float]) -> tuple[np.ndarray, ...]:
+    """One chunk of output stations: every specimen's slab (its stored blocks along s that the chunk needs)
+    resampled (``plan``: per specimen the first block's first station, k0, w, centre, roll, zoom, lo,
+    1 / (hi - lo)), then the voxel statistics and residual sums."""
+    m, ny, nx = shape
+    N = len(slabs)
+    stack = np.empty((N, m, ny * nx), np.float32)
+    for i, (parts, (first, k0, w, centre, roll, zoom, lo, inv)) in enumerate(zip(slabs, plan, strict=True)):
+        slab = np.asarray(parts[0]) if len(parts) == 1 else np.concatenate([np.asarray(x) for x in parts])
+        idx, wt = _bilinear_taps(float(centre[0]), float(centre[1]), float(roll), float(zoom), ny, nx,
+                                 float(out_c[0]), float(out_c[1]), slab.shape[1], slab.shape[2])
+        _resample(np.ascontiguousarray(slab).reshape(slab.shape[0], -1), k0 - first, w, idx, wt, lo, inv, stack[i])
+    mean, median, std = (np.empty((m, ny * nx), np.float32) for _ in range(3))
+    sums, msums = np.zeros((N, 4)), np.zeros(2)
+    _voxel_stats(stack, _sorting_network(N), mean, median, std, sums, msums)
+    return mean.reshape(shape), median.reshape(shape), std.reshape(shape), sums, msums
+
+
+def _sections(data: Any) -> Any:
+    """A specimen's data as a dask array with whole cross-sections per block (chunked along s only)."""
+    import dask.array as da
+
+    if not isinstance(data, da.Array):
+        data = da.from_array(np.asarray(data), chunks=(64, -1, -1))
+    if len(data.chunks[1]) > 1 or len(data.chunks[2]) > 1:
+        data = data.rechunk({1: -1, 2: -1})
+    return data
+
+
+def _landmark_knots(landmarks: Any, vols: Sequence[Any], names: Sequence[str], n: int
+                    ) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray | None]:
+    """Per specimen the piecewise-linear map from the average's stations to its own: knots (output stations,
+    input stations). Without landmarks, head to head and tail to tail; with them, each specimen's landmark k goes to
+    the batch's mean position of landmark k (as a fraction of the length). Also the mean positions (fractions)."""
+    ends = [(np.array([0.0, n - 1.0]), np.array([0.0, v.shape[0] - 1.0])) for v in vols]
+    if landmarks is None:
+        return ends, None
+    if isinstance(landmarks, (str, bytes)) or not hasattr(landmarks, "__len__"):
+        raise InvalidInputError(f"landmarks must be one sequence of arc-length positions per specimen, got "
+                                f"{type(landmarks).__name__}")
+    if len(landmarks) != len(vols):
+        raise InvalidInputError(f"landmarks has {len(landmarks)} rows for {len(vols)} specimens: give one row of "
+                                "positions per specimen, in the order of the specimens")
+    rows = []
+    for i, (row, v, name) in enumerate(zip(landmarks, vols, names, strict=True)):
+        try:
+            r = np.asarray(row, dtype=float).ravel()
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"landmarks of {name} must be numbers (arc-length positions), got {row!r}") \
+                from None
+        if i and len(r) != len(rows[0]):
+            raise InvalidInputError(f"{name} has {len(r)} landmarks, {names[0]} has {len(rows[0])}: every specimen "
+                                    "needs the same landmarks, in the same order")
+        if len(r) == 0:
+            raise InvalidInputError(f"{name} has no landmark: give at least one position along s, or none at all")
+        length = (v.shape[0] - 1) * float(v.spacing[0])
+        if not np.isfinite(r).all() or (r < 0).any() or (r > length * (1 + 1e-9)).any():
+            raise InvalidInputError(f"landmarks of {name} must lie inside its length [0, {length:g}] "
+                                    f"{v.unit or ''}, got {r.tolist()}".replace("  ", " "))
+        if (np.diff(r) <= 0).any():
+            raise InvalidInputError(f"landmarks of {name} must increase along s (head to tail), got {r.tolist()}")
+        rows.append(np.minimum(r, length) / length)
+    frac = np.array(rows)                                  # (N, K) fractions of each specimen's length
+    mean_frac = frac.mean(axis=0)
+    knots = []
+    for v, fr in zip(vols, frac, strict=True):
+        out = np.concatenate([[0.0], mean_frac * (n - 1), [n - 1.0]])
+        inp = np.concatenate([[0.0], fr * (v.shape[0] - 1), [v.shape[0] - 1.0]])
+        keep = np.concatenate([[True], np.diff(out) > 0])  # a landmark every specimen has at an end adds nothing
+        knots.append((out[keep], inp[keep]))
+    return knots, mean_frac
 
 
 def average_iter(
     specimens: Sequence[Any],
     *,
     stations: int | None = None,
+    landmarks: Sequence[Sequence[float]] | None = None,
     scale: str = "length",
     normalise: str = "robust",
     max_roll: float = 90.0,
     chunk: int = 32,
+    scheduler: str | None = None,
 ) -> Generator[Progress, None, AverageResult]:
     """:func:`average` as a generator of :class:`~napari_unwind.progress.Progress`; returns the result."""
     if scale not in SCALES:
@@ -192,6 +402,8 @@ def average_iter(
     chunk = int(chunk)
     if chunk < 1:
         raise InvalidInputError(f"chunk must be a positive number of stations, got {chunk}")
+    if stations is not None and int(stations) < 2:
+        raise InvalidInputError(f"stations must be at least 2, got {stations}")
     vols, names = zip(*(_as_volume(x, i) for i, x in enumerate(specimens)), strict=True)
     units = {v.unit for v in vols}
     if len(units) > 1:
@@ -207,8 +419,7 @@ def average_iter(
     N = len(vols)
     lengths = np.array([v.shape[0] for v in vols])
     n = int(stations) if stations is not None else int(np.median(lengths))
-    if n < 2:
-        raise InvalidInputError(f"stations must be at least 2, got {stations}")
+    knots, mean_frac = _landmark_knots(landmarks, vols, names, n)
     ds = float(np.median([v.spacing[0] for v in vols]))
     spacings = np.array([v.spacing[0] for v in vols])
     f = (n - 1) / (lengths - 1)                       # output stations per input station (head to head, tail to tail)
@@ -216,101 +427,136 @@ def average_iter(
     length_factor = (n - 1) * ds / ((lengths - 1) * spacings)
     # input pixels -> output pixels across: with the length's factor (shape), or the physical size kept
     xy_zoom = f.copy() if scale == "length" else spacings / ds
-    yield Progress("average", 0, 3 * N, "normalise and centre")
-    norm, centres, profiles = [], [], []
-    for i, v in enumerate(vols):
-        # one pass: the mean cross-section (raw) and a subsample for the percentiles
-        acc = np.zeros(v.shape[1:], np.float64)
-        step = max(1, int(round((int(np.prod(v.shape)) / 2e6) ** (1 / 3))))
-        sample = []
-        reader = _SlabReader(v.data, 0.0, 1.0)
-        for a in range(0, v.shape[0], reader.step):
-            _, block = reader.read(a, a + reader.step)
-            acc += block.sum(axis=0, dtype=np.float64)
-            sample.append(block[(-a) % step::step, ::step, ::step].ravel())
-        if normalise == "robust":
-            lo, hi = (float(x) for x in np.percentile(np.concatenate(sample), [50, 99]))
-            hi = hi if hi > lo else lo + 1.0
-        else:
-            lo, hi = 0.0, 1.0
-        norm.append((lo, hi))
-        prof = (acc / v.shape[0] - lo) / (hi - lo)
-        w = np.clip(prof, 0, None)
-        if w.sum() <= 0:
-            raise InvalidInputError(f"{names[i]} holds nothing above its median grey value: an empty straight volume?")
-        yy, xx = np.indices(prof.shape, dtype=float)
-        centres.append(np.array([(w * yy).sum() / w.sum(), (w * xx).sum() / w.sum()]))
-        profiles.append(prof)
-        yield Progress("average", i + 1, 3 * N)
-    # the output cross-section: large enough for every specimen, scaled, around its centre
-    half = np.max([np.maximum(c, np.asarray(p.shape) - 1 - c) * z
-                   for c, p, z in zip(centres, profiles, xy_zoom, strict=True)], axis=0)
-    ny, nx = (2 * np.ceil(half) + 1).astype(int)
-    out_c = np.array([(ny - 1) / 2, (nx - 1) / 2])
-    ref_i = int(np.argsort(lengths)[N // 2])
-    ref = _rotate2(profiles[ref_i], 0.0, centres[ref_i], (ny, nx), out_c, xy_zoom[ref_i])
-    roll = np.zeros(N)
-    for rnd in range(2):
-        for i in range(N):
-            roll[i] = _best_roll(profiles[i], centres[i], ref, out_c, xy_zoom[i], max_roll)
-            yield Progress("average", N + rnd * N // 2 + (i + 1) // 2, 3 * N, "roll")
-        ref = np.mean([_rotate2(profiles[i], roll[i], centres[i], (ny, nx), out_c, xy_zoom[i]) for i in range(N)],
-                      axis=0)
-    roll -= np.median(roll)            # the batch's own roll is kept: the average is turned as its typical member
-    mean = np.zeros((n, ny, nx), np.float32)
-    median = np.zeros_like(mean)
-    std = np.zeros_like(mean)
-    sq = np.zeros(N)
-    dots = np.zeros((N, 3))            # sums of x, x^2, x * mean per specimen, for the correlation
-    msum = np.zeros(2)                 # sums of mean, mean^2
-    yy, xx = np.indices((ny, nx), dtype=float)
-    # the cross-section map is the same at every station: its bilinear taps (4 flat indices and weights, 0 outside)
-    taps = []
-    for i, v in enumerate(vols):
-        dy, dx = (yy - out_c[0]) / xy_zoom[i], (xx - out_c[1]) / xy_zoom[i]
-        cs, sn = np.cos(np.radians(roll[i])), np.sin(np.radians(roll[i]))
-        taps.append(_bilinear_taps(centres[i][0] + cs * dy - sn * dx, centres[i][1] + sn * dy + cs * dx,
-                                   v.shape[1:]))
-    readers = [_SlabReader(v.data, float(norm[i][0]), float(norm[i][1])) for i, v in enumerate(vols)]
-    n_chunks = -(-n // chunk)
-    for c in range(n_chunks):
-        a, b = c * chunk, min(n, (c + 1) * chunk)
-        stack = np.empty((N, b - a, ny, nx), np.float32)
-        for i, v in enumerate(vols):
-            s_in = np.clip(np.arange(a, b, dtype=float) / f[i], 0.0, v.shape[0] - 1)   # input station of each
-            k0 = np.minimum(np.floor(s_in).astype(int), v.shape[0] - 2)
-            w = (s_in - k0)[:, None]
-            lo0, slab = readers[i].read(int(k0.min()), int(k0.max()) + 2)
-            flat = slab.reshape(slab.shape[0], -1)
-            rows = (1.0 - w) * flat[k0 - lo0] + w * flat[k0 + 1 - lo0]        # linear in s, (b - a, Ny * Nx)
-            idx, wt = taps[i]
-            sec = (rows[:, idx] * wt).sum(axis=-1)                            # bilinear across, (b - a, ny * nx)
-            stack[i] = sec.reshape(b - a, ny, nx)
-        m = stack.mean(axis=0)
-        mean[a:b] = m
-        median[a:b] = np.median(stack, axis=0)
-        std[a:b] = stack.std(axis=0)
-        d = stack - m[None]
-        sq += (d.astype(np.float64) ** 2).reshape(N, -1).sum(axis=1)
-        flat = stack.reshape(N, -1).astype(np.float64)
-        mf = m.ravel().astype(np.float64)
-        dots += np.stack([flat.sum(axis=1), (flat ** 2).sum(axis=1), flat @ mf], axis=1)
-        msum += (mf.sum(), (mf ** 2).sum())
-        yield Progress("average", 2 * N + int(N * (c + 1) / n_chunks), 3 * N, "mean, median, std")
+    import dask
+
+    from .scheduler import SYNCHRONOUS, THREADS, use_scheduler
+
+    datas = [_sections(v.data) for v in vols]
+    # read once: the batch is held in memory between the two passes when it fits (on a cluster it is read twice,
+    # by the workers, rather than brought into this process)
+    hold = (scheduler is None or scheduler in THREADS or scheduler in SYNCHRONOUS) and \
+        sum(d.nbytes for d in datas) <= HOLD_BYTES
+    yield Progress("average", 0, 3 * N, "read, normalise and centre")
+    with use_scheduler(scheduler):
+        norm, centres, profiles = [], [], []
+        group = max(4, -(-N // 4))     # specimens read together (progress 4 times)
+        for g in range(0, N, group):
+            part = datas[g:g + group]
+            if hold:
+                part = list(dask.persist(*part))
+                datas[g:g + group] = part
+            tasks = []
+            for d in part:
+                step = max(1, int(np.ceil((int(np.prod(d.shape)) / 2**18) ** (1 / 3))))   # ~2^18 samples
+                firsts = np.concatenate([[0], np.cumsum(d.chunks[0])[:-1]])
+                tasks.append([dask.delayed(_block_stats, pure=True)(b, int(a), step)
+                              for b, a in zip(d.to_delayed().ravel(), firsts, strict=True)])
+            for i, parts in zip(range(g, g + len(part)), dask.compute(*tasks), strict=True):
+                acc = np.zeros(vols[i].shape[1:], np.float64)
+                for s_, _ in parts:
+                    acc += s_
+                if normalise == "robust":
+                    lo, hi = (float(x) for x in np.percentile(np.concatenate([p for _, p in parts]), [50, 99]))
+                    hi = hi if hi > lo else lo + 1.0
+                else:
+                    lo, hi = 0.0, 1.0
+                norm.append((lo, hi))
+                prof = (acc / vols[i].shape[0] - lo) / (hi - lo)
+                w = np.clip(prof, 0, None)
+                if w.sum() <= 0:
+                    raise InvalidInputError(f"{names[i]} holds nothing above its median grey value: an empty "
+                                            "straight volume?")
+                yy, xx = np.indices(prof.shape, dtype=float)
+                centres.append(np.array([(w * yy).sum() / w.sum(), (w * xx).sum() / w.sum()]))
+                profiles.append(prof)
+            yield Progress("average", g + len(part), 3 * N)
+        # the output cross-section: large enough for every specimen, scaled, around its centre
+        half = np.max([np.maximum(c, np.asarray(p.shape) - 1 - c) * z
+                       for c, p, z in zip(centres, profiles, xy_zoom, strict=True)], axis=0)
+        ny, nx = (2 * np.ceil(half) + 1).astype(int)
+        out_c = np.array([(ny - 1) / 2, (nx - 1) / 2])
+
+        def section(i: int, angle: float) -> np.ndarray:
+            idx, wt = _bilinear_taps(centres[i][0], centres[i][1], float(angle), float(xy_zoom[i]), ny, nx,
+                                     out_c[0], out_c[1], *profiles[i].shape)
+            out = np.empty((ny, nx))
+            _sample_section(profiles[i], idx, wt, out)
+            return out
+
+        def best_roll(i: int, ref: np.ndarray, around: float | None) -> float:
+            def score(angle: float, stride: int = 1) -> tuple[float, float]:
+                return _roll_score(profiles[i], centres[i][0], centres[i][1], float(angle), float(xy_zoom[i]), ref,
+                                   out_c[0], out_c[1], stride), float(angle)
+
+            if around is None:    # every 4 degrees on every other pixel, then 1 and 0.25 around the best
+                coarse = np.unique(np.clip(np.arange(-max_roll, max_roll + 4.0, 4.0), -max_roll, max_roll))
+                around = max(score(a, 2) for a in coarse)[1]
+                steps = ((1.0, 3.0), (0.25, 0.75))
+            else:                 # the second round: within 8 degrees of the first's
+                steps = ((1.0, 8.0), (0.25, 0.75))
+            best = (-2.0, around)
+            for step, reach in steps:
+                around = best[1]
+                best = max([best] + [score(a) for a in np.arange(around - reach, around + reach + 1e-9, step)
+                                     if abs(a) <= max_roll])
+            return best[1]
+
+        ref_i = int(np.argsort(lengths)[N // 2])
+        ref = section(ref_i, 0.0)
+        roll = np.zeros(N)
+        for rnd in range(2):
+            for i in range(N):
+                roll[i] = best_roll(i, ref, None if rnd == 0 else float(roll[i]))
+            yield Progress("average", N + (rnd + 1) * N // 2, 3 * N, "roll")
+            ref = np.mean([section(i, roll[i]) for i in range(N)], axis=0)
+        roll -= np.median(roll)        # the batch's own roll is kept: the average is turned as its typical member
+        # the average, chunk by chunk along s: one task per chunk of output stations reads every specimen's slab
+        tasks = []
+        blocks = [d.to_delayed().ravel() for d in datas]      # whole sections, along s
+        bounds = [np.concatenate([[0], np.cumsum(d.chunks[0])]) for d in datas]
+        for a in range(0, n, chunk):
+            b = min(n, a + chunk)
+            slabs, plan = [], []
+            for i, v in enumerate(vols):
+                s_in = np.clip(np.interp(np.arange(a, b, dtype=float), *knots[i]), 0.0, v.shape[0] - 1)
+                k0 = np.minimum(np.floor(s_in).astype(np.int64), v.shape[0] - 2)
+                first, stop = int(k0.min()), int(k0.max()) + 2
+                b0 = int(np.searchsorted(bounds[i], first, side="right")) - 1
+                b1 = int(np.searchsorted(bounds[i], stop, side="left"))
+                slabs.append(list(blocks[i][b0:b1]))
+                plan.append((int(bounds[i][b0]), k0, s_in - k0, tuple(centres[i]), float(roll[i]), float(xy_zoom[i]),
+                             float(norm[i][0]), 1.0 / (norm[i][1] - norm[i][0])))
+            tasks.append(dask.delayed(_average_chunk, pure=True)(slabs, plan, (b - a, ny, nx), tuple(out_c)))
+        mean = np.empty((n, ny, nx), np.float32)
+        median = np.empty_like(mean)
+        std = np.empty_like(mean)
+        sums, msums = np.zeros((N, 4)), np.zeros(2)
+        group = max(4, -(-len(tasks) // 4))
+        for g in range(0, len(tasks), group):
+            for c, (m_, md, sd, s_, ms) in zip(range(g, min(g + group, len(tasks))), dask.compute(*tasks[g:g + group]),
+                                               strict=True):
+                a = c * chunk
+                mean[a:a + len(m_)], median[a:a + len(m_)], std[a:a + len(m_)] = m_, md, sd
+                sums += s_
+                msums += ms
+            yield Progress("average", 2 * N + int(N * min(len(tasks), g + group) / len(tasks)), 3 * N,
+                           "mean, median, std")
     count = n * ny * nx
-    rms = np.sqrt(sq / count)
-    cov = dots[:, 2] / count - dots[:, 0] / count * msum[0] / count
-    var_x = dots[:, 1] / count - (dots[:, 0] / count) ** 2
-    var_m = msum[1] / count - (msum[0] / count) ** 2
+    rms = np.sqrt(sums[:, 0] / count)
+    cov = sums[:, 3] / count - sums[:, 1] / count * msums[0] / count
+    var_x = sums[:, 2] / count - (sums[:, 1] / count) ** 2
+    var_m = msums[1] / count - (msums[0] / count) ** 2
     corr = cov / np.sqrt(np.maximum(var_x * var_m, 1e-300))
     shift = np.array([(c - (np.asarray(p.shape) - 1) / 2) * v.spacing[1]
                       for c, p, v in zip(centres, profiles, vols, strict=True)])
+    lm = None if mean_frac is None else mean_frac * (n - 1) * ds
     return AverageResult(mean=mean, median=median, std=std, spacing=ds, unit=vols[0].unit, names=tuple(names),
-                         roll=roll, shift=shift, scale=length_factor, rms=rms, correlation=corr)
+                         roll=roll, shift=shift, scale=length_factor, rms=rms, correlation=corr, landmarks=lm)
 
 
-def average(specimens: Sequence[Any], *, stations: int | None = None, scale: str = "length",
-            normalise: str = "robust", max_roll: float = 90.0, chunk: int = 32,
+def average(specimens: Sequence[Any], *, stations: int | None = None,
+            landmarks: Sequence[Sequence[float]] | None = None, scale: str = "length", normalise: str = "robust",
+            max_roll: float = 90.0, chunk: int = 32, scheduler: str | None = None,
             progress: Any = None) -> AverageResult:
     """The average straight specimen of a batch.
 
@@ -320,6 +566,11 @@ def average(specimens: Sequence[Any], *, stations: int | None = None, scale: str
         Straight volumes (axis0 = s, head first; isotropic spacing, one unit for all); at least two.
     stations : int, optional
         Stations along s of the average (default: the batch's median).
+    landmarks : sequence of N sequences of K floats, optional
+        Per specimen, in its order, K arc-length positions (its unit, from the head, increasing, inside its length
+        [0, L]) of the same features (e.g. the gill, the dorsal fin's start, the anus). The resampling along s is
+        then piecewise linear between them (the head and the tail are implicit landmarks): each specimen's landmark
+        k lands on the batch's mean position of landmark k, as a fraction of the length.
     scale : {"length", "none"}
         Scale each cross-section by its length factor (shape, default) or keep it (size).
     normalise : {"robust", "none"}
@@ -327,7 +578,11 @@ def average(specimens: Sequence[Any], *, stations: int | None = None, scale: str
     max_roll : float
         Largest roll (degrees) searched each way when aligning the cross-sections (0: no roll).
     chunk : int
-        Stations computed together (bounds memory: specimens x chunk x cross-section).
+        Stations computed together, one dask task (bounds memory: specimens x chunk x cross-section).
+    scheduler : str, optional
+        Where the dask tasks run: None (threads), ``"synchronous"`` or a ``dask.distributed`` scheduler address
+        such as ``"tcp://host:8786"`` (its workers must see the specimens' paths); see
+        :func:`napari_unwind.scheduler.use_scheduler`.
     progress : callable, optional
         Called with each :class:`~napari_unwind.progress.Progress`.
 
@@ -335,5 +590,5 @@ def average(specimens: Sequence[Any], *, stations: int | None = None, scale: str
     -------
     AverageResult
     """
-    return _run(average_iter(specimens, stations=stations, scale=scale, normalise=normalise, max_roll=max_roll,
-                             chunk=chunk), progress)
+    return _run(average_iter(specimens, stations=stations, landmarks=landmarks, scale=scale, normalise=normalise,
+                             max_roll=max_roll, chunk=chunk, scheduler=scheduler), progress)
