@@ -738,12 +738,17 @@ class Client:
                                                       options=self._skeleton_options(**options))
         return self.submit(jobs_pb2.SubmitRequest(estimate_deformation=req), wait=wait)
 
-    def straighten(self, volume_id: str, session_id: str, *, wait: bool = True, **export: Any):
-        """Export the straight volume (a job; ``result.volume_id``)."""
+    def straighten(self, volume_id: str, session_id: str, *, channels: dict[str, str] | None = None,
+                   scan_name: str = "", wait: bool = True, **export: Any):
+        """Export the straight volume (a job; ``result.volume_id``). ``channels`` maps a name to the volume id of
+        another image of the scan's grid: all are straightened in one pass into one multi-channel output
+        (OME-Zarr with a ``c`` axis; the scan is channel 0, named ``scan_name`` or "scan")."""
         from unwind_services._proto.unwind.v1 import jobs_pb2, warp_pb2
 
         req = warp_pb2.StraightenRequest(volume_id=volume_id, session_id=session_id,
-                                         options=self._export_options(**export))
+                                         options=self._export_options(**export), scan_name=scan_name,
+                                         channels=[warp_pb2.MeasureChannel(name=n, volume_id=v)
+                                                   for n, v in (channels or {}).items()])
         return self.submit(jobs_pb2.SubmitRequest(straighten=req), wait=wait)
 
     def measure(self, session_id: str, *, mask_volume_id: str = "", labels_volume_id: str = "",

@@ -731,11 +731,16 @@ def skeleton_step(mask: Any, endpoints: Any = None, *, spacing: Any, origin: Any
 
 def export_step(volume: Any, deformation: Any, output: str | os.PathLike, *,
                 options: ExportOptions = ExportOptions(), folded: float | None = None, session: Any = None,
-                overwrite: bool = False, scheduler: str | None = None) -> Generator[Progress, None, Path]:
+                overwrite: bool = False, scheduler: str | None = None,
+                channels: Sequence[Any] | None = None) -> Generator[Progress, None, Path]:
     """Write the straight volume after :func:`fold_rule` (``folded``: the fraction of the specimen's mask in the
     folds, None when unknown). Raises :class:`~napari_unwind.errors.FoldError` when the rule refuses; a fold
-    the rule lets through is issued as a UserWarning."""
-    from .warp import FoldWarning, export_iter
+    the rule lets through is issued as a UserWarning.
+
+    ``channels``: other images of the scan's grid (Volumes named by ``metadata["channel"]``) straightened with
+    ``volume`` (channel 0) in one pass into one multi-channel output
+    (:func:`napari_unwind.warp.export_channels_iter`)."""
+    from .warp import FoldWarning, export_channels_iter, export_iter
 
     verdict = fold_rule(deformation, folded=folded, allow_folds=options.allow_folds)
     if verdict is not None and verdict.refused:
@@ -744,9 +749,14 @@ def export_step(volume: Any, deformation: Any, output: str | os.PathLike, *,
         warnings.warn(verdict.message, UserWarning, stacklevel=2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FoldWarning)  # the rule above said it
-        written = yield from export_iter(volume, deformation, output, overwrite=overwrite,
-                                         session=None if session is None else session.to_dict(),
-                                         scheduler=scheduler, **options.kwargs(output))
+        if channels:
+            written = yield from export_channels_iter([volume, *channels], deformation, output, overwrite=overwrite,
+                                                      session=None if session is None else session.to_dict(),
+                                                      scheduler=scheduler, **options.kwargs(output))
+        else:
+            written = yield from export_iter(volume, deformation, output, overwrite=overwrite,
+                                             session=None if session is None else session.to_dict(),
+                                             scheduler=scheduler, **options.kwargs(output))
     return Path(written)
 
 

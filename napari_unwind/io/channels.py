@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -115,8 +116,8 @@ def open_channels(paths: str | os.PathLike | Sequence[str | os.PathLike], *, nam
         if len(set(chosen)) != len(chosen) or any(not n for n in chosen):
             raise InvalidInputError(f"channel names must be distinct and not empty, got {chosen}")
     check_same_grid(volumes, [str(v.source or n) for v, n in zip(volumes, chosen, strict=True)])
-    return [v.with_data(v.data, metadata={**v.metadata, "channel": n}) if v.metadata.get("channel") != n else v
-            for v, n in zip(volumes, chosen, strict=True)]
+    return [replace(v, metadata={**v.metadata, "channel": n}) if v.metadata.get("channel") != n else v
+            for v, n in zip(volumes, chosen, strict=True)]  # levels kept
 
 
 def channel_names(volumes: Sequence[Volume]) -> list[str]:

@@ -62,6 +62,17 @@ class Limits:
                              "administrator, or crop the scan first")
 
 
+def _open(path: Path) -> Volume:
+    """A stored volume; a multi-channel image (a straighten job with channels) is seen as its first channel, the
+    scan's (its download is the whole image)."""
+    from napari_unwind.io._formats import detect_format
+    from napari_unwind.io.channels import _count
+
+    if path.exists() and _count(path, detect_format(path), {}) > 1:
+        return open_volume(path, channel=0)
+    return open_volume(path)
+
+
 class Catalog:
     """Look-ups by owner (another user's id is not found) and registration of new objects."""
 
@@ -83,7 +94,7 @@ class Catalog:
         path = self.path(row)
         self.check(owner, row, path)
         with confined_reads(self.confinement(owner, row.meta.get("origin"))):  # every chunk read checked again
-            return row, open_volume(path)
+            return row, _open(path)
 
     def confinement(self, owner: str, origin: str | None):
         """Where the files of a volume may lie: a registered scan in the data root outside ``.unwind/``, what the
@@ -108,7 +119,7 @@ class Catalog:
         if origin != "register":  # the server wrote it, in the owner's folder (Register checks before this)
             self.root.check_scan(path, within=self.root.user_dir(owner))
         with confined_reads(self.confinement(owner, origin)):
-            volume = open_volume(path)
+            volume = _open(path)
         self.limits.check_voxels(volume.shape, f"the volume {name!r}")
         row = self.store.add_object(owner, "volume", name, self.root.relative(path), {"origin": origin}, job_id,
                                     object_id=object_id)

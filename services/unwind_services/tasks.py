@@ -189,9 +189,22 @@ def straighten(ctx: TaskContext, req: Any) -> TaskGen:
     if tuple(session.source.shape) != tuple(volume.shape):
         raise InvalidInputError(f"the session was made on a scan of shape {tuple(session.source.shape)} but the "
                                 f"volume has shape {volume.shape}")
+    channels = []
+    if req.channels:
+        names = [req.scan_name or "scan", *_channel_names(req)]
+        if len(set(names)) != len(names):
+            raise InvalidInputError(f"the scan's channel name {names[0]!r} is also another channel's: name each "
+                                    "channel once")
+        volume = volume.with_data(volume.data, metadata={**volume.metadata, "channel": names[0]})
+        for c in req.channels:
+            _, v = ctx.catalog.volume(ctx.owner, c.volume_id)
+            if tuple(v.shape) != tuple(volume.shape):
+                raise InvalidInputError(f"channel {c.name!r} has shape {tuple(v.shape)} but the scan has "
+                                        f"{tuple(volume.shape)}: channels must share the scan's grid")
+            channels.append(v.with_data(v.data, metadata={**v.metadata, "channel": c.name}))
     t0 = time.perf_counter()
     written = yield from export_step(volume, session.deformation, out, options=convert.export_options(req.options),
-                                     session=session, scheduler=ctx.scheduler)
+                                     session=session, scheduler=ctx.scheduler, channels=channels)
     return pb.JobResult(volume_id=ctx.register(written, out.name),
                         figures=_figures(seconds=time.perf_counter() - t0))
 

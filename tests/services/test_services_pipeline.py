@@ -153,6 +153,28 @@ def test_each_step_on_the_server_matches_the_core(setup, tmp_path):
             with pytest.raises(RemoteError) as err:
                 c.measure(sk.result.session_id, channels=bad)
             assert err.value.code == code, (bad, err.value.code, str(err.value))
+        # the straighten job with other images of the scan's grid: one multi-channel output (issue 24 item 1),
+        # each channel the image straightened alone
+        mc = c.straighten(vid, sk.result.session_id, channels={"mask": mask_job.result.volume_id}, scan_name="ct",
+                          output_name="fish1_channels.zarr")
+        got = c.download(mc.result.volume_id, tmp_path / "channels.zarr")
+        from napari_unwind.io import open_channels
+
+        chans = open_channels(got)
+        assert [ch.metadata["channel"] for ch in chans] == ["ct", "mask"]
+        np.testing.assert_array_equal(np.asarray(chans[0].data), expected)
+        np.testing.assert_array_equal(np.asarray(chans[1].data),
+                                      straighten(c.open(mask_job.result.volume_id), d).data.compute()
+                                      .astype(expected.dtype))
+        for bad, code in (({"ct": vid}, "INVALID_ARGUMENT"), ({"x": "v_nothere"}, "NOT_FOUND"),
+                          ({f"c{k}": vid for k in range(17)}, "INVALID_ARGUMENT")):
+            with pytest.raises(RemoteError) as err:
+                c.straighten(vid, sk.result.session_id, channels=bad, scan_name="ct", output_name="x.zarr")
+            assert err.value.code == code, (bad, err.value.code, str(err.value))
+        with pytest.raises(RemoteError) as err:
+            c.straighten(vid, sk.result.session_id, channels={"mask": mask_job.result.volume_id},
+                         output_name="x.nrrd")
+        assert err.value.code == "INVALID_ARGUMENT" and "OME-Zarr" in str(err.value)
         kinds = {pb.JobKind.Name(j.kind) for j in c.jobs()}
         assert {"JOB_KIND_SEGMENT", "JOB_KIND_SELECT", "JOB_KIND_ESTIMATE_DEFORMATION", "JOB_KIND_STRAIGHTEN",
                 "JOB_KIND_BEND", "JOB_KIND_MEASURE"} <= kinds

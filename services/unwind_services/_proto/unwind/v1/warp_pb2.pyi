@@ -37,14 +37,18 @@ class ExportOptions(_message.Message):
     def __init__(self, order: _Optional[int] = ..., has_order: _Optional[bool] = ..., spacing: _Optional[float] = ..., pad: _Optional[int] = ..., chunks: _Optional[_Iterable[int]] = ..., allow_folds: _Optional[bool] = ..., output_name: _Optional[str] = ...) -> None: ...
 
 class StraightenRequest(_message.Message):
-    __slots__ = ("volume_id", "session_id", "options")
+    __slots__ = ("volume_id", "session_id", "options", "channels", "scan_name")
     VOLUME_ID_FIELD_NUMBER: _ClassVar[int]
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     OPTIONS_FIELD_NUMBER: _ClassVar[int]
+    CHANNELS_FIELD_NUMBER: _ClassVar[int]
+    SCAN_NAME_FIELD_NUMBER: _ClassVar[int]
     volume_id: str
     session_id: str
     options: ExportOptions
-    def __init__(self, volume_id: _Optional[str] = ..., session_id: _Optional[str] = ..., options: _Optional[_Union[ExportOptions, _Mapping]] = ...) -> None: ...
+    channels: _containers.RepeatedCompositeFieldContainer[MeasureChannel]
+    scan_name: str
+    def __init__(self, volume_id: _Optional[str] = ..., session_id: _Optional[str] = ..., options: _Optional[_Union[ExportOptions, _Mapping]] = ..., channels: _Optional[_Iterable[_Union[MeasureChannel, _Mapping]]] = ..., scan_name: _Optional[str] = ...) -> None: ...
 
 class MeasureRequest(_message.Message):
     __slots__ = ("session_id", "mask_volume_id", "labels_volume_id", "channels", "spacing")
