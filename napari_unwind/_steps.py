@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Generator
+from collections.abc import Generator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -58,13 +58,14 @@ def check_folds(deformation: Any, *, folded: float | None, options: pipeline.Exp
 
 
 def export(volume: Any, deformation: Any, target: str | os.PathLike, *, options: pipeline.ExportOptions,
-           folded: float | None = None, session: Any = None, overwrite: bool = False
-           ) -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
-    """:func:`~napari_unwind.pipeline.export_step`; returns (the written path, its warnings, one line each)."""
+           folded: float | None = None, session: Any = None, overwrite: bool = False,
+           channels: Sequence[Any] | None = None) -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
+    """:func:`~napari_unwind.pipeline.export_step` (``channels``: other images of the scan's grid, written with it
+    as one multi-channel image); returns (the written path, its warnings, one line each)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", UserWarning)
         written = yield from pipeline.export_step(volume, deformation, target, options=options, folded=folded,
-                                                  session=session, overwrite=overwrite)
+                                                  session=session, overwrite=overwrite, channels=channels)
     lines = [" ".join(str(w.message).split()) for w in caught if issubclass(w.category, UserWarning)]
     return Path(written), tuple(dict.fromkeys(lines))
 

@@ -23,7 +23,7 @@ Backends
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Generator
+from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -149,9 +149,10 @@ class Backend(Protocol):
         """Raise InvalidInputError, before any work, when this backend cannot export ``deformation``."""
 
     def export(self, volume: Any, deformation: Any, target: Path, *, name: str, options: ExportOptions,
-               folded: float | None, session: Any, overwrite: bool
+               folded: float | None, session: Any, overwrite: bool, channels: Sequence[Any] = ()
                ) -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
-        """Straighten and write ``target``; returns (the written path, the warnings the fold rule let through)."""
+        """Straighten and write ``target`` (with ``channels``, other images of the scan's grid, as one
+        multi-channel image); returns (the written path, the warnings the fold rule let through)."""
 
 
 def _in_this_process(fn: str, args: tuple, kwargs: dict) -> Generator[Progress, None, Any]:
@@ -204,12 +205,12 @@ class LocalBackend:
         pass
 
     def export(self, volume: Any, deformation: Any, target: Path, *, name: str, options: ExportOptions,
-               folded: float | None, session: Any, overwrite: bool
+               folded: float | None, session: Any, overwrite: bool, channels: Sequence[Any] = ()
                ) -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
         from ._steps import export
 
         return (yield from export(volume, deformation, target, options=options, folded=folded, session=session,
-                                  overwrite=overwrite))
+                                  overwrite=overwrite, channels=channels))
 
 
 class _ServerTree:
@@ -309,11 +310,15 @@ class ServerBackend:
                             f" (server {self.server.address}, session {session_id})", twist=session.twist)
 
     def export(self, volume: Any, deformation: Any, target: Path, *, name: str, options: ExportOptions,
-               folded: float | None, session: Any, overwrite: bool
+               folded: float | None, session: Any, overwrite: bool, channels: Sequence[Any] = ()
                ) -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
         from ._remote import export_iter
         from ._steps import check_folds
 
+        if channels:
+            raise InvalidInputError("several channels are straightened on this computer, not through the server "
+                                    "from the dock: choose 'this computer', or run `unwind straighten` / "
+                                    "Client.straighten(channels=...) against the server")
         self.check_export(deformation)
         known = self._ids["session"]
         warned = check_folds(deformation, folded=folded, options=options)  # the one fold rule, before any job
@@ -608,11 +613,31 @@ class Workflow:
         return None if value is None else float(value)
 
     def export_task(self, target: str | os.PathLike, *, options: ExportOptions | None = None,
-                    overwrite: bool = False) -> Task:
-        """Straighten the scan with the deformation and write ``target`` (its suffix names the format)."""
+                    overwrite: bool = False, channels: Sequence[Any] = ()) -> Task:
+        """Straighten the scan with the deformation and write ``target`` (its suffix names the format).
+
+        ``channels``: other images of the scan's grid (Volumes, ``metadata["channel"]`` their names; the scan is
+        channel 0, named after the scan), straightened with it in one pass into one multi-channel image (``.zarr``
+        or ``.tif``)."""
         from .io._formats import output_format
 
         volume, d = self._need_scan(), self.edit.deformation
+        channels = tuple(channels)
+        if channels:
+            from .io.channels import CHANNEL_FORMATS, check_same_grid
+
+            fmt = output_format(Path(target).expanduser()) if str(target).strip() else None
+            if fmt is not None and fmt not in CHANNEL_FORMATS:
+                raise InvalidInputError(f"{Path(target).name}: {fmt} holds one channel; export {len(channels) + 1} "
+                                        "channels as OME-Zarr (.ome.zarr) or TIFF (.tif)")
+            names = [self.name or "scan", *[str(c.metadata.get("channel") or f"c{k + 1}")
+                                            for k, c in enumerate(channels)]]
+            if len(set(names)) != len(names):
+                raise InvalidInputError(f"two channels have the same name among {names}: rename a layer")
+            check_same_grid([volume, *channels], names)
+            from dataclasses import replace as _replace
+
+            volume = _replace(volume, metadata={**volume.metadata, "channel": names[0]})
         if d is None:
             raise InvalidInputError("there is no deformation yet: compute the skeleton (step 4) or open a session")
         if not str(target).strip():
@@ -625,7 +650,7 @@ class Workflow:
 
         def make() -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
             return (yield from backend.export(volume, d, target, name=name, options=options, folded=folded,
-                                              session=session, overwrite=overwrite))
+                                              session=session, overwrite=overwrite, channels=channels))
 
         def apply(value: tuple[Path, tuple[str, ...]]) -> None:
             self.exported.emit(*value)

@@ -76,6 +76,31 @@ def test_the_export_is_the_cores_straighten(done):
     np.testing.assert_array_equal(written, np.asarray(straighten(volume, wf.edit.deformation).data))
 
 
+def test_the_export_takes_other_channels_of_the_scans_grid(done, fish, tmp_path):
+    """Issue 24 item 1 through the model: the scan plus its mask as a second channel, one OME-Zarr with a c axis;
+    each channel is that image straightened alone; a one-channel format and another grid are refused."""
+    from dataclasses import replace
+
+    from napari_unwind.io import open_channels
+
+    wf, _, _, _, volume = done
+    mask = as_volume(fish.mask.astype(np.uint16), spacing=fish.spacing, unit=fish.unit)
+    mask = replace(mask, metadata={"channel": "mask"})
+    out = tmp_path / "both.ome.zarr"
+    _do(wf, wf.export_task(out, channels=[mask]))
+    chans = open_channels(out)
+    assert [c.metadata["channel"] for c in chans] == ["fish", "mask"]
+    d = wf.edit.deformation
+    np.testing.assert_array_equal(np.asarray(chans[0].data), np.asarray(straighten(volume, d).data))
+    np.testing.assert_array_equal(np.asarray(chans[1].data), np.asarray(straighten(mask, d).data))
+    with pytest.raises(InvalidInputError, match="holds one channel"):
+        wf.export_task(tmp_path / "x.nrrd", channels=[mask])
+    small = replace(as_volume(fish.mask[:-2].astype(np.uint16), spacing=fish.spacing, unit=fish.unit),
+                    metadata={"channel": "small"})
+    with pytest.raises(InvalidInputError, match="shape"):
+        wf.export_task(tmp_path / "y.ome.zarr", channels=[small])
+
+
 def test_a_new_scan_drops_the_old_work(done, fish):
     wf = Workflow()
     wf.set_scan(as_volume(fish.volume, spacing=fish.spacing), name="a")
