@@ -630,8 +630,8 @@ class Workflow:
             if fmt is not None and fmt not in CHANNEL_FORMATS:
                 raise InvalidInputError(f"{Path(target).name}: {fmt} holds one channel; export {len(channels) + 1} "
                                         "channels as OME-Zarr (.ome.zarr) or TIFF (.tif)")
-            names = [self.name or "scan", *[str(c.metadata.get("channel") or f"c{k + 1}")
-                                            for k, c in enumerate(channels)]]
+            names = [str(volume.metadata.get("channel") or self.name or "scan"),
+                     *[str(c.metadata.get("channel") or f"c{k + 1}") for k, c in enumerate(channels)]]
             if len(set(names)) != len(names):
                 raise InvalidInputError(f"two channels have the same name among {names}: rename a layer")
             check_same_grid([volume, *channels], names)

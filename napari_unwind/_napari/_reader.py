@@ -164,8 +164,27 @@ def read(path: str | list[str]) -> list:
 
     if isinstance(path, list):
         path = path[0]
+    from ..io.channels import _count, open_channels
+
+    p = Path(path).expanduser().absolute()
+    if p.exists() and _count(p, detect_format(p), {}) > 1:
+        # one layer per channel (as napari's channel_axis), each its own Volume: the dock can export them together
+        layers = []
+        file_name = p.name.rstrip("/")
+        for k, volume in enumerate(open_channels(p)):
+            name = f"{file_name} [{volume.metadata['channel']}]"
+            data, meta, kind = image_layer(volume, name=name, contrast_limits=contrast_limits(volume.levels),
+                                           colormap=CHANNEL_COLORMAPS[k % len(CHANNEL_COLORMAPS)],
+                                           blending="additive")
+            meta["metadata"]["napari_unwind"]["channel"] = volume.metadata["channel"]
+            layers.append((data, meta, kind))
+        return layers
     volume = open_volume(path)
     return [image_layer(volume, contrast_limits=contrast_limits(volume.levels))]
+
+
+#: Colormaps of a multi-channel file's layers, in order (napari's own choice for channel_axis starts likewise).
+CHANNEL_COLORMAPS = ("green", "magenta", "cyan", "yellow", "red", "blue")
 
 
 def get_session_reader(path: str | list[str]) -> Callable[[Any], list] | None:

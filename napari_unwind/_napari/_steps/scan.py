@@ -54,7 +54,8 @@ def volume_from_layer(layer: Any) -> Volume:
     return Volume(levels[0], spacing=spacing, unit=unit, origin=origin, levels=levels if len(levels) > 1 else (),
                   level_spacings=tuple(level_spacings) if len(levels) > 1 else (),
                   level_origins=tuple(level_origins) if len(levels) > 1 else (),
-                  source=meta.get("source"), format=meta.get("format"))
+                  source=meta.get("source"), format=meta.get("format"),
+                  metadata={"channel": str(meta["channel"])} if meta.get("channel") else {})
 
 
 def _spacing_missing(volume: Volume) -> bool:
