@@ -40,7 +40,7 @@ from .errors import InvalidInputError
 from .progress import Progress
 from .progress import run as _run
 
-__all__ = ["AverageResult", "average", "average_iter", "SCALES", "NORMALISATIONS", "HOLD_BYTES"]
+__all__ = ["AverageResult", "average", "average_iter", "read_landmarks", "SCALES", "NORMALISATIONS", "HOLD_BYTES"]
 
 SCALES = ("length", "none")
 NORMALISATIONS = ("robust", "none")
@@ -592,3 +592,78 @@ def average(specimens: Sequence[Any], *, stations: int | None = None,
     """
     return _run(average_iter(specimens, stations=stations, landmarks=landmarks, scale=scale, normalise=normalise,
                              max_roll=max_roll, chunk=chunk, scheduler=scheduler), progress)
+
+
+def read_landmarks(path: str | os.PathLike, specimens: Sequence[str | os.PathLike]) -> list[list[float]]:
+    """Landmarks per specimen from a CSV file, in the order of ``specimens``.
+
+    Parameters
+    ----------
+    path : path
+        A CSV file: one row per specimen, its name (file name) or path first, then its K landmark positions along
+        s (arc length from the head, in the specimens' length unit). An optional first row of column names (the
+        landmarks' names) is recognised by its positions not being numbers.
+    specimens : sequence of paths, length N
+        The specimens' paths, as given to :func:`average`.
+
+    Returns
+    -------
+    list of N lists of K floats
+
+    Raises
+    ------
+    InvalidInputError
+        A row that names no specimen (or an ambiguous file name), a specimen named twice or not at all, rows of
+        different lengths, a position that is not a number. (Whether they increase and lie inside each length is
+        checked by :func:`average`.)
+    """
+    import csv
+
+    keys = [os.path.abspath(os.fspath(p)).rstrip("/\\") for p in specimens]
+    base = [os.path.basename(k) for k in keys]
+    try:
+        with open(path, newline="") as fh:
+            rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    except OSError as exc:
+        raise InvalidInputError(f"cannot read the landmarks {path}: {exc.strerror or exc}") from None
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise InvalidInputError(f"{path} is not a CSV file of landmarks ({exc})") from None
+
+    def numbers(r: list[str]) -> list[float] | None:
+        try:
+            return [float(c) for c in r[1:]]
+        except ValueError:
+            return None
+
+    if rows and numbers(rows[0]) is None:
+        rows = rows[1:]                       # the header: names of the landmarks
+    if not rows:
+        raise InvalidInputError(f"{path} holds no landmarks: one row per specimen, its name then its positions")
+    found: dict[int, list[float]] = {}
+    for r in rows:
+        name = r[0].strip()
+        vals = numbers(r)
+        if vals is None:
+            raise InvalidInputError(f"{path}: the positions of {name} must be numbers (arc length from the head), "
+                                    f"got {', '.join(c.strip() for c in r[1:])}")
+        if len(vals) != len(numbers(rows[0]) or []):
+            raise InvalidInputError(f"{path}: {name} has {len(vals)} landmarks, {rows[0][0].strip()} has "
+                                    f"{len(numbers(rows[0]) or [])}: every specimen needs the same landmarks")
+        full = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(path)), name)).rstrip("/\\")
+        hits = [i for i, k in enumerate(keys) if k in (os.path.abspath(name).rstrip("/\\"), full)]
+        if not hits:
+            hits = [i for i, b in enumerate(base) if b == os.path.basename(name.rstrip("/\\"))]
+            if len(hits) > 1:
+                raise InvalidInputError(f"{path}: {name} names {len(hits)} specimens (the same file name in "
+                                        "different folders): give their paths instead")
+        if not hits:
+            raise InvalidInputError(f"{path}: {name} is not one of the specimens being averaged")
+        if hits[0] in found:
+            raise InvalidInputError(f"{path}: {base[hits[0]]} is named twice: give one row per specimen")
+        found[hits[0]] = vals
+    missing = [base[i] for i in range(len(keys)) if i not in found]
+    if missing:
+        more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+        raise InvalidInputError(f"{path} has no landmarks for {', '.join(missing[:3])}{more}: give one row per "
+                                "specimen")
+    return [found[i] for i in range(len(keys))]

@@ -51,3 +51,24 @@ def test_what_cannot_be_averaged_is_one_line(tmp_path):
     empty.mkdir()
     code, _, err = _run("average", empty, "-o", tmp_path / "m.zarr")
     assert code != 0 and "no straight volume" in err and len(err.strip().splitlines()) == 1
+
+
+def test_landmarks_from_a_csv_sharpen_the_ring_and_bad_rows_are_one_line(tmp_path):
+    from test_average_landmarks import SPACING, centre_profile, tube
+
+    batch = tmp_path / "straight"
+    batch.mkdir()
+    rows = []
+    for i, (ns, c) in enumerate([(81, 30), (101, 60), (91, 41)]):
+        write_volume(tube(ns, c), batch / f"tube{i}.nrrd")
+        rows.append(f"tube{i}.nrrd,{c * SPACING}")
+    lm = tmp_path / "landmarks.csv"
+    lm.write_text("specimen,ring\n" + "\n".join(rows) + "\n")
+    out = tmp_path / "mean.nrrd"
+    code, _, err = _run("average", batch, "-o", out, "--landmarks", lm, "--normalise", "none", "--max-roll", "0", "-q")
+    assert code == 0, err
+    prof = centre_profile(np.asarray(open_volume(out).data))
+    assert prof.max() > 2.8, prof.max()                        # the three rings on one station range: full height
+    lm.write_text("\n".join(rows[:2]) + "\n")
+    code, _, err = _run("average", batch, "-o", out, "--landmarks", lm, "--overwrite", "-q")
+    assert code != 0 and "no landmarks for tube2.nrrd" in err and len(err.strip().splitlines()) == 1
