@@ -422,7 +422,7 @@ def _sibling(output: Path, what: str) -> Path:
 def cmd_average(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .average import average_iter
+    from .average import average_iter, read_landmarks
     from .io import write_volume
     from .io._atomic import check_writable
     from .pipeline import _write_table
@@ -440,8 +440,10 @@ def cmd_average(args: argparse.Namespace) -> int:
         check_writable(p, overwrite=args.overwrite)
     _check_io([out, *others.values(), table], inputs)
     t0 = time.perf_counter()
-    res = _run_with_bar(average_iter([str(p) for p in inputs], stations=args.stations, scale=args.scale,
-                                     normalise=args.normalise, max_roll=args.max_roll), args.quiet)
+    landmarks = read_landmarks(args.landmarks, inputs) if args.landmarks else None
+    res = _run_with_bar(average_iter([str(p) for p in inputs], stations=args.stations, landmarks=landmarks,
+                                     scale=args.scale, normalise=args.normalise, max_roll=args.max_roll,
+                                     scheduler=args.scheduler), args.quiet)
     spacing = (res.spacing,) * 3
     write_volume(res.mean, out, spacing=spacing, unit=res.unit, overwrite=args.overwrite)
     for what, path in others.items():
@@ -1164,6 +1166,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--normalise", choices=("robust", "none"), default="robust",
                    help="per specimen: median -> 0, 99th percentile -> 1 (default), or keep the grey values")
     p.add_argument("--max-roll", type=float, default=90.0, help="largest roll searched each way (degrees)")
+    p.add_argument("--landmarks", default=None, metavar="FILE.csv",
+                   help="landmarks along s: per row a specimen's name or path, then its K positions (arc length "
+                        "from the head, the specimens' unit); each lands on the batch's mean position")
+    p.add_argument("--scheduler", type=_address, default=None,
+                   help="dask.distributed scheduler address (tcp://host:8786) to run on a cluster")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs once the new ones are complete")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or report")
     p.set_defaults(func=cmd_average)
