@@ -362,7 +362,10 @@ def _draw_panels(figure: Any, profile: Profile, panels: list[tuple[str, list[str
                 handles.append(line)
             twin.set_ylabel(_ylabel(profile, right, key), color=colours[len(left) % len(colours)])
         if len(handles) > 1 and len(handles) <= 12:
-            (twin if right else ax).legend(handles=handles, loc="best", ncols=min(len(handles), 4))
+            ncols = min(len(handles), max(1, int(figure.get_figwidth() // 1.3)))  # 6 in the PNG, 2 in the dock
+            # above the panel, clear of the curves
+            (twin if right else ax).legend(handles=handles, loc="lower left", bbox_to_anchor=(0.0, 1.0),
+                                           ncols=ncols, borderaxespad=0.1, handlelength=1.5, columnspacing=1.0)
     unit = profile.units.get("s", "")
     axes[-1].set_xlabel(f"arc length s [{unit}]" if unit else "arc length s")
     if len(s):

@@ -32,6 +32,7 @@ from .._messages import for_dock
 from .._reader import contrast_limits
 from .._workers import Job
 from ._base import Step
+from .measure import MeasurePanel
 
 #: Export formats offered: (label, suffix); any suffix write_volume knows may also be typed.
 EXPORT_FORMATS = (("OME-Zarr", ".ome.zarr"), ("NRRD", ".nrrd"), ("NIfTI", ".nii.gz"), ("TIFF", ".tif"))
@@ -92,6 +93,8 @@ class ExportStep(Step):
         self.export_info.setWordWrap(True)
         self.export_info.setMinimumWidth(1)  # the written path has no break: cut at the dock's edge, never widen it
         lay.addWidget(self.export_info)
+        self.measure_panel = MeasurePanel(dock)  # the profile along the centreline, its plot (collapsible)
+        lay.addWidget(self.measure_panel)
         lay.addStretch(1)
 
     def update_needs(self) -> None:
@@ -100,6 +103,7 @@ class ExportStep(Step):
         self.export_need.setText("Needs a scan and a deformation (step 4 or a session)." if d is None or not scan
                                  else f"deformation: length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes")
         self.export_button.setEnabled(d is not None and scan)
+        self.measure_panel.update_needs()
 
     def _on_format_chosen(self, index: int) -> None:
         from ...io._formats import _suffix

@@ -1,0 +1,194 @@
+"""The Export step's "Measure along the centreline" section: the profile of the specimen and its plot.
+
+A collapsible section (closed until opened, so the Export page keeps its size): Measure runs the core's
+:func:`napari_unwind.measure.measure_iter` in a worker with the dock's progress bar and Cancel, on the model's
+deformation, the selection's mask (the cross-section columns; none without a selection) and the scan (its intensity
+as the ``scan`` channel), at the finest scan spacing. The profile's plot (:meth:`napari_unwind.measure.Profile.plot`,
+the same panels as ``unwind measure --plot``) is drawn in the dock on matplotlib's Qt canvas. "Save profile..."
+writes it as CSV, Parquet or the PNG plot, by the suffix (:meth:`~napari_unwind.measure.Profile.save`); an existing
+file is replaced only after the dock's confirmation. Measured on this computer, whichever backend runs the steps.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Generator
+from pathlib import Path
+from typing import Any
+
+from qtpy.QtCore import Qt
+from qtpy.QtWidgets import QFileDialog, QLabel, QPushButton, QSizePolicy, QToolButton, QVBoxLayout, QWidget
+
+from ...errors import InvalidInputError, UnwindError
+from ...io._volume import unit_label
+from ...progress import Progress
+from .._workers import Job
+from ._base import Step
+
+#: The save dialog's filters: (filter, suffix); the typed suffix wins.
+SAVE_FILTERS = (("CSV table (*.csv)", ".csv"), ("Parquet table (*.parquet)", ".parquet"), ("PNG plot (*.png)", ".png"))
+#: Height of one panel of the plot in the dock (px): its y label, rotated, fits.
+PANEL_HEIGHT = 170
+
+
+class MeasurePanel(Step):
+    """Measure the specimen along the centreline, show the profile's plot, save the profile (see the module)."""
+
+    def __init__(self, dock: Any) -> None:
+        super().__init__(dock)
+        #: the last profile measured (None: none yet)
+        self.profile: Any = None
+        #: the plot's canvas (made at the first profile: matplotlib is imported then)
+        self.canvas: Any = None
+        self._measured_on: Any = None  # the deformation the profile was measured on
+        lay = QVBoxLayout(self)
+        lay.setContentsMargins(0, 0, 0, 0)
+        self.toggle = QToolButton()
+        self.toggle.setText("Measure along the centreline")
+        self.toggle.setToolTip("The specimen's profile along s: curvature, torsion, twist, cross-sections, the scan's "
+                               "intensity; its plot, saved as CSV, Parquet or PNG")
+        self.toggle.setCheckable(True)
+        self.toggle.setToolButtonStyle(Qt.ToolButtonStyle.ToolButtonTextBesideIcon)
+        self.toggle.setArrowType(Qt.ArrowType.RightArrow)
+        self.toggle.setStyleSheet("QToolButton { border: none; }")
+        self.toggle.toggled.connect(self.set_open)
+        lay.addWidget(self.toggle)
+        self.body = QWidget()
+        body = QVBoxLayout(self.body)
+        body.setContentsMargins(0, 0, 0, 0)
+        self.need = QLabel("")
+        self.need.setWordWrap(True)
+        body.addWidget(self.need)
+        self.measure_button, self.cancel_button = self.job_buttons(body, "Measure", self.measure)
+        self.save_button = QPushButton("Save profile...")
+        self.save_button.setToolTip("Write the profile: .csv or .parquet (units with each column), or .png (the plot)")
+        self.save_button.clicked.connect(lambda: self.save_profile())
+        body.addWidget(self.save_button)
+        self.info = QLabel("")
+        self.info.setWordWrap(True)
+        self.info.setMinimumWidth(1)  # a long path has no break: cut at the dock's edge, never widen it
+        body.addWidget(self.info)
+        self.plot_box = QVBoxLayout()
+        body.addLayout(self.plot_box)
+        self.body.setVisible(False)
+        lay.addWidget(self.body)
+        self.update_needs()
+
+    def set_open(self, open_: bool) -> None:
+        """Show or hide the section's controls and plot."""
+        if self.toggle.isChecked() != bool(open_):
+            self.toggle.setChecked(bool(open_))  # emits toggled: comes back here once
+            return
+        self.toggle.setArrowType(Qt.ArrowType.DownArrow if open_ else Qt.ArrowType.RightArrow)
+        self.body.setVisible(bool(open_))
+
+    def update_needs(self) -> None:
+        d, scan = self.workflow.edit.deformation, self.dock.volume is not None
+        if d is None or not scan:
+            self.need.setText("Needs a scan and a deformation (step 4 or a session).")
+        else:
+            has_mask = self.dock.has_selection
+            self.need.setText("The specimen's cross-sections come from the selection (step 2)." if has_mask else
+                              "No selection (step 2): the profile has the curve and the scan's intensity only.")
+        self.measure_button.setEnabled(d is not None and scan)
+        self.save_button.setEnabled(self.profile is not None)
+        if self.profile is not None and self._measured_on is not d:
+            self.info.setText(f"{self._summary()}; the deformation changed since: measure again")
+
+    def _summary(self) -> str:
+        p = self.profile
+        unit = p.units.get("s", "")
+        return f"{len(p)} stations, s = 0 to {float(p['s'][-1]):.4g} {unit}, {len(p.columns)} columns"
+
+    def measure(self) -> Job | None:
+        """Measure the specimen along the model's deformation (worker, progress, Cancel); the plot shows it."""
+        from ...io import Volume
+        from ...measure import measure_iter
+
+        dock, workflow = self.dock, self.workflow
+        try:
+            volume = dock.volume
+            if volume is None:
+                raise InvalidInputError("there is no scan yet: pick an Image layer or open a file (step 1)")
+            d = workflow.edit.deformation
+            if d is None:
+                raise InvalidInputError("there is no deformation yet: compute the skeleton (step 4) or open a session")
+            selected = dock.has_selection
+            if selected:
+                dock._check_selection()
+        except UnwindError as exc:
+            self._fail(exc)
+            return None
+        self.set_open(True)
+
+        def make() -> Generator[Progress, None, Any]:
+            mask = None
+            if selected:  # the features refined by the pipeline's select step, or the chosen mask: in the worker
+                mask = Volume(workflow.mask().astype("uint8"), spacing=volume.spacing, origin=volume.origin,
+                              unit=volume.unit)
+            return (yield from measure_iter(d, mask=mask, channels={"scan": volume}))
+
+        def done(profile: Any) -> None:
+            self.profile, self._measured_on = profile, d
+            self.info.setText(self._summary() + ("" if selected else " (no selection: no cross-sections)"))
+            try:
+                self.show_plot()
+            except UnwindError as exc:  # no matplotlib: the profile is there to save as a table all the same
+                self.info.setText(f"{self.info.text()}; {exc}")
+            self._say(f"measured {len(profile)} stations along {d.length:.4g} {unit_label(d.unit)}")
+
+        return dock._start(make, "measuring", done, (self.cancel_button,))
+
+    def show_plot(self) -> None:
+        """Draw the profile's plot in the section (the canvas is made the first time)."""
+        from ...measure import _need, _plot_panels
+
+        _need("matplotlib", "plot", "the plot")
+        from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+        from matplotlib.figure import Figure
+
+        n = len(_plot_panels(self.profile, None))
+        if self.canvas is None:
+            self.canvas = FigureCanvasQTAgg(Figure(figsize=(4.0, 3.0), dpi=100, layout="constrained"))
+            self.canvas.setMinimumWidth(1)  # the plot takes the dock's width, never widens it
+            self.canvas.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Fixed)
+            self.plot_box.addWidget(self.canvas)
+        height = PANEL_HEIGHT * n + 40
+        self.canvas.setFixedHeight(height)
+        # the figure at the section's width before drawing: the legends' columns follow it
+        fig, ratio = self.canvas.figure, self.canvas.device_pixel_ratio
+        fig.set_size_inches(max(self.body.width(), 200) * ratio / fig.dpi, height * ratio / fig.dpi)
+        self.profile.plot(figure=fig)
+        self.canvas.draw_idle()
+
+    def save_profile(self, path: str | os.PathLike | None = None) -> Path | None:
+        """Write the profile to ``path`` (asked for when None): .csv, .parquet or .png (the plot), by its suffix."""
+        from ...measure import profile_format
+
+        if self.profile is None:
+            self._fail(InvalidInputError("there is no profile yet: click Measure first"))
+            return None
+        if path is None:
+            filters = ";;".join(f for f, _ in SAVE_FILTERS)
+            path, chosen = QFileDialog.getSaveFileName(self, "Save the profile", "profile.csv", filters,
+                                                       options=QFileDialog.Option.DontConfirmOverwrite)
+            if not path:
+                return None
+            if not Path(path).suffix:
+                path += dict(SAVE_FILTERS).get(chosen, ".csv")
+        target = Path(path).expanduser()
+        try:
+            profile_format(target)
+            overwrite = False
+            if target.exists():
+                if not self.dock.confirm_overwrite(target):
+                    self._say(f"not saved: {target} was kept")
+                    return None
+                overwrite = True
+            written = self.profile.save(target, overwrite=overwrite)
+        except UnwindError as exc:
+            self._fail(exc)
+            return None
+        self.info.setText(f"{self._summary()}\nsaved: {written}")
+        self._say(f"profile saved to {written}")
+        return written
