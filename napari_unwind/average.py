@@ -296,12 +296,24 @@ def _voxel_stats(stack: np.ndarray, comps: np.ndarray, mean: np.ndarray, median:
                 median[j, p] = np.float32((np.float64(buf[half - 1, p]) + buf[half, p]) / 2)
 
 
-def _block_stats(block: np.ndarray, first: int, step: int) -> tuple[np.ndarray, np.ndarray]:
-    """One stored block of a specimen (stations first.., whole sections): its sum over s and a subsample (every
-    ``step``-th station of the specimen, every ``step``-th pixel across) for the percentiles."""
+def _block_stats(block: np.ndarray, first: int, step: int, acc: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """One stored block of a specimen (stations first.., whole sections): the running sum over s (``acc``, the
+    previous blocks', float64, each station added in turn so the sum does not depend on how the specimen is
+    chunked) and a subsample (every ``step``-th station of the specimen, every ``step``-th pixel across) for the
+    percentiles."""
     block = np.asarray(block)
-    return (block.sum(axis=0, dtype=np.float64),
-            np.asarray(block[(-first) % step::step, ::step, ::step], dtype=np.float32).ravel())
+    acc = np.zeros(block.shape[1:], np.float64) if acc is None else acc.copy()
+    for row in block:
+        acc += row
+    return acc, np.asarray(block[(-first) % step::step, ::step, ::step], dtype=np.float32).ravel()
+
+
+def _running_sum(parts: tuple) -> np.ndarray:
+    return parts[0]
+
+
+def _subsample(parts: tuple) -> np.ndarray:
+    return parts[1]
 
 
 def _average_chunk(slabs: Sequence[Sequence[np.ndarray]], plan: Sequence[tuple], shape: tuple[int, int, int],
@@ -449,14 +461,16 @@ def average_iter(
             for d in part:
                 step = max(1, int(np.ceil((int(np.prod(d.shape)) / 2**18) ** (1 / 3))))   # ~2^18 samples
                 firsts = np.concatenate([[0], np.cumsum(d.chunks[0])[:-1]])
-                tasks.append([dask.delayed(_block_stats, pure=True)(b, int(a), step)
-                              for b, a in zip(d.to_delayed().ravel(), firsts, strict=True)])
+                chain, acc = [], None      # block by block along s: the running sum, the subsamples
+                for b, a in zip(d.to_delayed().ravel(), firsts, strict=True):
+                    parts = dask.delayed(_block_stats, pure=True)(b, int(a), step, acc)
+                    acc = dask.delayed(_running_sum, pure=True)(parts)
+                    chain.append(dask.delayed(_subsample, pure=True)(parts))
+                tasks.append((acc, chain))
             for i, parts in zip(range(g, g + len(part)), dask.compute(*tasks), strict=True):
-                acc = np.zeros(vols[i].shape[1:], np.float64)
-                for s_, _ in parts:
-                    acc += s_
+                acc, samples = parts
                 if normalise == "robust":
-                    lo, hi = (float(x) for x in np.percentile(np.concatenate([p for _, p in parts]), [50, 99]))
+                    lo, hi = (float(x) for x in np.percentile(np.concatenate(samples), [50, 99]))
                     hi = hi if hi > lo else lo + 1.0
                 else:
                     lo, hi = 0.0, 1.0
