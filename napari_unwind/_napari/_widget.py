@@ -340,6 +340,7 @@ class UnwindWidget(QWidget):
     def _on_layers_changed(self, event: Any = None) -> None:
         self.scan_step.refresh_layer_combo()
         self.segment_step.refresh_mask_combo()
+        self.export_step.channels_box.update_layers()
         layer = getattr(event, "value", None)
         if event is not None and getattr(event, "type", "") == "removed":
             if layer is self.scan_layer:

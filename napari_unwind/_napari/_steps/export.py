@@ -32,6 +32,7 @@ from .._messages import for_dock
 from .._reader import contrast_limits
 from .._workers import Job
 from ._base import Step
+from .channels import ChannelsBox
 from .measure import MeasurePanel
 
 #: Export formats offered: (label, suffix); any suffix write_volume knows may also be typed.
@@ -76,6 +77,8 @@ class ExportStep(Step):
         self.allow_folds_box.setToolTip("Export even where the deformation folds over the specimen; a fold over "
                                         "empty cage corners only is exported anyway, with a warning")
         form.addRow("", self.allow_folds_box)
+        self.channels_box = ChannelsBox(dock)  # the other Image layers of the scan's grid, as one image
+        form.addRow("channels", self.channels_box)
         self.show_options(self.workflow.options.export)
         row = QHBoxLayout()
         self.path_edit = QLineEdit()
@@ -103,6 +106,7 @@ class ExportStep(Step):
         self.export_need.setText("Needs a scan and a deformation (step 4 or a session)." if d is None or not scan
                                  else f"deformation: length {d.length:.4g} {unit_label(d.unit)}, {len(d)} keyframes")
         self.export_button.setEnabled(d is not None and scan)
+        self.channels_box.update_layers()
         self.measure_panel.update_needs()
 
     def _on_format_chosen(self, index: int) -> None:
@@ -176,8 +180,10 @@ class ExportStep(Step):
                 self._say(f"not exported: {target} was kept")
                 return None
             overwrite = True
+        channels = self.channels_box.volumes()
         try:
-            task = self.workflow.export_task(target, options=self.export_options(), overwrite=overwrite)
+            task = self.workflow.export_task(target, options=self.export_options(), overwrite=overwrite,
+                                             channels=channels)
         except UnwindError as exc:
             self._fail(exc)
             return None
@@ -185,6 +191,10 @@ class ExportStep(Step):
 
         def make() -> Generator[Progress, None, tuple]:
             value = yield from task.make()
+            if channels:
+                from .._reader import read
+
+                return value, read(str(value[0]))  # the layers of every channel, made off the UI thread
             return value, contrast_limits(open_volume(value[0]).levels)
 
         def done(result: tuple) -> None:
@@ -194,8 +204,13 @@ class ExportStep(Step):
             task.apply(value)
             written, warned = value
             self.exported = Path(written)
-            dock._add_layer(image_layer(open_volume(written), name=f"straight {self.exported.name}",
-                                        contrast_limits=clim))
+            if isinstance(clim, list):  # one layer per channel
+                for data, meta, kind in clim:
+                    meta["name"] = f"straight {meta['name']}"
+                    dock._add_layer((data, meta, kind))
+            else:
+                dock._add_layer(image_layer(open_volume(written), name=f"straight {self.exported.name}",
+                                            contrast_limits=clim))
             self.export_info.setText(for_dock("\n".join([f"written: {self.exported}{where}"]
                                                          + [f"warning: {w}" for w in warned])))
             self._say(f"exported to {self.exported}{where}" + (f" (warning: {warned[0]})" if warned else ""))
