@@ -921,14 +921,20 @@ def _region_refs(data: da.Array, edges: list[np.ndarray], lo: np.ndarray, hi: np
     return refs, bounds
 
 
+def _one_chunk(bounds: tuple[tuple[int, ...], ...]) -> bool:
+    return len(bounds[0]) == 2 and len(bounds[1]) == 2 and len(bounds[2]) == 2
+
+
 def _assemble(blocks: list, bounds: tuple[tuple[int, ...], ...], lo: tuple[int, int, int],
-              hi: tuple[int, int, int]) -> np.ndarray:
-    """The box ``[lo, hi)`` of the scan from the chunks that hold it (a view when one chunk holds it all)."""
-    if len(bounds[0]) == 2 and len(bounds[1]) == 2 and len(bounds[2]) == 2:
+              hi: tuple[int, int, int], out: np.ndarray | None = None) -> np.ndarray:
+    """The box ``[lo, hi)`` of the scan from the chunks that hold it (a view when one chunk holds it all and no
+    ``out`` is given; else copied into ``out``, or a new array)."""
+    if out is None and _one_chunk(bounds):
         chunk = np.asarray(blocks[0][0][0])
         return chunk[tuple(slice(lo[ax] - bounds[ax][0], hi[ax] - bounds[ax][0]) for ax in range(3))]
-    first = np.asarray(blocks[0][0][0])
-    out = np.empty(tuple(h - low for low, h in zip(lo, hi, strict=True)), dtype=first.dtype)
+    if out is None:
+        first = np.asarray(blocks[0][0][0])
+        out = np.empty(tuple(h - low for low, h in zip(lo, hi, strict=True)), dtype=first.dtype)
     for a, plane in enumerate(blocks):
         for b, row in enumerate(plane):
             for c, chunk in enumerate(row):
@@ -951,13 +957,24 @@ def _warp_chunks(blocks: list, bounds: tuple, lo: tuple[int, int, int], hi: tupl
 
 def _warp_chunks_channels(blocks: list, bounds: list, lo: tuple[int, int, int], hi: tuple[int, int, int],
                           *args: Any) -> np.ndarray:
-    """Task: assemble the region of every channel (from each channel's own input chunks) into one (nc, ...) array,
-    then :func:`_warp_block_channels`."""
-    first = _assemble(blocks[0], bounds[0], lo, hi)
-    region = np.empty((len(blocks), *first.shape), dtype=first.dtype)
-    region[0] = first
-    for ch in range(1, len(blocks)):
-        region[ch] = _assemble(blocks[ch], bounds[ch], lo, hi)
+    """Task: every channel of one output block.
+
+    When one input chunk of every channel holds the region, each channel is resampled from a view of its chunk
+    (copying the regions into one array costs more than sharing each sample's cell and weights saves); otherwise
+    the regions are assembled straight into one (nc, ...) array for :func:`_warp_block_channels`.
+    """
+    if all(_one_chunk(b) for b in bounds):
+        regions = [_assemble(blk, b, lo, hi) for blk, b in zip(blocks, bounds, strict=True)]
+        first = _warp_block(regions[0], lo, *args)
+        out = np.empty((len(regions), *first.shape), dtype=first.dtype)
+        out[0] = first
+        for ch in range(1, len(regions)):
+            out[ch] = _warp_block(regions[ch], lo, *args)
+        return out
+    dtype = np.asarray(blocks[0][0][0][0]).dtype
+    region = np.empty((len(blocks), *(h - low for low, h in zip(lo, hi, strict=True))), dtype=dtype)
+    for ch in range(len(blocks)):
+        _assemble(blocks[ch], bounds[ch], lo, hi, out=region[ch])
     return _warp_block_channels(region, lo, *args)
 
 

@@ -31,13 +31,16 @@ def _channels(shape, n, dtype=np.uint16, seed=0):
 
 @pytest.mark.parametrize("order", [0, 1, 3])
 @pytest.mark.parametrize("dtype", [np.uint16, np.float32, np.int16])
-def test_every_channel_equals_scipy_on_its_own(order, dtype):
+@pytest.mark.parametrize("chunking", ["mixed", "whole"])
+def test_every_channel_equals_scipy_on_its_own(order, dtype, chunking):
     shape, spacing, origin = (34, 30, 40), (1.5, 1.0, 0.8), (-3.0, 10.0, 2.5)
     arrays = _channels(shape, 3, dtype=dtype, seed=order)
     d = random_deformation(1, shape, spacing, origin)
-    # each channel with its own chunking: the task reads each from its own chunks
+    # each channel with its own chunking: the task reads each from its own chunks (the regions assembled into one
+    # array); or one chunk each (each channel resampled from a view of its chunk)
+    chunks = [(9, 11, 13), (34, 30, 40), (5, 7, 40)] if chunking == "mixed" else [shape] * 3
     vols = [Volume(da.from_array(a, chunks=c), spacing=spacing, origin=origin, unit="um")
-            for a, c in zip(arrays, [(9, 11, 13), (34, 30, 40), (5, 7, 40)], strict=True)]
+            for a, c in zip(arrays, chunks, strict=True)]
     out = straighten_channels(vols, d, order=order, spacing=0.9, pad=2, fill=7, chunks=(6, 7, 8))
     coords = reference_coords(d, 0.9, 2)
     for k, a in enumerate(arrays):
