@@ -188,3 +188,33 @@ def test_several_channels_are_straightened_in_one_pass_into_one_image(case, tmp_
     small = write_volume(fish.volume[:-4], tmp_path / "small.nrrd", spacing=fish.spacing, unit=fish.unit)
     code, _, err = _run("straighten", scan, small, "--session", session, "-o", tmp_path / "y.zarr", "-q")
     assert code == 1 and "shape" in err and not (tmp_path / "y.zarr").exists()
+
+
+def test_a_scan_with_a_channel_axis_gives_every_channel(case, tmp_path):
+    """One OME-Zarr with a c axis (written here with zarr itself): all its channels, named by its omero labels."""
+    import zarr
+
+    from napari_unwind.io import open_channels
+
+    tmp, fish, scan, session, d = case
+    root = zarr.open_group(str(tmp_path / "two.zarr"), mode="w", zarr_format=3)
+    stack = np.stack([fish.volume.astype(np.uint16), (fish.mask * 1000).astype(np.uint16)])
+    arr = root.create_array("0", shape=stack.shape, chunks=(1, 32, 32, 32), dtype=stack.dtype)
+    arr[...] = stack
+    unit = open_volume(scan).unit
+    root.attrs["ome"] = {"version": "0.5", "multiscales": [{
+        "axes": [{"name": "c", "type": "channel"}] + [{"name": a, "type": "space", "unit": unit} for a in "zyx"],
+        "datasets": [{"path": "0", "coordinateTransformations": [
+            {"type": "scale", "scale": [1.0, *map(float, fish.spacing)]}]}]}],
+        "omero": {"channels": [{"label": "ct"}, {"label": "body"}]}}
+    out = tmp_path / "two.tif"
+    code, _, err = _run("straighten", tmp_path / "two.zarr", "--session", session, "--same-grid", "-o", out, "-q")
+    assert code == 0, err
+    chans = open_channels(out)
+    assert [c.metadata["channel"] for c in chans] == ["ct", "body"]
+    alone = tmp_path / "alone.nrrd"
+    assert _run("straighten", scan, "--session", session, "-o", alone, "-q")[0] == 0
+    np.testing.assert_array_equal(np.asarray(chans[0].data), open_volume(alone).data.compute())
+    # without --same-grid the first input must be the session's scan: its checksum is checked
+    code, _, err = _run("straighten", tmp_path / "two.zarr", "--session", session, "-o", tmp_path / "y.tif", "-q")
+    assert code == 1 and "changed" in err and not (tmp_path / "y.tif").exists()
