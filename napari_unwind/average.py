@@ -93,6 +93,20 @@ class AverageResult:
                  "rms": float(self.rms[i]), "correlation": float(self.correlation[i])}
                 for i, n in enumerate(self.names)]
 
+    def csv_text(self) -> str:
+        """:meth:`table` as CSV text: the bytes ``unwind average`` writes to ``<mean>.residuals.csv`` (the
+        pipeline's table writer: floats to 6 significant digits, ``\\n`` line ends)."""
+        import csv
+        import io
+
+        rows = self.table()
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=list(rows[0]), lineterminator="\n")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: f"{v:.6g}" if isinstance(v, float) else v for k, v in r.items()})
+        return buf.getvalue()
+
 
 def _as_volume(item: Any, i: int) -> tuple[Any, str]:
     from .io import Volume, open_volume
@@ -400,6 +414,7 @@ def average_iter(
     max_roll: float = 90.0,
     chunk: int = 32,
     scheduler: str | None = None,
+    names: Sequence[str] | None = None,
 ) -> Generator[Progress, None, AverageResult]:
     """:func:`average` as a generator of :class:`~napari_unwind.progress.Progress`; returns the result."""
     if scale not in SCALES:
@@ -416,7 +431,12 @@ def average_iter(
         raise InvalidInputError(f"chunk must be a positive number of stations, got {chunk}")
     if stations is not None and int(stations) < 2:
         raise InvalidInputError(f"stations must be at least 2, got {stations}")
-    vols, names = zip(*(_as_volume(x, i) for i, x in enumerate(specimens)), strict=True)
+    vols, found = zip(*(_as_volume(x, i) for i, x in enumerate(specimens)), strict=True)
+    if names is None:
+        names = found
+    elif isinstance(names, str) or len(names) != len(vols):
+        raise InvalidInputError(f"names must give one name per specimen ({len(vols)}), got {names!r}"[:300])
+    names = tuple(str(x) for x in names)
     units = {v.unit for v in vols}
     if len(units) > 1:
         raise InvalidInputError(f"the specimens are in different units ({', '.join(sorted(map(str, units)))}): "
@@ -571,7 +591,7 @@ def average_iter(
 def average(specimens: Sequence[Any], *, stations: int | None = None,
             landmarks: Sequence[Sequence[float]] | None = None, scale: str = "length", normalise: str = "robust",
             max_roll: float = 90.0, chunk: int = 32, scheduler: str | None = None,
-            progress: Any = None) -> AverageResult:
+            names: Sequence[str] | None = None, progress: Any = None) -> AverageResult:
     """The average straight specimen of a batch.
 
     Parameters
@@ -597,6 +617,8 @@ def average(specimens: Sequence[Any], *, stations: int | None = None,
         Where the dask tasks run: None (threads), ``"synchronous"`` or a ``dask.distributed`` scheduler address
         such as ``"tcp://host:8786"`` (its workers must see the specimens' paths); see
         :func:`napari_unwind.scheduler.use_scheduler`.
+    names : sequence of str, optional
+        One per specimen, for the residual table (default: the file names, or ``specimen<i>``).
     progress : callable, optional
         Called with each :class:`~napari_unwind.progress.Progress`.
 
@@ -605,7 +627,7 @@ def average(specimens: Sequence[Any], *, stations: int | None = None,
     AverageResult
     """
     return _run(average_iter(specimens, stations=stations, landmarks=landmarks, scale=scale, normalise=normalise,
-                             max_roll=max_roll, chunk=chunk, scheduler=scheduler), progress)
+                             max_roll=max_roll, chunk=chunk, scheduler=scheduler, names=names), progress)
 
 
 def read_landmarks(path: str | os.PathLike, specimens: Sequence[str | os.PathLike]) -> list[list[float]]:

@@ -763,6 +763,30 @@ class Client:
                                                 for n, v in (channels or {}).items()])
         return self.submit(jobs_pb2.SubmitRequest(measure=req), wait=wait)
 
+    def average(self, volume_ids: Sequence[str], *, landmarks: Sequence[Sequence[float]] | None = None,
+                stations: int | None = None, scale: str = "length", normalise: str = "robust",
+                max_roll: float = 90.0, output_name: str = "", wait: bool = True):
+        """The average straight specimen of a batch of straight volumes (a job, :func:`napari_unwind.average.average`
+        on the server): ``result.volumes`` maps "mean", "median" and "std" to stored volumes (the mean is also
+        ``result.volume_id``), ``result.table_csv`` holds the residual per specimen. ``landmarks``: per volume, in
+        order, its K positions along s (arc length, the volumes' unit)."""
+        from unwind_services._proto.unwind.v1 import jobs_pb2, warp_pb2
+
+        from .average import NORMALISATIONS, SCALES
+
+        if scale not in SCALES or normalise not in NORMALISATIONS:
+            raise InvalidInputError(f"scale must be one of {', '.join(SCALES)} and normalise one of "
+                                    f"{', '.join(NORMALISATIONS)}, got {scale!r}, {normalise!r}")
+        if landmarks is not None and len(landmarks) != len(volume_ids):
+            raise InvalidInputError(f"landmarks has {len(landmarks)} rows for {len(volume_ids)} volumes: one row "
+                                    "per volume, in order")
+        req = warp_pb2.AverageRequest(
+            specimens=[warp_pb2.AverageSpecimen(volume_id=v, landmarks=list(landmarks[i]) if landmarks else [])
+                       for i, v in enumerate(volume_ids)],
+            stations=int(stations or 0), keep_size=scale == "none", keep_grey_values=normalise == "none",
+            max_roll=float(max_roll), has_max_roll=True, output_name=output_name)
+        return self.submit(jobs_pb2.SubmitRequest(average=req), wait=wait)
+
     def bend(self, volume_id: str, session_id: str, *, order: int = 1, output_name: str = "", wait: bool = True):
         """Bend a straight volume into the session's pose (a job; ``result.volume_id``)."""
         from unwind_services._proto.unwind.v1 import jobs_pb2, warp_pb2

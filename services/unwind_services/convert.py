@@ -66,6 +66,8 @@ MAX_POINTS, MAX_WIRE_POINTS, MAX_CHAIN = 10_000, 1_000_000, 1_000
 MAX_LIMIT, MAX_SEQ = 1_000_000, 2**53
 #: Most channels of a Measure job.
 MAX_CHANNELS = 16
+#: Most specimens of an Average job, landmarks of one specimen, and stations of the average.
+MAX_SPECIMENS, MAX_LANDMARKS, MAX_STATIONS = 1000, 64, 1_000_000
 #: Largest side of an upload, voxels (the server's --max-voxels bounds the product).
 MAX_SIDE = 2**31 - 1
 
@@ -84,7 +86,8 @@ def bounds() -> dict[str, Bound]:
     table = {
         "Point": dict(axis0=coordinate, axis1=coordinate, axis2=coordinate),
         "SubmitRequest": dict(segment=anything, select=anything, estimate_deformation=anything, straighten=anything,
-                              bend=anything, pipeline=anything, measure=anything, request_id=name,
+                              bend=anything, pipeline=anything, measure=anything, average=anything,
+                              request_id=name,
                               timeout_seconds=Bound(0, MAX_TIMEOUT_SECONDS), name=Bound(max_bytes=255)),
         "PipelineRequest": dict(volume_id=ident, select=Bound(max_items=MAX_POINTS),
                                 ids=Bound(1, MAX_FEATURES, max_items=MAX_FEATURES), segmentation_id=ident,
@@ -133,6 +136,10 @@ def bounds() -> dict[str, Bound]:
         "MeasureRequest": dict(session_id=ident, mask_volume_id=ident, labels_volume_id=ident,
                                channels=Bound(max_items=MAX_CHANNELS), spacing=Bound(0, P.MAX_LENGTH)),
         "MeasureChannel": dict(name=Bound(max_bytes=64), volume_id=ident),
+        "AverageRequest": dict(specimens=Bound(max_items=MAX_SPECIMENS), stations=Bound(0, MAX_STATIONS),
+                               keep_size=anything, keep_grey_values=anything, max_roll=Bound(0, 180),
+                               has_max_roll=anything, output_name=name),
+        "AverageSpecimen": dict(volume_id=ident, landmarks=Bound(0, P.MAX_LENGTH, max_items=MAX_LANDMARKS)),
         "BendRequest": dict(volume_id=ident, session_id=ident, order=Bound(0, 3), has_order=anything,
                             output_name=name),
         "MapPointsRequest": dict(session_id=ident, points=Bound(max_items=MAX_WIRE_POINTS), direction=anything,
@@ -441,6 +448,28 @@ def order(msg: Any) -> int:
     from napari_unwind.pipeline import ExportOptions
 
     return ExportOptions(order=int(msg.order) if msg.has_order else 1).order
+
+
+def average_options(req: Any) -> dict[str, Any]:
+    """The keyword options of :func:`napari_unwind.average.average` from an AverageRequest: at least two
+    specimens, each named once, landmarks for all of them (the same count) or none. Whether the landmarks increase
+    and lie inside each specimen's length is checked as the job runs (it needs the volumes)."""
+    ids = [sp.volume_id for sp in req.specimens]
+    if len(ids) < 2:
+        raise InvalidInputError(f"an average needs at least 2 straight specimens, got {len(ids)}")
+    if any(not i for i in ids):
+        raise InvalidInputError("every specimen of an average needs a volume_id")
+    if len(set(ids)) != len(ids):
+        dup = next(i for i in ids if ids.count(i) > 1)
+        raise InvalidInputError(f"volume {dup} is given twice: give each specimen once")
+    counts = {len(sp.landmarks) for sp in req.specimens}
+    if len(counts) > 1:
+        raise InvalidInputError(f"the specimens have {' and '.join(map(str, sorted(counts)))} landmarks: give every "
+                                "specimen the same landmarks, or none")
+    return dict(stations=int(req.stations) or None,
+                landmarks=[list(sp.landmarks) for sp in req.specimens] if counts != {0} else None,
+                scale="none" if req.keep_size else "length", normalise="none" if req.keep_grey_values else "robust",
+                max_roll=float(req.max_roll) if req.has_max_roll else 90.0)
 
 
 def export_options_msg(opt: Any, output_name: str = "") -> warp_pb2.ExportOptions:

@@ -375,6 +375,9 @@ class WarpServicer(warp_pb2_grpc.WarpServiceServicer):
     def Measure(self, request, context):
         return self.jobs.submit(current_user(), jobs_pb2.SubmitRequest(measure=request))
 
+    def Average(self, request, context):
+        return self.jobs.submit(current_user(), jobs_pb2.SubmitRequest(average=request))
+
     def MapPoints(self, request, context):
         from napari_unwind.warp import map_points
 

@@ -61,6 +61,7 @@ KINDS = {
     "bend": pb.JOB_KIND_BEND,
     "pipeline": pb.JOB_KIND_PIPELINE,
     "measure": pb.JOB_KIND_MEASURE,
+    "average": pb.JOB_KIND_AVERAGE,
 }
 
 
@@ -250,6 +251,31 @@ def measure(ctx: TaskContext, req: Any) -> TaskGen:
                         figures=_figures(stations=len(profile), seconds=time.perf_counter() - t0))
 
 
+def average(ctx: TaskContext, req: Any) -> TaskGen:
+    """``unwind average`` as a job: :func:`napari_unwind.average.average_iter` on the server's scheduler; the
+    mean, median and std stored as volumes, the residuals' CSV in the result."""
+    from napari_unwind.average import average_iter
+    from napari_unwind.io import write_volume_iter
+
+    options = convert.average_options(req)
+    rows = [ctx.catalog.volume(ctx.owner, sp.volume_id) for sp in req.specimens]
+    out = ctx.output(req.output_name, "mean.ome.zarr")
+    stem, _, suffix = out.name.partition(".")
+    paths = {"mean": out, "median": out.with_name(f"{stem}.median.{suffix}"),
+             "std": out.with_name(f"{stem}.std.{suffix}")}
+    t0 = time.perf_counter()
+    res = yield from average_iter([v for _, v in rows], names=[r.name for r, _ in rows], scheduler=ctx.scheduler,
+                                  **options)
+    ids = {}
+    for what, path in paths.items():
+        written = yield from write_volume_iter(getattr(res, what), path, spacing=(res.spacing,) * 3, unit=res.unit)
+        ids[what] = ctx.register(written, path.name)
+    worst = int(np.argmin(res.correlation))
+    return pb.JobResult(volume_id=ids["mean"], volumes=ids, table_csv=res.csv_text(),
+                        figures=_figures(specimens=len(rows), shape=list(res.mean.shape), spacing=res.spacing,
+                                         least_like_the_mean=res.names[worst], seconds=time.perf_counter() - t0))
+
+
 def _one_specimen(req: Any) -> None:
     """A pipeline request says which specimen in exactly one way."""
     ways = sum((len(req.select) > 0, bool(req.mask_volume_id), len(req.ids) > 0))
@@ -310,14 +336,14 @@ _REFS = (("volume_id", "volume"), ("mask_volume_id", "volume"), ("labels_volume_
          ("segmentation_id", "segmentation"), ("session_id", "session"))
 _REQUIRED = {"segment": ("volume_id",), "select": ("segmentation_id",), "estimate_deformation": ("mask_volume_id",),
              "straighten": ("volume_id", "session_id"), "bend": ("volume_id", "session_id"),
-             "pipeline": ("volume_id",), "measure": ("session_id",)}
+             "pipeline": ("volume_id",), "measure": ("session_id",), "average": ()}
 
 
 #: The core's options of each kind of job, built from its request (a bad value is refused as the job runs would).
 _OPTIONS = {"segment": convert.segment_options, "select": convert.segment_options,
             "estimate_deformation": lambda r: convert.skeleton_options(r.options),
             "straighten": lambda r: convert.export_options(r.options), "bend": convert.order,
-            "pipeline": convert.pipeline_options, "measure": _channel_names}
+            "pipeline": convert.pipeline_options, "measure": _channel_names, "average": convert.average_options}
 
 
 def precheck(catalog: Catalog, owner: str, spec: jobs_pb2.SubmitRequest) -> None:
@@ -348,10 +374,12 @@ def precheck(catalog: Catalog, owner: str, spec: jobs_pb2.SubmitRequest) -> None
             catalog.store.get_object(owner, getattr(req, field_name), kind)
     for channel in getattr(req, "channels", ()):
         catalog.store.get_object(owner, channel.volume_id, "volume")
+    for specimen in getattr(req, "specimens", ()):
+        catalog.store.get_object(owner, specimen.volume_id, "volume")
 
 
 _TASKS = {"segment": segment, "select": select, "estimate_deformation": estimate_deformation,
-          "straighten": straighten, "bend": bend, "pipeline": pipeline, "measure": measure}
+          "straighten": straighten, "bend": bend, "pipeline": pipeline, "measure": measure, "average": average}
 
 
 def run_task(ctx: TaskContext, spec: jobs_pb2.SubmitRequest) -> TaskGen:

@@ -92,7 +92,8 @@ def test_the_services_and_their_rpcs_are_there():
     assert rpcs(volume_pb2, "VolumeService") == {"Upload", "Register", "List", "Info", "Download"}
     assert rpcs(segmentation_pb2, "SegmentationService") == {"Segment", "Simplify", "Info", "Select"}
     assert rpcs(skeleton_pb2, "SkeletonService") == {"SuggestEnds", "EstimateDeformation"}
-    assert rpcs(warp_pb2, "WarpService") == {"Straighten", "Bend", "Measure", "MapPoints", "MapPointsStream"}
+    assert rpcs(warp_pb2, "WarpService") == {"Straighten", "Bend", "Measure", "Average", "MapPoints",
+                                             "MapPointsStream"}
     assert rpcs(jobs_pb2, "JobService") >= {"Submit", "Get", "Watch", "Cancel", "List"}
     upload = volume_pb2.DESCRIPTOR.services_by_name["VolumeService"].methods_by_name["Upload"]
     watch = jobs_pb2.DESCRIPTOR.services_by_name["JobService"].methods_by_name["Watch"]

@@ -30,6 +30,7 @@ class JobKind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     JOB_KIND_BEND: _ClassVar[JobKind]
     JOB_KIND_PIPELINE: _ClassVar[JobKind]
     JOB_KIND_MEASURE: _ClassVar[JobKind]
+    JOB_KIND_AVERAGE: _ClassVar[JobKind]
 
 class JobState(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
@@ -64,6 +65,7 @@ JOB_KIND_STRAIGHTEN: JobKind
 JOB_KIND_BEND: JobKind
 JOB_KIND_PIPELINE: JobKind
 JOB_KIND_MEASURE: JobKind
+JOB_KIND_AVERAGE: JobKind
 JOB_STATE_UNSPECIFIED: JobState
 JOB_STATE_QUEUED: JobState
 JOB_STATE_RUNNING: JobState
@@ -147,8 +149,15 @@ class SpecimenVerdict(_message.Message):
     def __init__(self, status: _Optional[_Union[SpecimenStatus, str]] = ..., reason: _Optional[str] = ..., length: _Optional[float] = ..., unit: _Optional[str] = ..., keyframes: _Optional[int] = ..., min_jacobian: _Optional[float] = ..., max_tilt: _Optional[float] = ..., coverage: _Optional[float] = ..., folded: _Optional[float] = ..., lost: _Optional[_Iterable[_Union[LostInterval, _Mapping]]] = ..., ids: _Optional[_Iterable[int]] = ..., voxels: _Optional[int] = ...) -> None: ...
 
 class JobResult(_message.Message):
-    __slots__ = ("volume_id", "segmentation_id", "session_json", "session_id", "figures", "warnings", "verdict", "table_csv")
+    __slots__ = ("volume_id", "segmentation_id", "session_json", "session_id", "figures", "warnings", "verdict", "table_csv", "volumes")
     class FiguresEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: str
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[str] = ...) -> None: ...
+    class VolumesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
         VALUE_FIELD_NUMBER: _ClassVar[int]
@@ -163,6 +172,7 @@ class JobResult(_message.Message):
     WARNINGS_FIELD_NUMBER: _ClassVar[int]
     VERDICT_FIELD_NUMBER: _ClassVar[int]
     TABLE_CSV_FIELD_NUMBER: _ClassVar[int]
+    VOLUMES_FIELD_NUMBER: _ClassVar[int]
     volume_id: str
     segmentation_id: str
     session_json: str
@@ -171,7 +181,8 @@ class JobResult(_message.Message):
     warnings: _containers.RepeatedScalarFieldContainer[str]
     verdict: SpecimenVerdict
     table_csv: str
-    def __init__(self, volume_id: _Optional[str] = ..., segmentation_id: _Optional[str] = ..., session_json: _Optional[str] = ..., session_id: _Optional[str] = ..., figures: _Optional[_Mapping[str, str]] = ..., warnings: _Optional[_Iterable[str]] = ..., verdict: _Optional[_Union[SpecimenVerdict, _Mapping]] = ..., table_csv: _Optional[str] = ...) -> None: ...
+    volumes: _containers.ScalarMap[str, str]
+    def __init__(self, volume_id: _Optional[str] = ..., segmentation_id: _Optional[str] = ..., session_json: _Optional[str] = ..., session_id: _Optional[str] = ..., figures: _Optional[_Mapping[str, str]] = ..., warnings: _Optional[_Iterable[str]] = ..., verdict: _Optional[_Union[SpecimenVerdict, _Mapping]] = ..., table_csv: _Optional[str] = ..., volumes: _Optional[_Mapping[str, str]] = ...) -> None: ...
 
 class Job(_message.Message):
     __slots__ = ("id", "kind", "state", "progress", "error", "result", "interrupted", "created", "started", "finished", "name")

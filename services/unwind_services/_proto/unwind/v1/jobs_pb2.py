@@ -29,7 +29,7 @@ from unwind_services._proto.unwind.v1 import skeleton_pb2 as unwind_dot_v1_dot_s
 from unwind_services._proto.unwind.v1 import warp_pb2 as unwind_dot_v1_dot_warp__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14unwind/v1/jobs.proto\x12\tunwind.v1\x1a\x16unwind/v1/common.proto\x1a\x1cunwind/v1/segmentation.proto\x1a\x18unwind/v1/skeleton.proto\x1a\x14unwind/v1/warp.proto\"\xeb\x02\n\x0fPipelineRequest\x12\x11\n\tvolume_id\x18\x01 \x01(\t\x12 \n\x06select\x18\x02 \x03(\x0b\x32\x10.unwind.v1.Point\x12\x0b\n\x03ids\x18\x03 \x03(\x05\x12\x17\n\x0fsegmentation_id\x18\x04 \x01(\t\x12\x16\n\x0emask_volume_id\x18\x05 \x01(\t\x12\x10\n\x08\x66\x65\x61tures\x18\x06 \x01(\x05\x12\r\n\x05level\x18\x07 \x01(\x05\x12\x11\n\thas_level\x18\x08 \x01(\x08\x12\x10\n\x08isovalue\x18\t \x01(\x01\x12\x14\n\x0chas_isovalue\x18\n \x01(\x08\x12\x12\n\nfill_holes\x18\x0b \x01(\x08\x12\x1d\n\x04\x65nds\x18\x0c \x01(\x0b\x32\x0f.unwind.v1.Ends\x12,\n\x08skeleton\x18\r \x01(\x0b\x32\x1a.unwind.v1.SkeletonOptions\x12(\n\x06\x65xport\x18\x0e \x01(\x0b\x32\x18.unwind.v1.ExportOptions\"\xad\x03\n\rSubmitRequest\x12,\n\x07segment\x18\x01 \x01(\x0b\x32\x19.unwind.v1.SegmentRequestH\x00\x12*\n\x06select\x18\x02 \x01(\x0b\x32\x18.unwind.v1.SelectRequestH\x00\x12\x45\n\x14\x65stimate_deformation\x18\x03 \x01(\x0b\x32%.unwind.v1.EstimateDeformationRequestH\x00\x12\x32\n\nstraighten\x18\x04 \x01(\x0b\x32\x1c.unwind.v1.StraightenRequestH\x00\x12&\n\x04\x62\x65nd\x18\x05 \x01(\x0b\x32\x16.unwind.v1.BendRequestH\x00\x12.\n\x08pipeline\x18\x06 \x01(\x0b\x32\x1a.unwind.v1.PipelineRequestH\x00\x12,\n\x07measure\x18\x07 \x01(\x0b\x32\x19.unwind.v1.MeasureRequestH\x00\x12\x12\n\nrequest_id\x18\n \x01(\t\x12\x17\n\x0ftimeout_seconds\x18\x0b \x01(\x01\x12\x0c\n\x04name\x18\x0c \x01(\tB\x06\n\x04spec\"\x18\n\x06JobRef\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"1\n\x0cWatchRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x11\n\tafter_seq\x18\x02 \x01(\x03\"[\n\x08JobEvent\x12\'\n\x08progress\x18\x01 \x01(\x0b\x32\x13.unwind.v1.ProgressH\x00\x12\x1d\n\x03job\x18\x02 \x01(\x0b\x32\x0e.unwind.v1.JobH\x00\x42\x07\n\x05\x65vent\"D\n\x0fListJobsRequest\x12\"\n\x05state\x18\x01 \x01(\x0e\x32\x13.unwind.v1.JobState\x12\r\n\x05limit\x18\x02 \x01(\x05\"0\n\x10ListJobsResponse\x12\x1c\n\x04jobs\x18\x01 \x03(\x0b\x32\x0e.unwind.v1.Job2\xc0\x02\n\nJobService\x12\x32\n\x06Submit\x12\x18.unwind.v1.SubmitRequest\x1a\x0e.unwind.v1.Job\x12-\n\x08Resubmit\x12\x11.unwind.v1.JobRef\x1a\x0e.unwind.v1.Job\x12(\n\x03Get\x12\x11.unwind.v1.JobRef\x1a\x0e.unwind.v1.Job\x12\x37\n\x05Watch\x12\x17.unwind.v1.WatchRequest\x1a\x13.unwind.v1.JobEvent0\x01\x12+\n\x06\x43\x61ncel\x12\x11.unwind.v1.JobRef\x1a\x0e.unwind.v1.Job\x12?\n\x04List\x12\x1a.unwind.v1.ListJobsRequest\x1a\x1b.unwind.v1.ListJobsResponseb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14unwind/v1/jobs.proto\x12\tunwind.v1\x1a\x16unwind/v1/common.proto\x1a\x1cunwind/v1/segmentation.proto\x1a\x18unwind/v1/skeleton.proto\x1a\x14unwind/v1/warp.proto\"\xeb\x02\n\x0fPipelineRequest\x12\x11\n\tvolume_id\x18\x01 \x01(\t\x12 \n\x06select\x18\x02 \x03(\x0b\x32\x10.unwind.v1.Point\x12\x0b\n\x03ids\x18\x03 \x03(\x05\x12\x17\n\x0fsegmentation_id\x18\x04 \x01(\t\x12\x16\n\x0emask_volume_id\x18\x05 \x01(\t\x12\x10\n\x08\x66\x65\x61tures\x18\x06 \x01(\x05\x12\r\n\x05level\x18\x07 \x01(\x05\x12\x11\n\thas_level\x18\x08 \x01(\x08\x12\x10\n\x08isovalue\x18\t \x01(\x01\x12\x14\n\x0chas_isovalue\x18\n \x01(\x08\x12\x12\n\nfill_holes\x18\x0b \x01(\x08\x12\x1d\n\x04\x65nds\x18\x0c \x01(\x0b\x32\x0f.unwind.v1.Ends\x12,\n\x08skeleton\x18\r \x01(\x0b\x32\x1a.unwind.v1.SkeletonOptions\x12(\n\x06\x65xport\x18\x0e \x01(\x0b\x32\x18.unwind.v1.ExportOptions\"\xdb\x03\n\rSubmitRequest\x12,\n\x07segment\x18\x01 \x01(\x0b\x32\x19.unwind.v1.SegmentRequestH\x00\x12*\n\x06select\x18\x02 \x01(\x0b\x32\x18.unwind.v1.SelectRequestH\x00\x12\x45\n\x14\x65stimate_deformation\x18\x03 \x01(\x0b\x32%.unwind.v1.EstimateDeformationRequestH\x00\x12\x32\n\nstraighten\x18\x04 \x01(\x0b\x32\x1c.unwind.v1.StraightenRequestH\x00\x12&\n\x04\x62\x65nd\x18\x05 \x01(\x0b\x32\x16.unwind.v1.BendRequestH\x00\x12.\n\x08pipeline\x18\x06 \x01(\x0b\x32\x1a.unwind.v1.PipelineRequestH\x00\x12,\n\x07measure\x18\x07 \x01(\x0b\x32\x19.unwind.v1.MeasureRequestH\x00\x12,\n\x07\x61verage\x18\x08 \x01(\x0b\x32\x19.unwind.v1.AverageRequestH\x00\x12\x12\n\nrequest_id\x18\n \x01(\t\x12\x17\n\x0ftimeout_seconds\x18\x0b \x01(\x01\x12\x0c\n\x04name\x18\x0c \x01(\tB\x06\n\x04spec\"\x18\n\x06JobRef\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"1\n\x0cWatchRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x11\n\tafter_seq\x18\x02 \x01(\x03\"[\n\x08JobEvent\x12\'\n\x08progress\x18\x01 \x01(\x0b\x32\x13.unwind.v1.ProgressH\x00\x12\x1d\n\x03job\x18\x02 \x01(\x0b\x32\x0e.unwind.v1.JobH\x00\x42\x07\n\x05\x65vent\"D\n\x0fListJobsRequest\x12\"\n\x05state\x18\x01 \x01(\x0e\x32\x13.unwind.v1.JobState\x12\r\n\x05limit\x18\x02 \x01(\x05\"0\n\x10ListJobsResponse\x12\x1c\n\x04jobs\x18\x01 \x03(\x0b\x32\x0e.unwind.v1.Job2\xc0\x02\n\nJobService\x12\x32\n\x06Submit\x12\x18.unwind.v1.SubmitRequest\x1a\x0e.unwind.v1.Job\x12-\n\x08Resubmit\x12\x11.unwind.v1.JobRef\x1a\x0e.unwind.v1.Job\x12(\n\x03Get\x12\x11.unwind.v1.JobRef\x1a\x0e.unwind.v1.Job\x12\x37\n\x05Watch\x12\x17.unwind.v1.WatchRequest\x1a\x13.unwind.v1.JobEvent0\x01\x12+\n\x06\x43\x61ncel\x12\x11.unwind.v1.JobRef\x1a\x0e.unwind.v1.Job\x12?\n\x04List\x12\x1a.unwind.v1.ListJobsRequest\x1a\x1b.unwind.v1.ListJobsResponseb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -39,17 +39,17 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_PIPELINEREQUEST']._serialized_start=138
   _globals['_PIPELINEREQUEST']._serialized_end=501
   _globals['_SUBMITREQUEST']._serialized_start=504
-  _globals['_SUBMITREQUEST']._serialized_end=933
-  _globals['_JOBREF']._serialized_start=935
-  _globals['_JOBREF']._serialized_end=959
-  _globals['_WATCHREQUEST']._serialized_start=961
-  _globals['_WATCHREQUEST']._serialized_end=1010
-  _globals['_JOBEVENT']._serialized_start=1012
-  _globals['_JOBEVENT']._serialized_end=1103
-  _globals['_LISTJOBSREQUEST']._serialized_start=1105
-  _globals['_LISTJOBSREQUEST']._serialized_end=1173
-  _globals['_LISTJOBSRESPONSE']._serialized_start=1175
-  _globals['_LISTJOBSRESPONSE']._serialized_end=1223
-  _globals['_JOBSERVICE']._serialized_start=1226
-  _globals['_JOBSERVICE']._serialized_end=1546
+  _globals['_SUBMITREQUEST']._serialized_end=979
+  _globals['_JOBREF']._serialized_start=981
+  _globals['_JOBREF']._serialized_end=1005
+  _globals['_WATCHREQUEST']._serialized_start=1007
+  _globals['_WATCHREQUEST']._serialized_end=1056
+  _globals['_JOBEVENT']._serialized_start=1058
+  _globals['_JOBEVENT']._serialized_end=1149
+  _globals['_LISTJOBSREQUEST']._serialized_start=1151
+  _globals['_LISTJOBSREQUEST']._serialized_end=1219
+  _globals['_LISTJOBSRESPONSE']._serialized_start=1221
+  _globals['_LISTJOBSRESPONSE']._serialized_end=1269
+  _globals['_JOBSERVICE']._serialized_start=1272
+  _globals['_JOBSERVICE']._serialized_end=1592
 # @@protoc_insertion_point(module_scope)

@@ -44,7 +44,7 @@ class PipelineRequest(_message.Message):
     def __init__(self, volume_id: _Optional[str] = ..., select: _Optional[_Iterable[_Union[_common_pb2.Point, _Mapping]]] = ..., ids: _Optional[_Iterable[int]] = ..., segmentation_id: _Optional[str] = ..., mask_volume_id: _Optional[str] = ..., features: _Optional[int] = ..., level: _Optional[int] = ..., has_level: _Optional[bool] = ..., isovalue: _Optional[float] = ..., has_isovalue: _Optional[bool] = ..., fill_holes: _Optional[bool] = ..., ends: _Optional[_Union[_skeleton_pb2.Ends, _Mapping]] = ..., skeleton: _Optional[_Union[_skeleton_pb2.SkeletonOptions, _Mapping]] = ..., export: _Optional[_Union[_warp_pb2.ExportOptions, _Mapping]] = ...) -> None: ...
 
 class SubmitRequest(_message.Message):
-    __slots__ = ("segment", "select", "estimate_deformation", "straighten", "bend", "pipeline", "measure", "request_id", "timeout_seconds", "name")
+    __slots__ = ("segment", "select", "estimate_deformation", "straighten", "bend", "pipeline", "measure", "average", "request_id", "timeout_seconds", "name")
     SEGMENT_FIELD_NUMBER: _ClassVar[int]
     SELECT_FIELD_NUMBER: _ClassVar[int]
     ESTIMATE_DEFORMATION_FIELD_NUMBER: _ClassVar[int]
@@ -52,6 +52,7 @@ class SubmitRequest(_message.Message):
     BEND_FIELD_NUMBER: _ClassVar[int]
     PIPELINE_FIELD_NUMBER: _ClassVar[int]
     MEASURE_FIELD_NUMBER: _ClassVar[int]
+    AVERAGE_FIELD_NUMBER: _ClassVar[int]
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     TIMEOUT_SECONDS_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
@@ -62,10 +63,11 @@ class SubmitRequest(_message.Message):
     bend: _warp_pb2.BendRequest
     pipeline: PipelineRequest
     measure: _warp_pb2.MeasureRequest
+    average: _warp_pb2.AverageRequest
     request_id: str
     timeout_seconds: float
     name: str
-    def __init__(self, segment: _Optional[_Union[_segmentation_pb2.SegmentRequest, _Mapping]] = ..., select: _Optional[_Union[_segmentation_pb2.SelectRequest, _Mapping]] = ..., estimate_deformation: _Optional[_Union[_skeleton_pb2.EstimateDeformationRequest, _Mapping]] = ..., straighten: _Optional[_Union[_warp_pb2.StraightenRequest, _Mapping]] = ..., bend: _Optional[_Union[_warp_pb2.BendRequest, _Mapping]] = ..., pipeline: _Optional[_Union[PipelineRequest, _Mapping]] = ..., measure: _Optional[_Union[_warp_pb2.MeasureRequest, _Mapping]] = ..., request_id: _Optional[str] = ..., timeout_seconds: _Optional[float] = ..., name: _Optional[str] = ...) -> None: ...
+    def __init__(self, segment: _Optional[_Union[_segmentation_pb2.SegmentRequest, _Mapping]] = ..., select: _Optional[_Union[_segmentation_pb2.SelectRequest, _Mapping]] = ..., estimate_deformation: _Optional[_Union[_skeleton_pb2.EstimateDeformationRequest, _Mapping]] = ..., straighten: _Optional[_Union[_warp_pb2.StraightenRequest, _Mapping]] = ..., bend: _Optional[_Union[_warp_pb2.BendRequest, _Mapping]] = ..., pipeline: _Optional[_Union[PipelineRequest, _Mapping]] = ..., measure: _Optional[_Union[_warp_pb2.MeasureRequest, _Mapping]] = ..., average: _Optional[_Union[_warp_pb2.AverageRequest, _Mapping]] = ..., request_id: _Optional[str] = ..., timeout_seconds: _Optional[float] = ..., name: _Optional[str] = ...) -> None: ...
 
 class JobRef(_message.Message):
     __slots__ = ("job_id",)

@@ -26,29 +26,33 @@ _sym_db = _symbol_database.Default()
 from unwind_services._proto.unwind.v1 import common_pb2 as unwind_dot_v1_dot_common__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14unwind/v1/warp.proto\x12\tunwind.v1\x1a\x16unwind/v1/common.proto\"\x89\x01\n\rExportOptions\x12\r\n\x05order\x18\x01 \x01(\x05\x12\x11\n\thas_order\x18\x02 \x01(\x08\x12\x0f\n\x07spacing\x18\x03 \x01(\x01\x12\x0b\n\x03pad\x18\x04 \x01(\x05\x12\x0e\n\x06\x63hunks\x18\x05 \x03(\x05\x12\x13\n\x0b\x61llow_folds\x18\x06 \x01(\x08\x12\x13\n\x0boutput_name\x18\x07 \x01(\t\"\xa5\x01\n\x11StraightenRequest\x12\x11\n\tvolume_id\x18\x01 \x01(\t\x12\x12\n\nsession_id\x18\x02 \x01(\t\x12)\n\x07options\x18\x03 \x01(\x0b\x32\x18.unwind.v1.ExportOptions\x12+\n\x08\x63hannels\x18\x04 \x03(\x0b\x32\x19.unwind.v1.MeasureChannel\x12\x11\n\tscan_name\x18\x05 \x01(\t\"\x94\x01\n\x0eMeasureRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x16\n\x0emask_volume_id\x18\x02 \x01(\t\x12\x18\n\x10labels_volume_id\x18\x03 \x01(\t\x12+\n\x08\x63hannels\x18\x04 \x03(\x0b\x32\x19.unwind.v1.MeasureChannel\x12\x0f\n\x07spacing\x18\x05 \x01(\x01\"1\n\x0eMeasureChannel\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x11\n\tvolume_id\x18\x02 \x01(\t\"k\n\x0b\x42\x65ndRequest\x12\x11\n\tvolume_id\x18\x01 \x01(\t\x12\x12\n\nsession_id\x18\x02 \x01(\t\x12\r\n\x05order\x18\x03 \x01(\x05\x12\x11\n\thas_order\x18\x04 \x01(\x08\x12\x13\n\x0boutput_name\x18\x05 \x01(\t\"\xa2\x01\n\x10MapPointsRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12 \n\x06points\x18\x02 \x03(\x0b\x32\x10.unwind.v1.Point\x12*\n\tdirection\x18\x03 \x01(\x0e\x32\x17.unwind.v1.MapDirection\x12\x0f\n\x07spacing\x18\x04 \x01(\x01\x12\x0b\n\x03pad\x18\x05 \x01(\x05\x12\x0e\n\x06\x63oords\x18\x06 \x03(\x01\"E\n\x11MapPointsResponse\x12 \n\x06points\x18\x01 \x03(\x0b\x32\x10.unwind.v1.Point\x12\x0e\n\x06\x63oords\x18\x02 \x03(\x01*g\n\x0cMapDirection\x12\x1d\n\x19MAP_DIRECTION_UNSPECIFIED\x10\x00\x12\x1d\n\x19MAP_DIRECTION_TO_STRAIGHT\x10\x01\x12\x19\n\x15MAP_DIRECTION_TO_SCAN\x10\x02\x32\xc9\x02\n\x0bWarpService\x12:\n\nStraighten\x12\x1c.unwind.v1.StraightenRequest\x1a\x0e.unwind.v1.Job\x12.\n\x04\x42\x65nd\x12\x16.unwind.v1.BendRequest\x1a\x0e.unwind.v1.Job\x12\x34\n\x07Measure\x12\x19.unwind.v1.MeasureRequest\x1a\x0e.unwind.v1.Job\x12\x46\n\tMapPoints\x12\x1b.unwind.v1.MapPointsRequest\x1a\x1c.unwind.v1.MapPointsResponse\x12P\n\x0fMapPointsStream\x12\x1b.unwind.v1.MapPointsRequest\x1a\x1c.unwind.v1.MapPointsResponse(\x01\x30\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14unwind/v1/warp.proto\x12\tunwind.v1\x1a\x16unwind/v1/common.proto\"\x89\x01\n\rExportOptions\x12\r\n\x05order\x18\x01 \x01(\x05\x12\x11\n\thas_order\x18\x02 \x01(\x08\x12\x0f\n\x07spacing\x18\x03 \x01(\x01\x12\x0b\n\x03pad\x18\x04 \x01(\x05\x12\x0e\n\x06\x63hunks\x18\x05 \x03(\x05\x12\x13\n\x0b\x61llow_folds\x18\x06 \x01(\x08\x12\x13\n\x0boutput_name\x18\x07 \x01(\t\"\xa5\x01\n\x11StraightenRequest\x12\x11\n\tvolume_id\x18\x01 \x01(\t\x12\x12\n\nsession_id\x18\x02 \x01(\t\x12)\n\x07options\x18\x03 \x01(\x0b\x32\x18.unwind.v1.ExportOptions\x12+\n\x08\x63hannels\x18\x04 \x03(\x0b\x32\x19.unwind.v1.MeasureChannel\x12\x11\n\tscan_name\x18\x05 \x01(\t\"\x94\x01\n\x0eMeasureRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12\x16\n\x0emask_volume_id\x18\x02 \x01(\t\x12\x18\n\x10labels_volume_id\x18\x03 \x01(\t\x12+\n\x08\x63hannels\x18\x04 \x03(\x0b\x32\x19.unwind.v1.MeasureChannel\x12\x0f\n\x07spacing\x18\x05 \x01(\x01\"\xbb\x01\n\x0e\x41verageRequest\x12-\n\tspecimens\x18\x01 \x03(\x0b\x32\x1a.unwind.v1.AverageSpecimen\x12\x10\n\x08stations\x18\x02 \x01(\x05\x12\x11\n\tkeep_size\x18\x03 \x01(\x08\x12\x18\n\x10keep_grey_values\x18\x04 \x01(\x08\x12\x10\n\x08max_roll\x18\x05 \x01(\x01\x12\x14\n\x0chas_max_roll\x18\x06 \x01(\x08\x12\x13\n\x0boutput_name\x18\x07 \x01(\t\"7\n\x0f\x41verageSpecimen\x12\x11\n\tvolume_id\x18\x01 \x01(\t\x12\x11\n\tlandmarks\x18\x02 \x03(\x01\"1\n\x0eMeasureChannel\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x11\n\tvolume_id\x18\x02 \x01(\t\"k\n\x0b\x42\x65ndRequest\x12\x11\n\tvolume_id\x18\x01 \x01(\t\x12\x12\n\nsession_id\x18\x02 \x01(\t\x12\r\n\x05order\x18\x03 \x01(\x05\x12\x11\n\thas_order\x18\x04 \x01(\x08\x12\x13\n\x0boutput_name\x18\x05 \x01(\t\"\xa2\x01\n\x10MapPointsRequest\x12\x12\n\nsession_id\x18\x01 \x01(\t\x12 \n\x06points\x18\x02 \x03(\x0b\x32\x10.unwind.v1.Point\x12*\n\tdirection\x18\x03 \x01(\x0e\x32\x17.unwind.v1.MapDirection\x12\x0f\n\x07spacing\x18\x04 \x01(\x01\x12\x0b\n\x03pad\x18\x05 \x01(\x05\x12\x0e\n\x06\x63oords\x18\x06 \x03(\x01\"E\n\x11MapPointsResponse\x12 \n\x06points\x18\x01 \x03(\x0b\x32\x10.unwind.v1.Point\x12\x0e\n\x06\x63oords\x18\x02 \x03(\x01*g\n\x0cMapDirection\x12\x1d\n\x19MAP_DIRECTION_UNSPECIFIED\x10\x00\x12\x1d\n\x19MAP_DIRECTION_TO_STRAIGHT\x10\x01\x12\x19\n\x15MAP_DIRECTION_TO_SCAN\x10\x02\x32\xff\x02\n\x0bWarpService\x12:\n\nStraighten\x12\x1c.unwind.v1.StraightenRequest\x1a\x0e.unwind.v1.Job\x12.\n\x04\x42\x65nd\x12\x16.unwind.v1.BendRequest\x1a\x0e.unwind.v1.Job\x12\x34\n\x07Measure\x12\x19.unwind.v1.MeasureRequest\x1a\x0e.unwind.v1.Job\x12\x34\n\x07\x41verage\x12\x19.unwind.v1.AverageRequest\x1a\x0e.unwind.v1.Job\x12\x46\n\tMapPoints\x12\x1b.unwind.v1.MapPointsRequest\x1a\x1c.unwind.v1.MapPointsResponse\x12P\n\x0fMapPointsStream\x12\x1b.unwind.v1.MapPointsRequest\x1a\x1c.unwind.v1.MapPointsResponse(\x01\x30\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'unwind.v1.warp_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_MAPDIRECTION']._serialized_start=914
-  _globals['_MAPDIRECTION']._serialized_end=1017
+  _globals['_MAPDIRECTION']._serialized_start=1161
+  _globals['_MAPDIRECTION']._serialized_end=1264
   _globals['_EXPORTOPTIONS']._serialized_start=60
   _globals['_EXPORTOPTIONS']._serialized_end=197
   _globals['_STRAIGHTENREQUEST']._serialized_start=200
   _globals['_STRAIGHTENREQUEST']._serialized_end=365
   _globals['_MEASUREREQUEST']._serialized_start=368
   _globals['_MEASUREREQUEST']._serialized_end=516
-  _globals['_MEASURECHANNEL']._serialized_start=518
-  _globals['_MEASURECHANNEL']._serialized_end=567
-  _globals['_BENDREQUEST']._serialized_start=569
-  _globals['_BENDREQUEST']._serialized_end=676
-  _globals['_MAPPOINTSREQUEST']._serialized_start=679
-  _globals['_MAPPOINTSREQUEST']._serialized_end=841
-  _globals['_MAPPOINTSRESPONSE']._serialized_start=843
-  _globals['_MAPPOINTSRESPONSE']._serialized_end=912
-  _globals['_WARPSERVICE']._serialized_start=1020
-  _globals['_WARPSERVICE']._serialized_end=1349
+  _globals['_AVERAGEREQUEST']._serialized_start=519
+  _globals['_AVERAGEREQUEST']._serialized_end=706
+  _globals['_AVERAGESPECIMEN']._serialized_start=708
+  _globals['_AVERAGESPECIMEN']._serialized_end=763
+  _globals['_MEASURECHANNEL']._serialized_start=765
+  _globals['_MEASURECHANNEL']._serialized_end=814
+  _globals['_BENDREQUEST']._serialized_start=816
+  _globals['_BENDREQUEST']._serialized_end=923
+  _globals['_MAPPOINTSREQUEST']._serialized_start=926
+  _globals['_MAPPOINTSREQUEST']._serialized_end=1088
+  _globals['_MAPPOINTSRESPONSE']._serialized_start=1090
+  _globals['_MAPPOINTSRESPONSE']._serialized_end=1159
+  _globals['_WARPSERVICE']._serialized_start=1267
+  _globals['_WARPSERVICE']._serialized_end=1650
 # @@protoc_insertion_point(module_scope)

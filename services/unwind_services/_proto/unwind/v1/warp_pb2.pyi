@@ -64,6 +64,32 @@ class MeasureRequest(_message.Message):
     spacing: float
     def __init__(self, session_id: _Optional[str] = ..., mask_volume_id: _Optional[str] = ..., labels_volume_id: _Optional[str] = ..., channels: _Optional[_Iterable[_Union[MeasureChannel, _Mapping]]] = ..., spacing: _Optional[float] = ...) -> None: ...
 
+class AverageRequest(_message.Message):
+    __slots__ = ("specimens", "stations", "keep_size", "keep_grey_values", "max_roll", "has_max_roll", "output_name")
+    SPECIMENS_FIELD_NUMBER: _ClassVar[int]
+    STATIONS_FIELD_NUMBER: _ClassVar[int]
+    KEEP_SIZE_FIELD_NUMBER: _ClassVar[int]
+    KEEP_GREY_VALUES_FIELD_NUMBER: _ClassVar[int]
+    MAX_ROLL_FIELD_NUMBER: _ClassVar[int]
+    HAS_MAX_ROLL_FIELD_NUMBER: _ClassVar[int]
+    OUTPUT_NAME_FIELD_NUMBER: _ClassVar[int]
+    specimens: _containers.RepeatedCompositeFieldContainer[AverageSpecimen]
+    stations: int
+    keep_size: bool
+    keep_grey_values: bool
+    max_roll: float
+    has_max_roll: bool
+    output_name: str
+    def __init__(self, specimens: _Optional[_Iterable[_Union[AverageSpecimen, _Mapping]]] = ..., stations: _Optional[int] = ..., keep_size: _Optional[bool] = ..., keep_grey_values: _Optional[bool] = ..., max_roll: _Optional[float] = ..., has_max_roll: _Optional[bool] = ..., output_name: _Optional[str] = ...) -> None: ...
+
+class AverageSpecimen(_message.Message):
+    __slots__ = ("volume_id", "landmarks")
+    VOLUME_ID_FIELD_NUMBER: _ClassVar[int]
+    LANDMARKS_FIELD_NUMBER: _ClassVar[int]
+    volume_id: str
+    landmarks: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, volume_id: _Optional[str] = ..., landmarks: _Optional[_Iterable[float]] = ...) -> None: ...
+
 class MeasureChannel(_message.Message):
     __slots__ = ("name", "volume_id")
     NAME_FIELD_NUMBER: _ClassVar[int]

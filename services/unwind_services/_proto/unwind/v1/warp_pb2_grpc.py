@@ -52,6 +52,11 @@ class WarpServiceStub:
                 request_serializer=unwind_dot_v1_dot_warp__pb2.MeasureRequest.SerializeToString,
                 response_deserializer=unwind_dot_v1_dot_common__pb2.Job.FromString,
                 _registered_method=True)
+        self.Average = channel.unary_unary(
+                '/unwind.v1.WarpService/Average',
+                request_serializer=unwind_dot_v1_dot_warp__pb2.AverageRequest.SerializeToString,
+                response_deserializer=unwind_dot_v1_dot_common__pb2.Job.FromString,
+                _registered_method=True)
         self.MapPoints = channel.unary_unary(
                 '/unwind.v1.WarpService/MapPoints',
                 request_serializer=unwind_dot_v1_dot_warp__pb2.MapPointsRequest.SerializeToString,
@@ -85,6 +90,14 @@ class WarpServiceServicer:
     def Measure(self, request, context):
         """Measure the specimen along the session's centreline (a job; napari_unwind.measure): the curve, the cage, the
         mask's cross-sections, label areas and channel statistics per station, as CSV in the job's result.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def Average(self, request, context):
+        """The average straight specimen of a batch of straight volumes (a job; napari_unwind.average): the mean, median
+        and standard deviation volumes, and the residual of each specimen as CSV in the job's result.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -124,6 +137,11 @@ def add_WarpServiceServicer_to_server(servicer, server):
             'Measure': grpc.unary_unary_rpc_method_handler(
                     servicer.Measure,
                     request_deserializer=unwind_dot_v1_dot_warp__pb2.MeasureRequest.FromString,
+                    response_serializer=unwind_dot_v1_dot_common__pb2.Job.SerializeToString,
+            ),
+            'Average': grpc.unary_unary_rpc_method_handler(
+                    servicer.Average,
+                    request_deserializer=unwind_dot_v1_dot_warp__pb2.AverageRequest.FromString,
                     response_serializer=unwind_dot_v1_dot_common__pb2.Job.SerializeToString,
             ),
             'MapPoints': grpc.unary_unary_rpc_method_handler(
@@ -218,6 +236,33 @@ class WarpService:
             target,
             '/unwind.v1.WarpService/Measure',
             unwind_dot_v1_dot_warp__pb2.MeasureRequest.SerializeToString,
+            unwind_dot_v1_dot_common__pb2.Job.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Average(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/unwind.v1.WarpService/Average',
+            unwind_dot_v1_dot_warp__pb2.AverageRequest.SerializeToString,
             unwind_dot_v1_dot_common__pb2.Job.FromString,
             options,
             channel_credentials,
