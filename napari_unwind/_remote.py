@@ -229,16 +229,19 @@ def skeleton_iter(server: Server, volume_id: str, mask_id: str, ends: Any, *, op
 
 
 def export_iter(server: Server, volume_id: str, session_id: str, target: Path, *, options: Any = None,
-                overwrite: bool = False) -> Generator[Progress, None, Path]:
+                overwrite: bool = False, channels: dict[str, str] | None = None,
+                scan_name: str = "") -> Generator[Progress, None, Path]:
     """Straighten on the server (a job) with ``options`` (a :class:`~napari_unwind.pipeline.ExportOptions`; None:
-    its defaults), then download the result to ``target`` (atomically); returns ``target``."""
+    its defaults), then download the result to ``target`` (atomically); returns ``target``. ``channels`` (name to
+    volume id of other images of the scan's grid) make it one multi-channel image, the scan named ``scan_name``."""
     from .io._atomic import check_writable
     from .io._formats import output_format
 
     output_format(target)
     check_writable(target, overwrite=overwrite)
     with server.client() as c:
-        job = c.straighten(volume_id, session_id, wait=False, output_name=target.name, options=options)
+        job = c.straighten(volume_id, session_id, wait=False, output_name=target.name, options=options,
+                           channels=channels, scan_name=scan_name)
         done = yield from _follow(c, job)
         yield Progress("download", 0, 1, str(target))
         c.download(done.result.volume_id, target, overwrite=overwrite)

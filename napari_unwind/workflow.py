@@ -312,19 +312,24 @@ class ServerBackend:
     def export(self, volume: Any, deformation: Any, target: Path, *, name: str, options: ExportOptions,
                folded: float | None, session: Any, overwrite: bool, channels: Sequence[Any] = ()
                ) -> Generator[Progress, None, tuple[Path, tuple[str, ...]]]:
-        from ._remote import export_iter
+        from ._remote import export_iter, upload_iter
         from ._steps import check_folds
 
-        if channels:
-            raise InvalidInputError("several channels are straightened on this computer, not through the server "
-                                    "from the dock: choose 'this computer', or run `unwind straighten` / "
-                                    "Client.straighten(channels=...) against the server")
         self.check_export(deformation)
         known = self._ids["session"]
         warned = check_folds(deformation, folded=folded, options=options)  # the one fold rule, before any job
         volume_id = yield from self._volume_id(volume, name)
+        uploaded = self._ids.setdefault("channels", {})  # each channel uploaded once per scan
+        ids = {}
+        for ch in channels:
+            label = str(ch.metadata["channel"])
+            key = (label, ch.source, tuple(ch.shape), ch.data.name)
+            if key not in uploaded:
+                uploaded[key] = yield from upload_iter(self.server, ch, name=label)
+            ids[label] = uploaded[key]
         written = yield from export_iter(self.server, volume_id, known[0], target, options=options,
-                                         overwrite=overwrite)
+                                         overwrite=overwrite, channels=ids or None,
+                                         scan_name=str(volume.metadata.get("channel") or name) if ids else "")
         return Path(written), (warned,) if warned else ()
 
 

@@ -73,6 +73,19 @@ def test_the_server_backend_gives_the_local_results(tmp_path, server):
     out = tmp_path / "remote.nrrd"
     _do(wf.export_task(out))
     np.testing.assert_array_equal(np.asarray(open_volume(out).data), np.asarray(straighten(volume, d).data))
+    # with another channel of the scan's grid (uploaded): one two-channel image, each channel as straightened here
+    from dataclasses import replace
+
+    from napari_unwind.io import as_volume, open_channels
+
+    body = replace(as_volume(fish.mask.astype(np.uint16) * 100, spacing=volume.spacing, unit=volume.unit,
+                             origin=volume.origin), metadata={"channel": "body"})
+    both = tmp_path / "both.ome.zarr"
+    _do(wf.export_task(both, channels=[body]))
+    chans = open_channels(both)
+    assert [c.metadata["channel"] for c in chans] == ["fish", "body"]
+    np.testing.assert_array_equal(np.asarray(chans[0].data), np.asarray(straighten(volume, d).data))
+    np.testing.assert_array_equal(np.asarray(chans[1].data), np.asarray(straighten(body, d).data))
 
     # an edited deformation is not the server's session: refused with what to do, nothing written
     wf.edit.select_keyframe(1)
