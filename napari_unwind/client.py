@@ -146,6 +146,50 @@ def _progress(p: Any) -> Progress:
     return Progress(p.stage, int(p.done), int(p.total), p.message)
 
 
+#: The summary of a profile in :meth:`Client.run_batch` (``measure=True``), in column order; each column's name
+#: carries its unit (``"length [mm]"``).
+SUMMARY_MEASURES = ("curvature_mean", "curvature_max", "area_mean", "area_max", "radius_max", "volume")
+
+
+def profile_summary(table_csv: str) -> dict[str, float]:
+    """The figures of a profile (the CSV of ``unwind measure`` or of a Measure job) that are compared across
+    specimens, each named with its unit: ``curvature_mean`` and ``curvature_max`` (1/length), and with a mask
+    ``area_mean``, ``area_max`` (the cross-section), ``radius_max`` (the largest equivalent radius,
+    sqrt(area / pi)) and ``volume`` (the area integrated along s, trapezoids). Columns the profile lacks are left
+    out. (The length is the deformation's, a column of the pipeline's summary already: the profile's stations stop
+    within one spacing of the tail.)"""
+    import re
+
+    rows = list(csv.reader(table_csv.splitlines()))
+    if not rows or not rows[0] or rows[0][0].split(" [")[0] != "s":
+        raise InvalidInputError("not a profile: its first column is not the arc length s")
+    names, units = [], {}
+    for h in rows[0]:
+        m = re.fullmatch(r"(.*) \[(.*)\]", h)
+        names.append(m.group(1) if m else h)
+        units[names[-1]] = m.group(2) if m else ""
+    values = np.array([[float(x) if x else np.nan for x in r] for r in rows[1:]], dtype=float).reshape(-1, len(names))
+    col = {n: values[:, i] for i, n in enumerate(names)}
+    L = units["s"]
+
+    def named(measure: str, unit: str) -> str:
+        return f"{measure} [{unit}]" if unit else measure
+
+    out: dict[str, float] = {}
+    if "curvature" in col and np.isfinite(col["curvature"]).any():
+        out[named("curvature_mean", units["curvature"])] = float(np.nanmean(col["curvature"]))
+        out[named("curvature_max", units["curvature"])] = float(np.nanmax(col["curvature"]))
+    if "area" in col and np.isfinite(col["area"]).any():
+        area = col["area"]
+        out[named("area_mean", units["area"])] = float(np.nanmean(area))
+        out[named("area_max", units["area"])] = float(np.nanmax(area))
+        if "radius" in col:
+            out[named("radius_max", units["radius"])] = float(np.nanmax(col["radius"]))
+        a = np.nan_to_num(area)
+        out[named("volume", f"{L}^3" if L else "")] = float(np.sum((a[1:] + a[:-1]) / 2 * np.diff(col["s"])))
+    return out
+
+
 @dataclass
 class BatchItem:
     """One scan of a collection for :meth:`Client.run_batch`.
@@ -882,7 +926,7 @@ class Client:
     # -- collections -------------------------------------------------------------------------------------------------
     def run_batch(self, items: Iterable[BatchItem | dict], *, max_parallel: int = 4, out_dir: str | os.PathLike | None
                   = None, suffix: str = ".zarr", summary: str | os.PathLike | None = None, retries: int = 1,
-                  progress: bool = False) -> list[dict[str, str]]:
+                  progress: bool = False, measure: bool = False) -> list[dict[str, str]]:
         """Straighten a collection: every item is a scan plus a selection (or ``"all"`` for a tank).
 
         Up to ``max_parallel`` pipelines run at once. The batch outlives a server restart: every call is retried
@@ -894,6 +938,12 @@ class Client:
         scan, job, state, the specimen's status and reason (``ok`` or ``partial``: the pipeline's verdict; a
         ``partial`` specimen is not a success), figures, the ids of jobs that were interrupted and resubmitted
         (``resubmitted``), error.
+
+        With ``measure``, each straightened specimen is also measured along its centreline (a Select job makes its
+        full-resolution mask, as the pipeline refined it, then a Measure job), and the row gains the summary
+        columns of :func:`profile_summary` (curvature, area, equivalent radius, volume; names with units);
+        with ``out_dir`` the profile is saved as ``<name>.profile.csv``. A measurement that fails leaves the
+        specimen's row as it was, with ``measure_error``.
         """
         from unwind_services._proto.unwind.v1 import common_pb2 as pb
 
@@ -940,6 +990,28 @@ class Client:
             return again(lambda: self.upload(item.scan, name=Path(item.scan).name.split(".")[0]).volume_id,
                          f"upload {item.scan}")
 
+        def measured(item: BatchItem, name: str, job: Any, selection: dict[str, Any]) -> dict[str, Any]:
+            """The specimen's mask (a Select job at the pipeline's isovalue), its profile (a Measure job), and the
+            profile's summary columns."""
+            figures = dict(job.result.figures)
+            seg = selection.get("segmentation_id")
+            if not seg:
+                sj = follow(self.segment(selection["volume_id"], features=item.features, wait=False), [])
+                if sj.state != pb.JOB_STATE_SUCCEEDED:
+                    raise RemoteError(f"segmenting for the mask: {sj.error.message}", sj.error.code, sj)
+                seg = sj.result.segmentation_id
+            iso = float(figures["isovalue"]) if figures.get("isovalue") else None
+            mj = follow(self.select(seg, seeds=selection.get("select"), ids=selection.get("ids"), isovalue=iso,
+                                    features=item.features, output_name=f"{name}_mask.zarr", wait=False), [])
+            if mj.state != pb.JOB_STATE_SUCCEEDED:
+                raise RemoteError(f"the mask: {mj.error.message}", mj.error.code, mj)
+            pj = follow(self.measure(job.result.session_id, mask_volume_id=mj.result.volume_id, wait=False), [])
+            if pj.state != pb.JOB_STATE_SUCCEEDED:
+                raise RemoteError(f"measuring: {pj.error.message}", pj.error.code, pj)
+            if out is not None:
+                (out / f"{name}.profile.csv").write_text(pj.result.table_csv)
+            return {**profile_summary(pj.result.table_csv), "mask_volume_id": mj.result.volume_id}
+
         def one(item: BatchItem, name: str, scan_label: str, **selection: Any) -> None:
             row: dict[str, Any] = {"name": name, "scan": scan_label, "job": "", "state": "", "error": ""}
             resubmitted: list[str] = []
@@ -959,6 +1031,11 @@ class Client:
                         row["output"] = str(again(lambda: self.download(
                             job.result.volume_id, out / f"{name}{suffix}", overwrite=True), f"download {name}"))
                         (out / f"{name}.unwind.json").write_text(job.result.session_json)
+                    if measure:
+                        try:
+                            row.update(measured(item, name, job, selection))
+                        except (UnwindError, OSError) as exc:
+                            row["measure_error"] = f"{getattr(exc, 'code', 'ERROR')}: {exc}"
             except (UnwindError, OSError) as exc:
                 row.update(state="failed", error=f"{getattr(exc, 'code', 'ERROR')}: {exc}",
                            resubmitted=" ".join(resubmitted))
@@ -996,6 +1073,8 @@ class Client:
             columns = ["name", "scan", "job", "state", "status", "reason", "volume_id", "length", "unit", "keyframes",
                        "ids", "isovalue", "seconds", "skeleton_seconds", "export_seconds", "output", "resubmitted",
                        "error"]
+            columns += list(dict.fromkeys(c for m in SUMMARY_MEASURES for r in rows for c in r
+                                          if c.split(" [")[0] == m and c not in columns))
             columns += sorted({k for r in rows for k in r} - set(columns))
             with open(target, "w", newline="") as f:
                 w = csv.DictWriter(f, fieldnames=columns, restval="")
