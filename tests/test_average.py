@@ -115,3 +115,24 @@ def test_what_cannot_be_averaged_is_refused_in_one_line(family):
         average([members[0], Volume(members[1].data, spacing=(0.5, 0.5, 0.5), unit="um")])
     with pytest.raises(InvalidInputError, match="scale"):
         average(members, scale="size")
+
+
+@pytest.mark.parametrize("count", [2, 3, 5, 8, 13, 20, 33])
+def test_the_voxel_statistics_are_numpys(count):
+    """The median by a sorting network (and the mean, std and residual sums of the same loop) against numpy, for
+    odd and even counts, with ties."""
+    from napari_unwind.average import _sorting_network, _voxel_stats
+
+    rng = np.random.default_rng(count)
+    stack = rng.normal(size=(count, 3, 257)).astype(np.float32)
+    stack[:, :, :40] = np.round(stack[:, :, :40])                        # ties
+    mean, median, std = (np.empty((3, 257), np.float32) for _ in range(3))
+    sums, msums = np.zeros((count, 4)), np.zeros(2)
+    _voxel_stats(stack, _sorting_network(count), mean, median, std, sums, msums)
+    np.testing.assert_array_equal(median, np.median(stack, axis=0))
+    np.testing.assert_allclose(mean, stack.mean(axis=0, dtype=np.float64), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(std, stack.std(axis=0, dtype=np.float64), rtol=1e-5, atol=1e-7)
+    x, m = stack.reshape(count, -1).astype(np.float64), mean.ravel().astype(np.float64)
+    np.testing.assert_allclose(sums, np.stack([((x - m) ** 2).sum(1), x.sum(1), (x * x).sum(1), x @ m], axis=1),
+                               rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(msums, [m.sum(), (m * m).sum()], rtol=1e-12)
