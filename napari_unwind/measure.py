@@ -388,6 +388,12 @@ def _rotvec_about_n(frames: np.ndarray) -> np.ndarray:
     return rel[:, 2]                                             # the component about its n
 
 
+#: Torsion is left empty where the radius of curvature is more than this many specimen lengths (locally straight).
+STRAIGHT_RADIUS_LENGTHS = 4.0
+#: ... or where the curvature is below this fraction of its median along the curve (an inflection of a bent curve).
+STRAIGHT_MEDIAN_FRACTION = 0.5
+
+
 def curve_geometry(deformation: Deformation, s: np.ndarray) -> dict[str, np.ndarray]:
     """Curvature, torsion and the frames' twist of a deformation at arc lengths ``s``.
 
@@ -401,7 +407,10 @@ def curve_geometry(deformation: Deformation, s: np.ndarray) -> dict[str, np.ndar
     -------
     dict
         ``"curvature"``, ``"torsion"`` (1/length, of a not-a-knot cubic spline through the keyframe positions at
-        their arc lengths; a deformation of two or three keyframes is a straight line or a parabola there),
+        their arc lengths; a deformation of two or three keyframes is a straight line or a parabola there; torsion
+        is NaN where the curve is locally straight: its radius of curvature more than
+        :data:`STRAIGHT_RADIUS_LENGTHS` times the curve's length, or its curvature below
+        :data:`STRAIGHT_MEDIAN_FRACTION` of the median curvature (an inflection): there it is undefined),
         ``"twist"`` (degrees, the frames' roll about the tangent cumulated from the first station) and
         ``"twist_rate"`` (degrees per length), each shape (K,).
     """
@@ -420,9 +429,16 @@ def curve_geometry(deformation: Deformation, s: np.ndarray) -> dict[str, np.ndar
     speed = np.linalg.norm(d1, axis=1)
     cn = np.linalg.norm(cross, axis=1)
     curvature = cn / np.maximum(speed, 1e-12) ** 3
+    # torsion is undefined where the curve is straight (an inflection, a straight stretch) and near there the
+    # keyframes' noise in the spline's third derivative, divided by a vanishing curvature, gives spikes of any
+    # size: not reported (NaN, an empty cell) where the radius of curvature exceeds STRAIGHT_RADIUS_LENGTHS lengths
+    # of the curve, or the curvature is below STRAIGHT_MEDIAN_FRACTION of its median along the curve
+    length = float(knots[-1] - knots[0]) if len(knots) > 1 else 0.0
+    floor = max(1.0 / (STRAIGHT_RADIUS_LENGTHS * max(length, 1e-300)),
+                STRAIGHT_MEDIAN_FRACTION * float(np.median(curvature)) if len(curvature) else 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        torsion = np.where(cn > 1e-12 * np.maximum(speed, 1e-12) ** 3,
-                           np.einsum("ij,ij->i", cross, d3) / np.maximum(cn, 1e-300) ** 2, 0.0)
+        torsion = np.where(curvature > floor,
+                           np.einsum("ij,ij->i", cross, d3) / np.maximum(cn, 1e-300) ** 2, np.nan)
     _, frames = deformation.sample(s)
     if len(s) > 1:
         steps = np.degrees(_rotvec_about_n(frames))
