@@ -538,9 +538,13 @@ def average_iter(
         ref_i = int(np.argsort(lengths)[N // 2])
         ref = section(ref_i, 0.0)
         roll = np.zeros(N)
+        from concurrent.futures import ThreadPoolExecutor
+
         for rnd in range(2):
-            for i in range(N):
-                roll[i] = best_roll(i, ref, None if rnd == 0 else float(roll[i]))
+            # specimens in parallel (the scores are numba without the GIL; each specimen's search is its own)
+            with ThreadPoolExecutor(max_workers=min(N, os.cpu_count() or 1)) as pool:
+                roll[:] = list(pool.map(lambda i, r=rnd, against=ref: best_roll(
+                    i, against, None if r == 0 else float(roll[i])), range(N)))
             yield Progress("average", N + (rnd + 1) * N // 2, 3 * N, "roll")
             ref = np.mean([section(i, roll[i]) for i in range(N)], axis=0)
         roll -= np.median(roll)        # the batch's own roll is kept: the average is turned as its typical member
