@@ -95,6 +95,9 @@ class UnwindWidget(QWidget):
 
     def __init__(self, napari_viewer: Any, parent: QWidget | None = None) -> None:
         super().__init__(parent)
+        from . import _private
+
+        _private.memoise_program_parse()  # each new layer's first paint parses no GLSL it has parsed before
         self.viewer = napari_viewer
         #: The workflow's state and steps (Qt-free); the steps show it and turn clicks into its calls. Its
         #: backend runs the steps on this computer (the skeleton in a child process) or on a server.
