@@ -182,3 +182,23 @@ def test_a_single_channel_format_is_refused_with_the_formats_that_hold_channels(
     with pytest.raises(InvalidInputError, match=r"OME-Zarr \(\.zarr\) or an ImageJ hyperstack"):
         run(write_channels_iter(vols, tmp_path / "x.nrrd"))
     assert not (tmp_path / "x.nrrd").exists()
+
+
+@pytest.mark.parametrize("ngff", ["0.4", "0.5"])
+def test_channels_written_by_ome_zarr_py_open_with_their_names(tmp_path, ngff):
+    """ome-zarr-py (the OME's own writer, not ours) writes a czyx pyramid, NGFF 0.4 on zarr v2 or 0.5 on v3."""
+    from ome_zarr.format import FormatV04, FormatV05
+    from ome_zarr.io import parse_url
+    from ome_zarr.writer import add_metadata, write_image
+
+    data = np.stack(_channels((16, 20, 24), 2))
+    fmt = FormatV04() if ngff == "0.4" else FormatV05()
+    root = zarr.group(store=parse_url(str(tmp_path / "c.zarr"), mode="w", fmt=fmt).store,
+                      zarr_format=2 if ngff == "0.4" else 3)
+    write_image(image=data, group=root, axes="czyx", fmt=fmt, storage_options={"chunks": (1, 8, 10, 12)})
+    add_metadata(root, {"omero": {"channels": [{"label": "dapi"}, {"label": "gfp"}]}}, fmt=fmt)
+    chans = open_channels(tmp_path / "c.zarr")
+    assert [c.metadata["channel"] for c in chans] == ["dapi", "gfp"]
+    for c, a in zip(chans, data, strict=True):
+        np.testing.assert_array_equal(np.asarray(c.data), a)
+        assert len(c.levels) > 1  # the pyramid is kept
