@@ -202,3 +202,18 @@ def test_channels_written_by_ome_zarr_py_open_with_their_names(tmp_path, ngff):
     for c, a in zip(chans, data, strict=True):
         np.testing.assert_array_equal(np.asarray(c.data), a)
         assert len(c.levels) > 1  # the pyramid is kept
+
+
+@pytest.mark.parametrize("axes,compression", [("CZYX", None), ("ZCYX", "zlib")])
+def test_an_ome_tiff_with_channels_opens_with_names_and_voxel_size(tmp_path, axes, compression):
+    """tifffile's OME-TIFF writer (channel names and physical sizes in the OME-XML), either plane order."""
+    data = np.stack(_channels((10, 20, 24), 3))
+    stored = data if axes == "CZYX" else data.transpose(1, 0, 2, 3)
+    tifffile.imwrite(tmp_path / "c.ome.tif", stored, ome=True, compression=compression,
+                     metadata={"axes": axes, "Channel": {"Name": ["a", "b", "c"]}, "PhysicalSizeX": 0.5,
+                               "PhysicalSizeY": 0.5, "PhysicalSizeZ": 2.0})
+    chans = open_channels(tmp_path / "c.ome.tif")
+    assert [c.metadata["channel"] for c in chans] == ["a", "b", "c"]
+    assert chans[0].spacing == (2.0, 0.5, 0.5) and chans[0].unit == "micrometer"
+    for c, a in zip(chans, data, strict=True):
+        np.testing.assert_array_equal(np.asarray(c.data), a)
