@@ -66,6 +66,7 @@ from pydicom.valuerep import format_number_as_ds
 from ..errors import InvalidInputError, OutputError, SeriesSelectionError
 from ..progress import Progress
 from ._atomic import final_name
+from ._files import ConfinementError, current_confinement, open_regular
 from ._straight_record import parse_record, record_text, straightening_record
 from ._volume import Volume
 
@@ -145,12 +146,24 @@ def _read_header(path: Path) -> Dataset | None:
     """The header of ``path`` without pixel data; None when it is not DICOM at all.
 
     Raises ``_Unreadable`` for a file marked as DICOM that cannot be parsed, or an image file whose header stops
-    before its size and series are known (pydicom reads truncated files without complaint).
+    before its size and series are known (pydicom reads truncated files without complaint). Opened under
+    :func:`~napari_unwind.io._files.confined_reads`, a file outside the confinement is a ConfinementError.
     """
+    try:
+        fh = open_regular(path, "DICOM", confine=current_confinement())
+    except ConfinementError:
+        raise
+    except OSError:
+        return None  # gone since the folder was listed, or unreadable: not a slice of the series
+    with fh:
+        return _header_of(path, fh)
+
+
+def _header_of(path: Path, fh: Any) -> Dataset | None:
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            ds = pydicom.dcmread(path, stop_before_pixels=True, specific_tags=_HEADER_TAGS)
+            ds = pydicom.dcmread(fh, stop_before_pixels=True, specific_tags=_HEADER_TAGS)
         if "Rows" not in ds or "SeriesInstanceUID" not in ds:
             sop = str(getattr(getattr(ds, "file_meta", None), "MediaStorageSOPClassUID", "")
                       or getattr(ds, "SOPClassUID", ""))
@@ -163,7 +176,8 @@ def _read_header(path: Path) -> Dataset | None:
         if not named and path.suffix:
             return None
         try:  # DICOM without the 128-byte preamble (old exports)
-            ds = pydicom.dcmread(path, stop_before_pixels=True, specific_tags=_HEADER_TAGS, force=True)
+            fh.seek(0)
+            ds = pydicom.dcmread(fh, stop_before_pixels=True, specific_tags=_HEADER_TAGS, force=True)
         except Exception as forced:  # noqa: BLE001 - pydicom raises many types for garbage
             if named:  # named as DICOM but unreadable: damaged, not some other file
                 raise _Unreadable(f"{path.name} ({type(forced).__name__}: {forced})") from None
@@ -177,9 +191,8 @@ def _read_header(path: Path) -> Dataset | None:
         raise
     except Exception as exc:  # truncated or corrupt file: pydicom raises many types
         try:
-            with open(path, "rb") as fh:
-                fh.seek(128)
-                marked = fh.read(4) == b"DICM"
+            fh.seek(128)
+            marked = fh.read(4) == b"DICM"
         except OSError:
             marked = False
         if marked:
@@ -490,7 +503,11 @@ def _output_dtype(images: list[_Image]) -> np.dtype:
 
 
 class _SeriesArray:
-    """The sorted slices as a lazily read (N, rows, cols) array: each plane is decoded when it is indexed."""
+    """The sorted slices as a lazily read (N, rows, cols) array: each plane is decoded when it is indexed.
+
+    Opened under :func:`~napari_unwind.io._files.confined_reads` (the server), each slice file is opened first and
+    checked where the opened file lies, then decoded from that handle: a slice swapped for a symbolic link out
+    after the open is refused (ConfinementError), the others still read."""
 
     def __init__(self, planes: list[tuple[str, int | None, float, float]], rows: int, cols: int,
                  dtype: np.dtype):
@@ -498,11 +515,15 @@ class _SeriesArray:
         self.shape = (len(planes), rows, cols)
         self.ndim = 3
         self.dtype = np.dtype(dtype)
+        self.confine = current_confinement()  # opened confined: every read is (see _files.confined_reads)
 
     def _plane(self, i: int) -> np.ndarray:
         path, frame, slope, inter = self.planes[i]
         try:
-            arr = pixel_array(path, index=frame)
+            with open_regular(path, "DICOM", confine=self.confine) as fh:
+                arr = pixel_array(fh, index=frame)
+        except (ConfinementError, InvalidInputError):
+            raise  # outside the confinement (one line naming no path), or no longer a regular file
         except Exception as exc:  # pydicom raises many types for truncated or damaged pixel data
             raise InvalidInputError(
                 f"{path}: cannot decode its pixel data ({type(exc).__name__}: {exc}); the file is truncated or "
@@ -739,8 +760,11 @@ RECORD_PREFIX = "napari-unwind straightening "
 def _recorded(path: str | os.PathLike) -> dict[str, Any] | None:
     """The straightening record in the ImageComments of one image written by :func:`write_dicom`, else None."""
     try:
-        ds = pydicom.dcmread(path, stop_before_pixels=True, specific_tags=["ImageComments"])
-    except (OSError, InvalidDicomError):
+        with open_regular(path, "DICOM", confine=current_confinement()) as fh:
+            ds = pydicom.dcmread(fh, stop_before_pixels=True, specific_tags=["ImageComments"])
+    except ConfinementError:
+        raise
+    except (OSError, InvalidDicomError, InvalidInputError):
         return None
     text = str(getattr(ds, "ImageComments", "") or "")
     return parse_record(text[len(RECORD_PREFIX):]) if text.startswith(RECORD_PREFIX) else None

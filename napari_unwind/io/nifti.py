@@ -49,7 +49,7 @@ from nibabel.volumeutils import apply_read_scaling
 from ..errors import InvalidInputError
 from ..progress import Progress
 from ._atomic import final_name
-from ._files import check_regular
+from ._files import ConfinementError, check_regular, current_confinement, open_regular
 from ._lazy import write_slab_depth
 from ._straight_record import parse_record, record_text, straightening_record
 from ._volume import SUPPORTED_DTYPES, Volume, normalise_unit, warn_bad_spacing
@@ -109,28 +109,44 @@ def _damaged(path: Any, exc: BaseException) -> InvalidInputError:
 
 
 class _ScaledProxy:
-    """nibabel's ArrayProxy, sliced in file order (i, j, k), returning scaled voxels of one fixed type."""
+    """nibabel's ArrayProxy, sliced in file order (i, j, k), returning scaled voxels of one fixed type.
 
-    def __init__(self, proxy: Any, shape: tuple[int, int, int], extra: int, dtype: np.dtype, path: str = ""):
-        self.proxy = proxy
+    Each read opens the file itself (:func:`~napari_unwind.io._files.open_regular`, under the confinement the
+    volume was opened in: checked where the opened file lies) and gives nibabel that handle, never the path.
+    """
+
+    def __init__(self, proxy: Any, shape: tuple[int, int, int], extra: int, dtype: np.dtype, path: str = "",
+                 gz: bool = False):
+        # the proxy's layout, for a proxy of the same class over the handle each read opens
+        self.spec = (tuple(proxy.shape), proxy.dtype, int(proxy.offset), proxy.slope, proxy.inter)
+        self.order = getattr(proxy, "order", "F")
+        self.proxy_class = type(proxy)
         self.shape = shape
         self.ndim = 3
         self.dtype = np.dtype(dtype)
         self.extra = extra  # trailing length-1 axes of the file (t, u...) to index with 0
         self.path = path
+        self.gz = gz
+        self.confine = current_confinement()  # opened confined: every read is (see _files.confined_reads)
 
     def __getitem__(self, key: Any) -> np.ndarray:
         if not isinstance(key, tuple):
             key = (key,)
         try:
-            block = np.asarray(self.proxy[key + (0,) * self.extra])
+            with open_regular(self.path, "NIfTI", confine=self.confine) as raw, \
+                    (gzip.GzipFile(fileobj=raw, mode="rb") if self.gz else contextlib.nullcontext(raw)) as fh:
+                proxy = self.proxy_class(fh, self.spec, mmap=False, order=self.order)
+                block = np.asarray(proxy[key + (0,) * self.extra])
+        except ConfinementError:
+            raise  # outside the confinement: one line naming no path
         except (OSError, EOFError, ValueError, zlib.error) as exc:
             raise _damaged(self.path, exc) from None
         return _as_type(block, self.dtype)
 
 
 class _GzipPlanes:
-    """Voxels of a gzipped NIfTI in array order (k, j, i), decompressed plane range by plane range.
+    """Voxels of a gzipped NIfTI in array order (k, j, i), decompressed plane range by plane range (the file opened
+    anew at each read, under the confinement the volume was opened in, as :class:`_ScaledProxy` does).
 
     gzip streams cannot be read at random: each access decompresses from the start up to its last plane. The
     access that reaches the last plane reads on to the end of the stream, where gzip checks its CRC and length, so
@@ -146,6 +162,7 @@ class _GzipPlanes:
         self.ndim = 3
         self.slope, self.inter = float(slope), float(inter)
         self.dtype = np.dtype(dtype)
+        self.confine = current_confinement()  # opened confined: every read is (see _files.confined_reads)
 
     def __getitem__(self, key: Any) -> np.ndarray:
         if not isinstance(key, tuple):
@@ -157,8 +174,9 @@ class _GzipPlanes:
         k1 = max(k0, k1)
         plane = self.shape[1] * self.shape[2] * self.file_dtype.itemsize
         want = (k1 - k0) * plane
-        try:
-            with gzip.open(self.path, "rb") as fh:
+        try:  # the file opened first and checked where it lies, gzip reading that handle
+            with open_regular(self.path, "NIfTI", confine=self.confine) as raw, \
+                    gzip.GzipFile(fileobj=raw, mode="rb") as fh:
                 fh.seek(self.offset + k0 * plane)
                 buf = fh.read(want)
                 if len(buf) < want:
@@ -166,6 +184,8 @@ class _GzipPlanes:
                 if k1 == self.shape[0]:
                     while fh.read(2**24):  # on to the end: gzip checks the CRC and length of the whole stream
                         pass
+        except ConfinementError:
+            raise  # outside the confinement: one line naming no path
         except (OSError, EOFError, ValueError, zlib.error) as exc:
             raise _damaged(self.path, exc) from None
         raw = np.frombuffer(buf, dtype=self.file_dtype).reshape((k1 - k0,) + self.shape[1:])[::step]
@@ -268,7 +288,7 @@ def read_nifti(path: Path, *, chunks: Any = None) -> Volume:
         data = da.from_array(planes, chunks=file_chunks[::-1], name=name, meta=np.empty((0, 0, 0), dtype=dtype),
                              asarray=False)
     else:
-        wrapped = _ScaledProxy(proxy, shape, len(full_shape) - 3, dtype, str(path))
+        wrapped = _ScaledProxy(proxy, shape, len(full_shape) - 3, dtype, str(path), gz)
         data = da.from_array(wrapped, chunks=file_chunks, name=name, meta=np.empty((0, 0, 0), dtype=dtype),
                              asarray=False).transpose(2, 1, 0)
 

@@ -44,7 +44,7 @@ import numpy as np
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import final_name, remove_path, temp_path
-from ._files import open_regular, skip_lines
+from ._files import current_confinement, open_regular, skip_lines
 from ._lazy import RawFileArray, iter_slabs, write_slab_depth
 from ._straight_record import parse_record, record_text, straightening_record
 from ._volume import UNIT_ABBREVIATIONS, LazyArray, Volume, normalise_unit, warn_bad_spacing
@@ -270,8 +270,9 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
         Not an NRRD header, unsupported type or encoding, not 3D, missing data file, truncated data.
     """
     path = Path(path).expanduser().absolute()  # workers of a cluster run in other folders
+    confine = current_confinement()  # opened confined (the server): the header and the data checked where they lie
     try:
-        with open_regular(path) as fh:
+        with open_regular(path, confine=confine) as fh:
             header = nrrd.read_header(fh)
             header_end = fh.tell()
     except nrrd.NRRDError as exc:
@@ -344,7 +345,7 @@ def read_nrrd(path: Path, *, chunks: Any = None) -> Volume:
     source = data_path or path
     native = file_dtype.newbyteorder("=")
 
-    with open_regular(source, "data" if data_path is not None else "") as fh:
+    with open_regular(source, "data" if data_path is not None else "", confine=confine) as fh:
         if data_path is None:
             fh.seek(header_end)
         skip_lines(fh, line_skip, source)

@@ -35,6 +35,7 @@ from dask.base import tokenize
 from ..errors import InvalidInputError, OutputError, SeriesSelectionError
 from ..progress import Progress
 from ._atomic import final_name
+from ._files import ConfinementError, ReadConfinement, current_confinement, open_regular
 from ._formats import _NUMBERED, IMAGE_SLICE_SUFFIXES, _group_key, _groups, _image_files, natural_key, numbered_siblings
 from ._lazy import slab_depth
 from ._volume import Volume
@@ -161,39 +162,46 @@ _PIL_MODES = {
 def _header(path: Path) -> tuple[tuple[int, int], np.dtype, str]:
     """(rows, columns), voxel type and kind of one slice, from its header only."""
     try:
-        if path.suffix.lower() in _TIFF:
-            with tifffile.TiffFile(path) as tif:
-                page = tif.pages.first
-                shape = tuple(int(n) for n in page.shape)
-                spp = int(page.samplesperpixel)
-                photometric = int(page.photometric)
-                dtype = np.dtype(page.dtype)
-                pages = len(tif.pages)
-            if pages > 1:
-                return shape[-2:], dtype, f"{pages} pages (a multi-page TIFF, not a 2D slice: open it directly)"
-            if photometric == 3:  # palette
-                return (shape[0], shape[1]), dtype, "tiff-palette"
-            if spp > 1:
-                if spp not in (3, 4) or len(shape) != 3:
-                    return (0, 0), dtype, f"{spp} samples per pixel"
-                rows, cols = (shape[0], shape[1]) if shape[-1] == spp else (shape[1], shape[2])
-                return (rows, cols), dtype, "rgb"
-            if len(shape) != 2:
-                return shape[-2:], dtype, f"shape {shape}"
-            if dtype == np.dtype(bool):
-                return (shape[0], shape[1]), np.dtype("uint8"), "bool"
-            return (shape[0], shape[1]), dtype, "grey"
-        from PIL import Image
-
-        with Image.open(path) as im:
-            cols, rows = im.size
-            mode = im.mode
-        if mode not in _PIL_MODES:
-            return (rows, cols), np.dtype("uint8"), f"PIL mode {mode}"
-        dtype, kind = _PIL_MODES[mode]
-        return (rows, cols), np.dtype(dtype), kind
+        with open_regular(path, "slice", confine=current_confinement()) as fh:
+            return _slice_header(path, fh)
     except (OSError, ValueError, tifffile.TiffFileError) as exc:
+        if isinstance(exc, InvalidInputError | ConfinementError):
+            raise
         raise InvalidInputError(f"cannot read the slice {path} ({exc}); is the file complete?") from None
+
+
+def _slice_header(path: Path, fh: Any) -> tuple[tuple[int, int], np.dtype, str]:
+    if path.suffix.lower() in _TIFF:
+        with tifffile.TiffFile(fh, name=path.name) as tif:
+            page = tif.pages.first
+            shape = tuple(int(n) for n in page.shape)
+            spp = int(page.samplesperpixel)
+            photometric = int(page.photometric)
+            dtype = np.dtype(page.dtype)
+            pages = len(tif.pages)
+        if pages > 1:
+            return shape[-2:], dtype, f"{pages} pages (a multi-page TIFF, not a 2D slice: open it directly)"
+        if photometric == 3:  # palette
+            return (shape[0], shape[1]), dtype, "tiff-palette"
+        if spp > 1:
+            if spp not in (3, 4) or len(shape) != 3:
+                return (0, 0), dtype, f"{spp} samples per pixel"
+            rows, cols = (shape[0], shape[1]) if shape[-1] == spp else (shape[1], shape[2])
+            return (rows, cols), dtype, "rgb"
+        if len(shape) != 2:
+            return shape[-2:], dtype, f"shape {shape}"
+        if dtype == np.dtype(bool):
+            return (shape[0], shape[1]), np.dtype("uint8"), "bool"
+        return (shape[0], shape[1]), dtype, "grey"
+    from PIL import Image
+
+    with Image.open(fh) as im:
+        cols, rows = im.size
+        mode = im.mode
+    if mode not in _PIL_MODES:
+        return (rows, cols), np.dtype("uint8"), f"PIL mode {mode}"
+    dtype, kind = _PIL_MODES[mode]
+    return (rows, cols), np.dtype(dtype), kind
 
 
 def _grey(rgb: np.ndarray, path: Path) -> np.ndarray:
@@ -224,70 +232,26 @@ def _check_png(path: Path, data: memoryview) -> None:
         pos = end + 4
 
 
-def read_slice(path: str | os.PathLike, shape: tuple[int, int] | None = None, dtype: Any = None) -> np.ndarray:
+def read_slice(path: str | os.PathLike, shape: tuple[int, int] | None = None, dtype: Any = None, *,
+               confine: ReadConfinement | None = None) -> np.ndarray:
     """Decode one slice as a 2D grey array (RGB slices must be grey: r == g == b).
+
+    With ``confine`` the slice file is opened first and checked where the opened file lies (the decoders read
+    that handle, never the path again).
 
     Raises
     ------
     InvalidInputError
         A colour slice, or one whose size or type differs from ``shape`` / ``dtype``.
+    ConfinementError
+        The file lies outside ``confine`` (a PermissionError, naming no path).
     """
     path = Path(path)
     try:
-        if path.suffix.lower() in _TIFF:
-            with tifffile.TiffFile(path) as tif:
-                page = tif.pages.first
-                arr = page.asarray()
-                if int(page.photometric) == 3:
-                    cmap = page.colormap
-                    if cmap is None or not (np.array_equal(cmap[0], cmap[1]) and np.array_equal(cmap[0], cmap[2])):
-                        raise InvalidInputError(
-                            f"{path} is a colour palette image; convert the stack to grey first "
-                            "(Fiji: Image > Type > 8-bit)"
-                        )
-                    lut = cmap[0]
-                    if lut.max() > 255:
-                        lut = lut >> 8
-                    arr = lut.astype(np.uint8)[arr]
-            if arr.ndim == 3 and arr.shape[-1] in (3, 4):
-                arr = _grey(arr, path)
-            elif arr.ndim == 3 and arr.shape[0] in (3, 4):  # planar RGB
-                arr = _grey(np.moveaxis(arr, 0, -1), path)
-            if arr.dtype == bool:
-                arr = arr.astype(np.uint8)
-        else:
-            from PIL import Image
-
-            source: Any = path
-            if path.suffix.lower() == ".png":
-                source = io.BytesIO(path.read_bytes())
-                _check_png(path, source.getbuffer())
-            with Image.open(source) as im:
-                im.load()
-                mode = im.mode
-                if mode == "P":
-                    palette = np.asarray(im.getpalette() or [], dtype=np.uint8).reshape(-1, 3)
-                    idx = np.asarray(im)
-                    if palette.size == 0:
-                        arr = idx.astype(np.uint8)
-                    else:
-                        padded = np.zeros((256, 3), np.uint8)
-                        padded[: len(palette)] = palette[:256]
-                        arr = _grey(padded[idx], path)
-                elif mode in ("RGB", "RGBA", "RGBX"):
-                    arr = _grey(np.asarray(im), path)
-                elif mode == "LA":
-                    arr = np.ascontiguousarray(np.asarray(im)[..., 0])
-                elif mode in _PIL_MODES:
-                    arr = np.asarray(im)
-                    if arr.dtype == bool:
-                        arr = arr.astype(np.uint8)
-                    arr = arr.astype(arr.dtype.newbyteorder("="), copy=False)
-                else:
-                    raise InvalidInputError(f"{path} has the image mode {mode}; convert the stack to 8- or 16-bit "
-                                            "grey first")
+        with open_regular(path, "slice", confine=confine) as fh:
+            arr = _decode_slice(path, fh)
     except (OSError, ValueError, tifffile.TiffFileError) as exc:
-        if isinstance(exc, InvalidInputError):
+        if isinstance(exc, InvalidInputError | ConfinementError):
             raise
         raise InvalidInputError(f"cannot decode the slice {path} ({exc}); is the file complete?") from None
     if shape is not None and tuple(arr.shape) != tuple(shape):
@@ -301,14 +265,74 @@ def read_slice(path: str | os.PathLike, shape: tuple[int, int] | None = None, dt
     return arr
 
 
+def _decode_slice(path: Path, fh: Any) -> np.ndarray:
+    """The grey pixels of the slice open as ``fh`` (``path`` names it in messages and chooses the decoder)."""
+    if path.suffix.lower() in _TIFF:
+        with tifffile.TiffFile(fh, name=path.name) as tif:
+            page = tif.pages.first
+            arr = page.asarray()
+            if int(page.photometric) == 3:
+                cmap = page.colormap
+                if cmap is None or not (np.array_equal(cmap[0], cmap[1]) and np.array_equal(cmap[0], cmap[2])):
+                    raise InvalidInputError(
+                        f"{path} is a colour palette image; convert the stack to grey first "
+                        "(Fiji: Image > Type > 8-bit)"
+                    )
+                lut = cmap[0]
+                if lut.max() > 255:
+                    lut = lut >> 8
+                arr = lut.astype(np.uint8)[arr]
+        if arr.ndim == 3 and arr.shape[-1] in (3, 4):
+            arr = _grey(arr, path)
+        elif arr.ndim == 3 and arr.shape[0] in (3, 4):  # planar RGB
+            arr = _grey(np.moveaxis(arr, 0, -1), path)
+        if arr.dtype == bool:
+            arr = arr.astype(np.uint8)
+    else:
+        from PIL import Image
+
+        source: Any = fh
+        if path.suffix.lower() == ".png":
+            source = io.BytesIO(fh.read())
+            _check_png(path, source.getbuffer())
+        with Image.open(source) as im:
+            im.load()
+            mode = im.mode
+            if mode == "P":
+                palette = np.asarray(im.getpalette() or [], dtype=np.uint8).reshape(-1, 3)
+                idx = np.asarray(im)
+                if palette.size == 0:
+                    arr = idx.astype(np.uint8)
+                else:
+                    padded = np.zeros((256, 3), np.uint8)
+                    padded[: len(palette)] = palette[:256]
+                    arr = _grey(padded[idx], path)
+            elif mode in ("RGB", "RGBA", "RGBX"):
+                arr = _grey(np.asarray(im), path)
+            elif mode == "LA":
+                arr = np.ascontiguousarray(np.asarray(im)[..., 0])
+            elif mode in _PIL_MODES:
+                arr = np.asarray(im)
+                if arr.dtype == bool:
+                    arr = arr.astype(np.uint8)
+                arr = arr.astype(arr.dtype.newbyteorder("="), copy=False)
+            else:
+                raise InvalidInputError(f"{path} has the image mode {mode}; convert the stack to 8- or 16-bit "
+                                        "grey first")
+    return arr
+
+
 class _SliceStack:
-    """Picklable array-like (N, Y, X) decoding the slice files a key touches."""
+    """Picklable array-like (N, Y, X) decoding the slice files a key touches; opened under
+    :func:`~napari_unwind.io._files.confined_reads` (the server), each slice file is checked where it lies at each
+    read (a slice swapped for a symbolic link out after the open is refused, the others still read)."""
 
     def __init__(self, files: list[str], shape: tuple[int, int, int], dtype: Any):
         self.files = [str(f) for f in files]
         self.shape = tuple(int(s) for s in shape)
         self.dtype = np.dtype(dtype)
         self.ndim = 3
+        self.confine = current_confinement()  # opened confined: every slice read is (see _files.confined_reads)
 
     def __getitem__(self, key: Any) -> np.ndarray:
         if not isinstance(key, tuple):
@@ -319,7 +343,7 @@ class _SliceStack:
         key = key + (slice(None),) * (3 - len(key))
         planes = np.arange(self.shape[0])[key[0]]
         single = np.ndim(planes) == 0
-        out = np.stack([read_slice(self.files[int(z)], self.shape[1:], self.dtype)[key[1:]]
+        out = np.stack([read_slice(self.files[int(z)], self.shape[1:], self.dtype, confine=self.confine)[key[1:]]
                         for z in np.atleast_1d(planes)])
         return out[0] if single else out
 
@@ -399,7 +423,7 @@ def read_stack(path: Path, *, pattern: str | None = None) -> Volume:
         return read_tiff(files[0])
     shape0, dtype, kind = _header(files[0])
     _check_kind(files[0], kind)
-    first = read_slice(files[0], shape0, dtype)  # decodes one slice: catches colour stacks up front
+    first = read_slice(files[0], shape0, dtype, confine=current_confinement())  # catches colour stacks up front
     for f in files[1:]:
         shape, dt, k = _header(f)
         _check_kind(f, k)

@@ -45,7 +45,7 @@ from .._json import loads as safe_loads
 from ..errors import InvalidInputError, OutputError
 from ..progress import Progress
 from ._atomic import final_name
-from ._files import check_regular
+from ._files import ConfinementError, check_regular, current_confinement, open_regular
 from ._formats import numbered_siblings, reader_for
 from ._lazy import RawFileArray, slab_depth
 from ._straight_record import parse_record, record_text, straightening_record
@@ -300,39 +300,64 @@ def _expand_key(key: Any, ndim: int) -> tuple:
 class _TiffPlanes:
     """Picklable array-like (N, Y, X) reading TIFF pages on demand (a fresh file handle per access).
 
-    ``pages`` lists the IFD index of each plane; with ``pages=None`` the whole series is read at each access
-    (the fallback for layouts without one plane per page).
+    ``pages`` lists the IFD index of each plane, ``files`` the file holding it (default all ``path``: a multi-file
+    OME-TIFF names others); with ``pages=None`` the whole series is read at each access (the fallback for layouts
+    without one plane per page).
+
+    Opened under :func:`~napari_unwind.io._files.confined_reads` (the server), it keeps that confinement: every
+    file is opened by :func:`~napari_unwind.io._files.open_regular` and checked where the opened descriptor lies
+    before tifffile reads it, so a file swapped for a symbolic link out after the open is never read.
     """
 
-    def __init__(self, path: str, series: int, pages: list[int] | None, shape: tuple[int, int, int], dtype: Any):
+    def __init__(self, path: str, series: int, pages: list[int] | None, shape: tuple[int, int, int], dtype: Any,
+                 files: list[str] | None = None):
         self.path = str(path)
         self.series = int(series)
         self.pages = None if pages is None else [int(p) for p in pages]
+        self.files = None if files is None or all(str(f) == self.path for f in files) else [str(f) for f in files]
         self.shape = tuple(int(s) for s in shape)
         self.dtype = np.dtype(dtype)
         self.ndim = 3
+        self.confine = current_confinement()  # opened confined: every read is (see _files.confined_reads)
 
     def __getitem__(self, key: Any) -> np.ndarray:
         try:
             return self._read(key)
-        except InvalidInputError:
-            raise
+        except (InvalidInputError, ConfinementError):
+            raise  # a file outside the confinement: one line naming no path
         except Exception as exc:  # noqa: BLE001 - codecs raise their own types (DeflateError, ...) for damaged pages
             text = (str(exc).strip().splitlines() or [""])[0][:200]
             raise InvalidInputError(f"{self.path}: cannot decode its pages ({type(exc).__name__}: {text}); the file "
                                     "is damaged or was changed since it was opened: copy it again") from None
 
+    @contextlib.contextmanager
+    def _open(self, path: str) -> Iterator[tifffile.TiffFile]:
+        if self.confine is None:
+            with tifffile.TiffFile(path) as tif:
+                yield tif
+            return
+        # tifffile reads the handle we opened and checked; it opens no other file (a multi-file OME series read
+        # whole would name others by path: refused instead, read_tiff checked them and lists them in ``files``)
+        with open_regular(path, "TIFF", confine=self.confine) as fh, \
+                tifffile.TiffFile(fh, name=os.path.basename(path), _multifile=False) as tif:
+            yield tif
+
     def _read(self, key: Any) -> np.ndarray:
         key = _expand_key(key, 3)
-        with tifffile.TiffFile(self.path) as tif:
-            if self.pages is None:
+        if self.pages is None:
+            with self._open(self.path) as tif:
                 whole = tif.series[self.series].asarray().reshape(self.shape)
-                return np.array(whole[key], dtype=self.dtype)
-            planes = np.arange(self.shape[0])[key[0]]
-            single = np.ndim(planes) == 0
-            out = np.empty((int(np.size(planes)),) + self.shape[1:], dtype=self.dtype)
-            for i, z in enumerate(np.atleast_1d(planes)):
-                out[i] = tif.pages[self.pages[int(z)]].asarray().reshape(self.shape[1:])
+            return np.array(whole[key], dtype=self.dtype)
+        planes = np.arange(self.shape[0])[key[0]]
+        single = np.ndim(planes) == 0
+        wanted = [int(z) for z in np.atleast_1d(planes)]
+        out = np.empty((len(wanted),) + self.shape[1:], dtype=self.dtype)
+        files = self.files or [self.path] * self.shape[0]
+        for name in dict.fromkeys(files[z] for z in wanted):  # each file opened once, in the order first needed
+            with self._open(name) as tif:
+                for i, z in enumerate(wanted):
+                    if files[z] == name:
+                        out[i] = tif.pages[self.pages[z]].asarray().reshape(self.shape[1:])
         out = out[(slice(None),) + tuple(key[1:])]
         return out[0] if single else out
 
@@ -367,8 +392,10 @@ def tiff_channel_count(path: Path, series: int = 0) -> int:
         return int(dict(zip(s.axes, s.shape, strict=True)).get("C", 1))
 
 
-def _channel_pages(s: Any, keep: list[tuple[str, int]], channel: Any, path: Path) -> tuple[list[int], str]:
-    """The IFD index of every plane of one channel of a ``ZCYX``/``CZYX`` series, and the channel's name."""
+def _channel_pages(s: Any, keep: list[tuple[str, int]], channel: Any,
+                   path: Path) -> tuple[list[int], str, list[str]]:
+    """The IFD index of every plane of one channel of a ``ZCYX``/``CZYX`` series, the channel's name and the file
+    holding each plane."""
     plane_axes = [(a, n) for a, n in keep if a not in "YX"]
     count = dict(plane_axes)["C"]
     if isinstance(channel, bool) or not isinstance(channel, int | np.integer) or not 0 <= channel < count:
@@ -383,8 +410,24 @@ def _channel_pages(s: Any, keep: list[tuple[str, int]], channel: Any, path: Path
     index = []
     for z in range(other):
         pos = tuple(int(channel) if a == "C" else z for a, _ in plane_axes)
-        index.append(pages[int(np.ravel_multi_index(pos, shape))].index)
-    return index, tiff_channel_names(s.parent, count)[int(channel)]
+        index.append(pages[int(np.ravel_multi_index(pos, shape))])
+    return [p.index for p in index], tiff_channel_names(s.parent, count)[int(channel)], _page_files(index, path)
+
+
+def _page_files(pages: list[Any], path: Path) -> list[str]:
+    """The file holding each of ``pages`` (a multi-file OME-TIFF's series spans several files); opened confined
+    (the server), every other file is checked now, where it really lies, as each read checks it again."""
+    files = [str(p.parent.filehandle.path) if p.parent is not None else str(path) for p in pages]
+    confine = current_confinement()
+    if confine is not None:
+        for other in dict.fromkeys(f for f in files if f != str(path)):
+            try:
+                open_regular(other, "TIFF", confine=confine).close()
+            except ConfinementError:
+                raise ConfinementError(f"a file the OME-TIFF's metadata names lies outside {confine.where}: none of "
+                                       "its voxels is read; keep every file of a multi-file OME-TIFF in the scan's "
+                                       "folder") from None
+    return files
 
 
 def _colour_error(path: Path, axes: str, shape: tuple[int, ...], what: str) -> InvalidInputError:
@@ -504,7 +547,7 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
         if pick is not None:
             meta["channel"] = pick[1]
             meta["memmap"] = False
-            planes_arr = _TiffPlanes(str(path), series, pick[0], (n, ny, nx), out_dtype)
+            planes_arr = _TiffPlanes(str(path), series, pick[0], (n, ny, nx), out_dtype, pick[2])
 
             def build_channel(planes_arr: Any = planes_arr) -> da.Array:
                 import dask.array as da
@@ -521,10 +564,12 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
             meta["memmap"] = True
         else:
             pages = list(s.pages)
-            per_page = (len(pages) == n and all(p is not None and p.parent is tif for p in pages)
+            per_page = (len(pages) == n and all(p is not None for p in pages)
                         and int(np.prod(pages[0].shape)) == ny * nx)
             index = [p.index for p in pages] if per_page else None
-            planes_arr = _TiffPlanes(str(path), series, index, (n, ny, nx), out_dtype)
+            files = _page_files([p for p in pages if p is not None], path)  # checks others when confined
+            files = files if per_page else None
+            planes_arr = _TiffPlanes(str(path), series, index, (n, ny, nx), out_dtype, files)
             plane_chunks = chunks if per_page else (n, ny, nx)
 
             def build(planes_arr: Any = planes_arr, plane_chunks: tuple = plane_chunks) -> da.Array:

@@ -267,3 +267,114 @@ def test_a_raw_data_file_swapped_after_the_open_is_not_followed(server):
     with pytest.raises(PermissionError) as err:
         np.asarray(volume.data)
     assert "secret" not in str(err.value) and str(outside) not in str(err.value), str(err.value)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# the readers that open their files again at each read: compressed TIFF pages, slice files, DICOM slices, NIfTI
+# (a file swapped for a symbolic link out after the open is refused at the read; the files left alone still read)
+# ------------------------------------------------------------------------------------------------------------------
+VALUES = (np.arange(np.prod(SHAPE), dtype=np.uint16).reshape(SHAPE) * 7 + 3)
+OTHER = (VALUES + 1000).astype(np.uint16)  # what the outside copies hold: a leak would show as these values
+
+
+def _swap_out(victim: Path, impostor: Path, outside: Path, tag: str) -> Path:
+    """Replace ``victim`` by a symbolic link to ``impostor`` (a file of the same kind with other voxels) moved
+    outside the data root; returns where the link points."""
+    target = outside / f"{tag}-{impostor.name}"
+    shutil.move(impostor, target)
+    victim.unlink()
+    os.symlink(target, victim)
+    return target
+
+
+def _read_refused(array, outside: Path) -> None:
+    with pytest.raises(PermissionError) as err:
+        np.asarray(array)
+    message = str(err.value)
+    assert str(outside) not in message and "impostor" not in message and "/" not in message, message
+
+
+@pytest.mark.parametrize("name,options", [("zlib.tif", {"compression": "zlib"}), ("scan.nii.gz", {}),
+                                          ("scan.nii", {}), ("raw.nhdr", {"encoding": "raw"})],
+                         ids=["tiff-zlib", "nifti-gz", "nifti", "nhdr-raw-data"])
+def test_a_single_file_scan_swapped_after_the_open_is_not_followed(server, name, options):
+    """A compressed TIFF (decoded page by page), a NIfTI (gzip or not) and a detached NRRD's raw data file, each
+    opened at each read: the read after a swap refuses; a link that stays inside the data root still reads."""
+    srv, data, outside = server
+    folder = data / "scans" / f"swap-{name.replace('.', '-')}"
+    folder.mkdir()
+    scan = write_volume(VALUES, folder / name, spacing=(1, 1, 1), **options)
+    volume = _catalog_volume(srv, data, scan)
+    if name.endswith(".tif"):
+        assert volume.format == "tiff" and not volume.metadata["memmap"], volume.metadata  # the pages reader
+    np.testing.assert_array_equal(np.asarray(volume.data), VALUES)
+    victim = folder / "raw.raw" if name.endswith(".nhdr") else scan
+    assert victim.is_file(), sorted(folder.iterdir())
+    impostor = write_volume(OTHER, outside / f"impostor-{name}", spacing=(1, 1, 1), **options)
+    if name.endswith(".nhdr"):
+        impostor = outside / "impostor-raw.raw"
+    twin = folder.parent / f"twin-{name}"
+    shutil.copyfile(victim, twin)
+    _swap_out(victim, impostor, outside, "swap")
+    _read_refused(volume.data, outside)
+    victim.unlink()
+    os.symlink(twin, victim)  # the same bytes elsewhere inside the data root: read as before
+    np.testing.assert_array_equal(np.asarray(volume.data), VALUES)
+
+
+@pytest.mark.parametrize("kind", ["png stack", "tif stack", "dicom"])
+def test_one_slice_swapped_after_the_open_is_not_followed(server, kind):
+    """Numbered 2D slices and a DICOM series read each slice file when its plane is computed: the swapped slice
+    refuses, the others read as before."""
+    srv, data, outside = server
+    tag = kind.replace(" ", "-")
+    values, other = (VALUES, OTHER) if kind == "dicom" else (VALUES.astype(np.uint8), OTHER.astype(np.uint8) + 1)
+    fmt, options = {"png stack": ("stack", {}), "tif stack": ("stack", {"pattern": "z_{:03d}.tif"}),
+                    "dicom": ("dicom", {"unit": "millimeter"})}[kind]
+    scan = write_volume(values, data / "scans" / f"swap-{tag}", spacing=(1, 1, 1), format=fmt, **options)
+    volume = _catalog_volume(srv, data, scan)
+    assert volume.format == fmt and volume.data.chunks[0] == (1,) * SHAPE[0], (volume.format, volume.data.chunks)
+    np.testing.assert_array_equal(np.asarray(volume.data), values)
+    impostors = write_volume(other, outside / f"impostor-{tag}", spacing=(1, 1, 1), format=fmt, **options)
+    slices, theirs = sorted(p for p in scan.iterdir()), sorted(p for p in impostors.iterdir())
+    assert len(slices) == len(theirs) == SHAPE[0], (slices, theirs)
+    _swap_out(slices[2], theirs[2], outside, tag)
+    _read_refused(volume.data, outside)
+    _read_refused(volume.data[2], outside)
+    for z in (0, 1, 3):
+        np.testing.assert_array_equal(np.asarray(volume.data[z]), values[z])
+
+
+def test_a_multi_file_ome_tiff_naming_a_file_outside_is_refused(server):
+    """An OME-TIFF whose metadata spreads its planes over files (``TiffData``/``UUID FileName``): tifffile opens
+    the files it names, so one named outside the data root is refused at Register; the same files side by side
+    in the root register and read back."""
+    import uuid
+
+    import tifffile
+
+    srv, data, outside = server
+    planes = SHAPE[0] // 2
+
+    def xml(own: str, first: str, second: str, ids: tuple[str, str]) -> str:
+        entries = "".join(f'<TiffData FirstZ="{k * planes}" IFD="0" PlaneCount="{planes}"><UUID FileName="{name}">'
+                          f"{i}</UUID></TiffData>" for k, (name, i) in enumerate(zip((first, second), ids)))
+        return ('<?xml version="1.0" encoding="UTF-8"?><OME xmlns="http://www.openmicroscopy.org/Schemas/OME/'
+                f'2016-06" UUID="{own}"><Image ID="Image:0"><Pixels ID="Pixels:0" DimensionOrder="XYZCT" '
+                f'Type="uint16" SizeX="{SHAPE[2]}" SizeY="{SHAPE[1]}" SizeZ="{SHAPE[0]}" SizeC="1" SizeT="1">'
+                f'<Channel ID="Channel:0:0" SamplesPerPixel="1"/>{entries}</Pixels></Image></OME>')
+
+    for case, second_dir in (("inside", data / "scans"), ("outside", outside)):
+        ids = (f"urn:uuid:{uuid.uuid4()}", f"urn:uuid:{uuid.uuid4()}")
+        first = data / "scans" / f"ome-{case}-a.ome.tif"
+        second = second_dir / f"ome-{case}-b.ome.tif"
+        named = os.path.relpath(second, first.parent)
+        for path, part, own in ((first, VALUES[:planes], ids[0]), (second, VALUES[planes:], ids[1])):
+            tifffile.imwrite(path, part, description=xml(own, first.name, named, ids), metadata=None,
+                             photometric="minisblack")
+        assert open_volume(first).shape == SHAPE  # tifffile follows the file name wherever it leads
+        if case == "inside":
+            _fine(srv, os.path.relpath(first, data), VALUES)
+        else:
+            message = _refused(srv, os.path.relpath(first, data))
+            assert "OME-TIFF" in message, message
