@@ -201,6 +201,10 @@ def _reader_options(args: argparse.Namespace, path: Any) -> dict[str, Any]:
         if fmt != "dicom":
             raise UnwindError(f"--series chooses a series of a DICOM folder; {path} is {fmt}: leave out --series")
         opts["series"] = args.series
+    if getattr(args, "input_channel", None) is not None:
+        from .io.channels import channel_index
+
+        opts["channel"] = channel_index(path, args.input_channel, **opts)
     return opts
 
 

@@ -221,8 +221,8 @@ def _channel_count(path: str, args: argparse.Namespace) -> int:
     p = Path(path).expanduser().absolute()
     if not p.exists():
         return 1  # open_volume says it does not exist
-    opts = _reader_options(args, path)
-    return _count(p, opts.get("format") or detect_format(p), opts)
+    fmt = getattr(args, "input_format", None) or detect_format(p)
+    return _count(p, fmt, {"series": args.series} if getattr(args, "series", None) is not None else {})
 
 
 def _straighten_channels(args: argparse.Namespace) -> int:
@@ -276,7 +276,11 @@ def cmd_straighten(args: argparse.Namespace) -> int:
     from .io import open_volume
     from .warp import FoldWarning, export_iter
 
-    if len(args.input) > 1 or args.channel_names or _channel_count(args.input[0], args) > 1:
+    if args.input_channel is not None and (len(args.input) > 1 or args.channel_names):
+        raise UnwindError("--input-channel picks one channel of one scan; to straighten several images together "
+                          "leave it out")
+    if args.input_channel is None and (len(args.input) > 1 or args.channel_names
+                                       or _channel_count(args.input[0], args) > 1):
         return _straighten_channels(args)
     args.input = args.input[0]
     _check_output(args.output, args.overwrite)
@@ -877,6 +881,9 @@ def _add_input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--series", type=_series, default=None,
                    help="DICOM: which series to read (SeriesInstanceUID, SeriesNumber or 0-based index)")
     p.add_argument("--input-format", default=None, help="force the input format instead of detecting it")
+    p.add_argument("--input-channel", default=None, metavar="NAME|INDEX",
+                   help="a scan with several channels (OME-Zarr c axis, multi-channel TIFF): use this one (its name "
+                        "or 0-based index); the session records it")
 
 
 def _add_output_options(p: argparse.ArgumentParser) -> None:

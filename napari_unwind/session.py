@@ -1060,6 +1060,17 @@ def load_session(path: str | os.PathLike) -> Session:
 # ------------------------------------------------------------------------------------------------------------------
 # the scan behind a session
 # ------------------------------------------------------------------------------------------------------------------
+def open_source(source: SourceInfo, path: str | os.PathLike | None = None) -> Volume:
+    """Open a session's scan (at ``path``, default where the session says): the recorded channel of a
+    multi-channel file (``source.channel``), else the whole file."""
+    target = Path(source.path if path is None else path)
+    if source.channel is None:
+        return open_volume(target)
+    from .io.channels import channel_index
+
+    return open_volume(target, channel=channel_index(target, source.channel))
+
+
 def verify_source(
     session: Session,
     path: str | os.PathLike | None = None,

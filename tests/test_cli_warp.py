@@ -218,3 +218,42 @@ def test_a_scan_with_a_channel_axis_gives_every_channel(case, tmp_path):
     # without --same-grid the first input must be the session's scan: its checksum is checked
     code, _, err = _run("straighten", tmp_path / "two.zarr", "--session", session, "-o", tmp_path / "y.tif", "-q")
     assert code == 1 and "changed" in err and not (tmp_path / "y.tif").exists()
+
+
+def test_one_channel_of_a_multichannel_scan_runs_the_whole_pipeline(tmp_path):
+    """``unwind run two.zarr --input-channel ct``: segmented and straightened on that channel; the session records
+    it; ``unwind straighten two.zarr --session`` then gives both channels (the file's checksum is the session's)."""
+    import zarr
+
+    from napari_unwind.datasets import fish_phantom
+    from napari_unwind.io import open_channels
+    from napari_unwind.session import load_session
+    from napari_unwind.warp import straighten
+
+    fish = fish_phantom(length=60, body_radius=4, tube=False, seed=2)
+    root = zarr.open_group(str(tmp_path / "two.zarr"), mode="w", zarr_format=3)
+    stack = np.stack([(fish.mask * 900).astype(np.uint16), fish.volume.astype(np.uint16)])
+    arr = root.create_array("0", shape=stack.shape, chunks=(1, 32, 32, 32), dtype=stack.dtype)
+    arr[...] = stack
+    root.attrs["ome"] = {"version": "0.5", "multiscales": [{
+        "axes": [{"name": "c", "type": "channel"}] + [{"name": a, "type": "space", "unit": "micrometer"}
+                                                      for a in "zyx"],
+        "datasets": [{"path": "0", "coordinateTransformations": [
+            {"type": "scale", "scale": [1.0, *map(float, fish.spacing)]}]}]}],
+        "omero": {"channels": [{"label": "stain"}, {"label": "ct"}]}}
+    code, _, err = _run("run", tmp_path / "two.zarr", "--input-channel", "ct", "--select",
+                        ",".join(str(int(v)) for v in fish.centerline[len(fish.centerline) // 2]),
+                        "-o", tmp_path / "fish.ome.zarr", "-q")
+    assert code in (0, 2), err           # 2: a partial result, still written with its session
+    session = load_session(tmp_path / "fish.ome.unwind.json")
+    assert session.source.channel == "ct"
+    code, _, err = _run("straighten", tmp_path / "two.zarr", "--session", tmp_path / "fish.ome.unwind.json",
+                        "-o", tmp_path / "both.ome.zarr", "-q")
+    assert code == 0, err
+    chans = open_channels(tmp_path / "both.ome.zarr")
+    assert [c.metadata["channel"] for c in chans] == ["stain", "ct"]
+    expected = straighten(open_channels(tmp_path / "two.zarr")[1], session.deformation).data.compute()
+    np.testing.assert_array_equal(np.asarray(chans[1].data), expected)
+    code, _, err = _run("run", tmp_path / "two.zarr", "--input-channel", "nope", "--select", "1,1,1",
+                        "-o", tmp_path / "x.ome.zarr")
+    assert code == 1 and "stain, ct" in err and len(err.strip().splitlines()) == 1

@@ -30,7 +30,14 @@ import numpy as np
 
 from ..errors import InvalidInputError, UnknownFormatError
 from ..io import detect_format, open_volume
-from ..session import SESSION_SUFFIX, Session, SourceChangedError, SourceMissingError, load_session
+from ..session import (
+    SESSION_SUFFIX,
+    Session,
+    SourceChangedError,
+    SourceMissingError,
+    load_session,
+    open_source,
+)
 from ._docks import current_viewer_has_dock
 
 __all__ = ["contrast_limits", "get_reader", "get_session_reader", "read", "read_session", "session_layers"]
@@ -248,7 +255,7 @@ def session_layers(session: Session, *, session_path: str | Path | None = None, 
             f"the scan of {named} is missing: expected at {scan_path}. Put the scan back there, or correct "
             "\"source\" -> \"path\" in the session file to its new location, then open the session again"
         )
-    volume = open_volume(scan_path)
+    volume = open_source(src, scan_path)
     if tuple(volume.shape) != src.shape or np.dtype(volume.dtype).name != src.dtype:
         raise SourceChangedError(
             f"the scan at {scan_path} is not the one {named} was made from: it holds {tuple(volume.shape)} voxels "

@@ -120,6 +120,29 @@ def open_channels(paths: str | os.PathLike | Sequence[str | os.PathLike], *, nam
             for v, n in zip(volumes, chosen, strict=True)]  # levels kept
 
 
+def channel_index(path: str | os.PathLike, channel: str | int, **options: Any) -> int:
+    """The 0-based index of ``channel`` (a name or an index) in the file's channel axis.
+
+    Raises
+    ------
+    InvalidInputError
+        The file has no channel axis, or no such channel (the message lists its channels).
+    """
+    from ._formats import detect_format
+
+    path = Path(path).expanduser().absolute()
+    count = _count(path, options.get("format") or detect_format(path), options)
+    if count <= 1:
+        raise InvalidInputError(f"{path} has no channel axis: leave out the channel ({channel!r})")
+    names = [str(v.metadata.get("channel")) for v in open_channels(path, **options)]
+    text = str(channel)
+    if text in names:
+        return names.index(text)
+    if text.isdigit() and int(text) < count:
+        return int(text)
+    raise InvalidInputError(f"{path} has no channel {text!r}; its channels are {', '.join(names)} (or 0-{count - 1})")
+
+
 def channel_names(volumes: Sequence[Volume]) -> list[str]:
     """The channels' names (``metadata["channel"]``, else ``c<k>``)."""
     return [str(v.metadata.get("channel") or f"c{k}") for k, v in enumerate(volumes)]

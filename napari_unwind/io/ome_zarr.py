@@ -540,7 +540,8 @@ def _read_multiscales(path: Path, node: Any, ms: dict, version: str, level: int 
             elif _is_channel_axis(axes[ax]):
                 raise InvalidInputError(
                     f"{path} has {arr.shape[ax]} channels (axis {axis_names[ax]!r}); straighten them all with "
-                    "`unwind straighten` (or napari_unwind.io.open_channels), or pick one with channel=<index>"
+                    "`unwind straighten` (napari_unwind.io.open_channels), or pick one with --input-channel NAME "
+                "(channel= in Python)"
                 )
             else:
                 raise InvalidInputError(

@@ -519,7 +519,8 @@ def read_tiff(path: Path, *, series: int = 0, pattern: str | None = None,
         elif len(planes) > 1 and any(a == "C" for a, _ in planes):
             raise InvalidInputError(
                 f"{path} holds {dict(planes)['C']} channels (axes {axes}, shape {shape}); straighten them all with "
-                "`unwind straighten` (or napari_unwind.io.open_channels), or pick one with channel=<index>"
+                "`unwind straighten` (napari_unwind.io.open_channels), or pick one with --input-channel NAME "
+                "(channel= in Python)"
             )
         if len(planes) > 1 and pick is None:
             raise InvalidInputError(

@@ -232,11 +232,14 @@ def test_rgb_volume_is_refused(tmp_path):
         open_volume(tmp_path / "rgb.tif")
 
 
-def test_multichannel_volume_is_refused(tmp_path):
-    tifffile.imwrite(tmp_path / "c2.tif", _data("uint8", shape=(4, 2, 5, 6)), imagej=True,
-                     metadata={"axes": "ZCYX"})
-    with pytest.raises(InvalidInputError, match="2 channels.*grey"):
+def test_a_multichannel_volume_is_one_volume_only_with_a_channel_picked(tmp_path):
+    data = _data("uint8", shape=(4, 2, 5, 6))
+    tifffile.imwrite(tmp_path / "c2.tif", data, imagej=True, metadata={"axes": "ZCYX"})
+    with pytest.raises(InvalidInputError, match="2 channels.*--input-channel"):
         open_volume(tmp_path / "c2.tif")
+    np.testing.assert_array_equal(np.asarray(open_volume(tmp_path / "c2.tif", channel=1).data), data[:, 1])
+    with pytest.raises(InvalidInputError, match="channels 0..1, got channel=2"):
+        open_volume(tmp_path / "c2.tif", channel=2)
 
 
 def test_time_series_is_refused(tmp_path):

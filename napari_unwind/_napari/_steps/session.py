@@ -172,7 +172,9 @@ class SessionStep(Step):
             if not Path(src.path).exists():
                 raise InvalidInputError(f"the session's scan is missing: expected at {src.path}; put it back or "
                                         "correct \"source\" -> \"path\" in the session file")
-            volume = open_volume(src.path)
+            from ...session import open_source
+
+            volume = open_source(src)
             if volume.shape != tuple(src.shape):
                 raise InvalidInputError(f"the scan at {src.path} holds {volume.shape} voxels, the session's scan "
                                         f"{tuple(src.shape)}: it is not the scan the session was made from")
