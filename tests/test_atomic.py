@@ -246,6 +246,7 @@ def test_a_stale_temp_of_a_temp_is_removed(tmp_path):
     inner = _tmp_name(outer, _dead_pid(), 2, _atomic._host_tag())
     inner.mkdir()
     assert final_name(final_name(inner)) == "fish.zarr"
+    assert final_name(inner) == "fish.zarr"     # a temporary inside a temporary names the outermost final output
     assert _atomic.remove_stale_temps(target) == [inner] and not inner.exists()
 
 

@@ -171,6 +171,14 @@ def test_several_channels_are_straightened_in_one_pass_into_one_image(case, tmp_
     rec = attrs["unwind"]["straightening"]
     recorded = rec["session"]["channels"]
     assert [c["channel"] for c in recorded] == ["double", "mask"]
+    assert "unwind-tmp" not in json.dumps(attrs)   # no temporary name leaks into the metadata
+    # the same command again: the same bytes in every file of the store
+    again = tmp_path / "again.ome.zarr"
+    assert _run("straighten", scan, double, mask, "--session", session, "--channel-names", "ct,double,mask",
+                "-o", again, "-q")[0] == 0
+    files = sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(again) for p in again.rglob("*") if p.is_file())
+    assert all((out / f).read_bytes() == (again / f).read_bytes() for f in files)
     assert recorded[0]["path"].endswith("double.nrrd") and recorded[0]["checksum"].startswith("sha256:")
     # the hyperstack: Fiji's ZCYX with the names as labels
     tif = tmp_path / "all.tif"

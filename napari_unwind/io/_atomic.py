@@ -46,12 +46,14 @@ def final_name(path: str | os.PathLike) -> str:
     """The name a temporary output of :func:`atomic_output` will be renamed to.
 
     ``.fish.dat.1a2b3c4d.p42.s7.h0badcafe.unwind-tmp`` (or ``.fish.dat.1a2b3c4d.unwind-tmp``) -> ``fish.dat``;
-    any other name is returned unchanged. Writers that put companion files beside their output (raw + .dat,
-    .nhdr + data) use it to name them.
+    any other name is returned unchanged; a temporary output inside another's (an export writing through a writer
+    that is itself atomic) gives the outermost final name. Writers that put companion files beside their output
+    (raw + .dat, .nhdr + data) use it to name them.
     """
     name = Path(path).name
-    m = _TMP_RE.match(name)
-    return m.group("name") if m else name
+    while (m := _TMP_RE.match(name)) is not None:
+        name = m.group("name")
+    return name
 
 
 # ------------------------------------------------------------------------------------------------------------------

@@ -284,8 +284,8 @@ def _write_zarr(volumes: list[Volume], names: list[str], path: Path, *, attribut
                 cascades[k].push(0, np.ascontiguousarray(slab[k]), last=i + 1 == len(starts))
             del slab
             yield Progress("write", i + 1, len(starts), f"planes {z0}-{z1 - 1} of {shape[0]}, {nc} channels")
-    ngff = oz._ngff_attrs(first.metadata.get("name") or oz.final_name(path), first.unit, spacings, first.origin,
-                          False)
+    name = Path(first.source).name if first.source else oz.final_name(path)  # as write_ome_zarr names one channel
+    ngff = oz._ngff_attrs(name, first.unit, spacings, first.origin, False)
     ms = ngff["multiscales"][0]
     ms["axes"] = [{"name": "c", "type": "channel"}, *ms["axes"]]
     for ds in ms["datasets"]:
