@@ -584,15 +584,10 @@ def _linear_checked(flat, s0, s1, s2, r0, r1, r2, o0, o1, o2, n0, n1, n2, c0, c1
     return e0 + f0 * (e1 - e0)
 
 
-@njit(nogil=True, cache=True, fastmath={"contract"})
-def _linear_run(flat, s0, s1, s2, q0, q1, q2, u0, u1, u2, fa, fb, tmp, idx, fr, vals):
-    """The bounds-free run ``t = fa..fb`` of a line: ``tmp[t]`` = trilinear value at region voxel ``q + t u``.
-
-    Three passes over small buffers so that the first and the last vectorise: cells and fractions; the eight
-    neighbours (gathers, with unsigned flat indices: no wraparound tests); the weights.
-    """
-    n = fb + 1 - fa
-    us0, us1, us2 = np.uint64(s0), np.uint64(s1), np.uint64(s2)
+@njit(nogil=True, cache=True, inline="always", fastmath={"contract"})
+def _cells(q0, q1, q2, u0, u1, u2, fa, n, us0, us1, us2, idx, fr):
+    """For ``t < n``: the cell of region voxel ``q + (fa + t) u`` as a flat index ``idx[t]`` and its fractions
+    ``fr[:, t]`` (the first of the three passes of :func:`_linear_run`; vectorises)."""
     for t in range(n):
         ft = float(t + fa)
         x0 = q0 + ft * u0
@@ -605,8 +600,14 @@ def _linear_run(flat, s0, s1, s2, q0, q1, q2, u0, u1, u2, fa, fb, tmp, idx, fr, 
         fr[1, t] = x1 - b
         fr[2, t] = x2 - c
         idx[t] = np.uint64(a) * us0 + np.uint64(b) * us1 + np.uint64(c) * us2
+
+
+@njit(nogil=True, cache=True, inline="always", fastmath={"contract"})
+def _gather_weigh(flat, off, us0, us1, us2, idx, fr, vals, row, fa, n):
+    """``row[fa + t]`` = the trilinear value of cell ``idx[t] + off`` with fractions ``fr[:, t]``, t < n: the eight
+    neighbours gathered (unsigned flat indices: no wraparound tests), then weighted; both loops vectorise."""
     for t in range(n):
-        i000 = idx[t]
+        i000 = idx[t] + off
         i010 = i000 + us1
         i100 = i000 + us0
         i110 = i100 + us1
@@ -636,7 +637,20 @@ def _linear_run(flat, s0, s1, s2, q0, q1, q2, u0, u1, u2, fa, fb, tmp, idx, fr, 
         c11 = v110 + f2 * (v111 - v110)
         e0 = c00 + f1 * (c01 - c00)
         e1 = c10 + f1 * (c11 - c10)
-        tmp[t + fa] = e0 + f0 * (e1 - e0)
+        row[t + fa] = e0 + f0 * (e1 - e0)
+
+
+@njit(nogil=True, cache=True, fastmath={"contract"})
+def _linear_run(flat, s0, s1, s2, q0, q1, q2, u0, u1, u2, fa, fb, tmp, idx, fr, vals):
+    """The bounds-free run ``t = fa..fb`` of a line: ``tmp[t]`` = trilinear value at region voxel ``q + t u``.
+
+    Three passes over small buffers so that the first and the last vectorise: cells and fractions; the eight
+    neighbours (gathers, with unsigned flat indices: no wraparound tests); the weights.
+    """
+    n = fb + 1 - fa
+    us0, us1, us2 = np.uint64(s0), np.uint64(s1), np.uint64(s2)
+    _cells(q0, q1, q2, u0, u1, u2, fa, n, us0, us1, us2, idx, fr)
+    _gather_weigh(flat, np.uint64(0), us0, us1, us2, idx, fr, vals, tmp, fa, n)
 
 
 @njit(nogil=True, cache=True)
@@ -690,53 +704,9 @@ def _linear_run_channels(flat, sc, nc, s0, s1, s2, q0, q1, q2, u0, u1, u2, fa, f
     computed once, then gathered and weighted per channel into ``tmp[ch]``."""
     n = fb + 1 - fa
     us0, us1, us2 = np.uint64(s0), np.uint64(s1), np.uint64(s2)
-    for t in range(n):
-        ft = float(t + fa)
-        x0 = q0 + ft * u0
-        x1 = q1 + ft * u1
-        x2 = q2 + ft * u2
-        a = math.floor(x0)
-        b = math.floor(x1)
-        c = math.floor(x2)
-        fr[0, t] = x0 - a
-        fr[1, t] = x1 - b
-        fr[2, t] = x2 - c
-        idx[t] = np.uint64(a) * us0 + np.uint64(b) * us1 + np.uint64(c) * us2
+    _cells(q0, q1, q2, u0, u1, u2, fa, n, us0, us1, us2, idx, fr)
     for ch in range(nc):
-        off = np.uint64(ch * sc)
-        for t in range(n):
-            i000 = idx[t] + off
-            i010 = i000 + us1
-            i100 = i000 + us0
-            i110 = i100 + us1
-            vals[0, t] = flat[i000]
-            vals[1, t] = flat[i000 + us2]
-            vals[2, t] = flat[i010]
-            vals[3, t] = flat[i010 + us2]
-            vals[4, t] = flat[i100]
-            vals[5, t] = flat[i100 + us2]
-            vals[6, t] = flat[i110]
-            vals[7, t] = flat[i110 + us2]
-        row = tmp[ch]
-        for t in range(n):
-            f0 = fr[0, t]
-            f1 = fr[1, t]
-            f2 = fr[2, t]
-            v000 = float(vals[0, t])
-            v001 = float(vals[1, t])
-            v010 = float(vals[2, t])
-            v011 = float(vals[3, t])
-            v100 = float(vals[4, t])
-            v101 = float(vals[5, t])
-            v110 = float(vals[6, t])
-            v111 = float(vals[7, t])
-            c00 = v000 + f2 * (v001 - v000)
-            c01 = v010 + f2 * (v011 - v010)
-            c10 = v100 + f2 * (v101 - v100)
-            c11 = v110 + f2 * (v111 - v110)
-            e0 = c00 + f1 * (c01 - c00)
-            e1 = c10 + f1 * (c11 - c10)
-            row[t + fa] = e0 + f0 * (e1 - e0)
+        _gather_weigh(flat, np.uint64(ch * sc), us0, us1, us2, idx, fr, vals, tmp[ch], fa, n)
 
 
 @njit(nogil=True, cache=True)
