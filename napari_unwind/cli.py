@@ -130,6 +130,14 @@ def cmd_info(args: argparse.Namespace) -> int:
     # the header alone, without numpy (issue 18: start in <= 0.3 s); None for any other format and anything
     # unusual, which the full reader opens (and reports, warns about or refuses)
     header = read_header(path, **options)
+    if header is None and "channel" not in options and _channel_count(str(path), args) > 1:
+        from .io import open_channels
+
+        chans = open_channels(path, **options)
+        names = [str(c.metadata["channel"]) for c in chans]
+        print(describe(chans[0], path))
+        print(f"channels:  {len(chans)} ({', '.join(names)}), each as above; one with --input-channel NAME")
+        return 0
     if header is None:
         from .io import open_volume
 

@@ -265,3 +265,15 @@ def test_one_channel_of_a_multichannel_scan_runs_the_whole_pipeline(tmp_path):
     code, _, err = _run("run", tmp_path / "two.zarr", "--input-channel", "nope", "--select", "1,1,1",
                         "-o", tmp_path / "x.ome.zarr")
     assert code == 1 and "stain, ct" in err and len(err.strip().splitlines()) == 1
+
+
+def test_info_describes_every_channel(tmp_path):
+    import tifffile
+
+    data = np.arange(2 * 3 * 4 * 5, dtype=np.uint16).reshape(3, 2, 4, 5)
+    tifffile.imwrite(tmp_path / "h.tif", data, imagej=True, metadata={"axes": "ZCYX", "Labels": ["dapi", "gfp"] * 3})
+    code, out, err = _run("info", tmp_path / "h.tif")
+    assert code == 0, err
+    assert "shape:     3 x 4 x 5" in out and "channels:  2 (dapi, gfp)" in out
+    code, out, err = _run("info", tmp_path / "h.tif", "--input-channel", "gfp")
+    assert code == 0 and "channels:" not in out and "shape:     3 x 4 x 5" in out
