@@ -169,7 +169,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
     from .io import open_volume, write_volume_iter
 
     _check_io([args.output], [args.input])
-    src = open_volume(args.input, **_reader_options(args, args.input))
+    reader = _reader_options(args, args.input)
+    if "channel" not in reader and _channel_count(args.input, args) > 1:
+        return _convert_channels(args, reader)
+    src = open_volume(args.input, **reader)
     if args.level is not None:
         if not 0 <= args.level < len(src.levels):
             raise UnwindError(f"{args.input} has pyramid levels 0..{len(src.levels) - 1}, got --level {args.level}")
@@ -185,6 +188,24 @@ def cmd_convert(args: argparse.Namespace) -> int:
     )
     if not args.quiet:
         print(f"wrote {written} ({human_bytes(disk_usage(Path(written)))}) in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _convert_channels(args: argparse.Namespace, reader: dict[str, Any]) -> int:
+    """``unwind convert`` of a scan with a channel axis: every channel, into one multi-channel image."""
+    from .io import open_channels, write_channels_iter
+
+    if args.level is not None or args.nan_value is not None or args.spacing is not None or args.unit is not None:
+        raise UnwindError(f"{args.input} has several channels: --level, --nan-value, --spacing and --unit convert one "
+                          "channel at a time (--input-channel NAME)")
+    chans = open_channels(args.input, **reader)
+    options: dict[str, Any] = {} if args.chunks is None else {"chunks": args.chunks}
+    t0 = time.perf_counter()
+    written = _run_with_bar(write_channels_iter(chans, args.output, format=args.format, overwrite=args.overwrite,
+                                                **options), args.quiet)
+    if not args.quiet:
+        print(f"wrote {written}: {len(chans)} channels ({', '.join(c.metadata['channel'] for c in chans)}), "
+              f"{human_bytes(disk_usage(Path(written)))} in {time.perf_counter() - t0:.1f} s")
     return 0
 
 

@@ -277,3 +277,24 @@ def test_info_describes_every_channel(tmp_path):
     assert "shape:     3 x 4 x 5" in out and "channels:  2 (dapi, gfp)" in out
     code, out, err = _run("info", tmp_path / "h.tif", "--input-channel", "gfp")
     assert code == 0 and "channels:" not in out and "shape:     3 x 4 x 5" in out
+
+
+def test_convert_keeps_every_channel(tmp_path):
+    """An ImageJ hyperstack (written by tifffile) to OME-Zarr and back: the channels, their names and voxels."""
+    import tifffile
+
+    from napari_unwind.io import open_channels
+
+    data = np.random.default_rng(4).integers(0, 4000, (5, 3, 6, 7)).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "h.tif", data, imagej=True, metadata={"axes": "ZCYX", "Labels": ["a", "b", "c"] * 5})
+    code, _, err = _run("convert", tmp_path / "h.tif", tmp_path / "h.ome.zarr", "-q")
+    assert code == 0, err
+    chans = open_channels(tmp_path / "h.ome.zarr")
+    assert [c.metadata["channel"] for c in chans] == ["a", "b", "c"]
+    for k, c in enumerate(chans):
+        np.testing.assert_array_equal(np.asarray(c.data), data[:, k])
+    code, _, err = _run("convert", tmp_path / "h.tif", tmp_path / "h.nrrd", "-q")
+    assert code == 1 and "holds one channel" in err and not (tmp_path / "h.nrrd").exists()
+    code, _, err = _run("convert", tmp_path / "h.tif", tmp_path / "b.nrrd", "--input-channel", "b", "-q")
+    assert code == 0, err
+    np.testing.assert_array_equal(np.asarray(open_channels(tmp_path / "b.nrrd")[0].data), data[:, 1])
