@@ -150,7 +150,24 @@ def cmd_import(args: argparse.Namespace) -> int:
     from .io import import_volume_iter, open_volume
 
     _check_io([args.output], [args.input])
-    src = open_volume(args.input, **_reader_options(args, args.input))
+    reader = _reader_options(args, args.input)
+    if "channel" not in reader and _channel_count(args.input, args) > 1:
+        if args.labels or args.nan_value is not None or args.spacing is not None or args.unit is not None:
+            raise UnwindError(f"{args.input} has several channels: --labels, --nan-value, --spacing and --unit import "
+                              "one channel at a time (--input-channel NAME)")
+        from .io import open_channels, write_channels_iter
+
+        chans = open_channels(args.input, **reader)
+        t0 = time.perf_counter()
+        written = _run_with_bar(write_channels_iter(chans, args.output, format="ome-zarr", overwrite=args.overwrite,
+                                                    max_side=args.max_side,
+                                                    **({} if args.chunks is None else {"chunks": args.chunks})),
+                                args.quiet)
+        if not args.quiet:
+            print(f"imported {args.input} -> {written}: {len(chans)} channels "
+                  f"({', '.join(c.metadata['channel'] for c in chans)}) in {time.perf_counter() - t0:.1f} s")
+        return 0
+    src = open_volume(args.input, **reader)
     t0 = time.perf_counter()
     result = _run_with_bar(
         import_volume_iter(src, args.output, chunks=args.chunks, max_side=args.max_side, overwrite=args.overwrite,

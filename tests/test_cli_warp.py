@@ -279,8 +279,9 @@ def test_info_describes_every_channel(tmp_path):
     assert code == 0 and "channels:" not in out and "shape:     3 x 4 x 5" in out
 
 
-def test_convert_keeps_every_channel(tmp_path):
-    """An ImageJ hyperstack (written by tifffile) to OME-Zarr and back: the channels, their names and voxels."""
+def test_convert_and_import_keep_every_channel(tmp_path):
+    """An ImageJ hyperstack (written by tifffile) converted and imported to OME-Zarr: the channels, their names,
+    voxels and (import) the pyramid."""
     import tifffile
 
     from napari_unwind.io import open_channels
@@ -293,6 +294,11 @@ def test_convert_keeps_every_channel(tmp_path):
     assert [c.metadata["channel"] for c in chans] == ["a", "b", "c"]
     for k, c in enumerate(chans):
         np.testing.assert_array_equal(np.asarray(c.data), data[:, k])
+    code, _, err = _run("import", tmp_path / "h.tif", tmp_path / "i.zarr", "--max-side", "4", "-q")
+    assert code == 0, err
+    imported = open_channels(tmp_path / "i.zarr")
+    assert [c.metadata["channel"] for c in imported] == ["a", "b", "c"] and len(imported[2].levels) > 1
+    np.testing.assert_array_equal(np.asarray(imported[2].data), data[:, 2])
     code, _, err = _run("convert", tmp_path / "h.tif", tmp_path / "h.nrrd", "-q")
     assert code == 1 and "holds one channel" in err and not (tmp_path / "h.nrrd").exists()
     code, _, err = _run("convert", tmp_path / "h.tif", tmp_path / "b.nrrd", "--input-channel", "b", "-q")
