@@ -55,6 +55,16 @@ def test_the_export_takes_the_other_channel_layers_along(make_napari_viewer, qtb
         expected = straighten(as_volume(ref, spacing=1.0, unit="micrometer"), d).data.compute()
         np.testing.assert_array_equal(np.asarray(c.data), expected)
     assert {"straight both.ome.zarr [dapi]", "straight both.ome.zarr [gfp]"} <= {layer.name for layer in viewer.layers}
+    # the Measure section measures the other channel too (no selection here: the whole cage)
+    from napari_unwind.measure import measure
+
+    panel = w.export_step.measure_panel
+    job = panel.measure()
+    qtbot.waitUntil(lambda: job.done, timeout=120_000)
+    expected = measure(d, channels={"scan": as_volume(a, spacing=1.0, unit="micrometer"),
+                                    "gfp": as_volume(b, spacing=1.0, unit="micrometer")})
+    for col in ("scan_mean", "gfp_mean", "gfp_max"):
+        np.testing.assert_array_equal(panel.profile[col], expected[col])
     # a one-channel format with the box checked: refused in the status line, nothing written
     w.export(tmp_path / "x.nrrd")
     assert "holds one channel" in w.status.text() and not (tmp_path / "x.nrrd").exists()

@@ -116,6 +116,13 @@ class MeasurePanel(Step):
             selected = dock.has_selection
             if selected:
                 dock._check_selection()
+            # the Export page's other channels (when "with the other channels" is ticked) are measured too
+            channels = {"scan": volume}
+            for v in dock.export_step.channels_box.volumes():
+                name = str(v.metadata.get("channel"))
+                if name in channels:
+                    raise InvalidInputError(f"two channels are named {name!r}: rename a layer")
+                channels[name] = v
         except UnwindError as exc:
             self._fail(exc)
             return None
@@ -126,7 +133,7 @@ class MeasurePanel(Step):
             if selected:  # the features refined by the pipeline's select step, or the chosen mask: in the worker
                 mask = Volume(workflow.mask().astype("uint8"), spacing=volume.spacing, origin=volume.origin,
                               unit=volume.unit)
-            return (yield from measure_iter(d, mask=mask, channels={"scan": volume}))
+            return (yield from measure_iter(d, mask=mask, channels=channels))
 
         def done(profile: Any) -> None:
             self.profile, self._measured_on = profile, d
