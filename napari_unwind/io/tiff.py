@@ -384,8 +384,9 @@ def tiff_channel_names(tif: tifffile.TiffFile, count: int) -> list[str]:
 
 
 def tiff_channel_count(path: Path, series: int = 0) -> int:
-    """How many channels a TIFF series has along a ``C`` axis (1 when it has none)."""
-    with tifffile.TiffFile(path) as tif:
+    """How many channels a TIFF series has along a ``C`` axis (1 when it has none). tifffile's complaints about a
+    damaged file are kept, not printed: :func:`read_tiff` reports them."""
+    with _tifffile_log(), tifffile.TiffFile(path) as tif:
         if not tif.series or not 0 <= series < len(tif.series):
             return 1
         s = tif.series[series]
