@@ -1392,14 +1392,35 @@ def export_iter(
     fmt = output_format(path, write_options.get("format"))
     straight = straighten(volume, deformation, order=order, spacing=spacing, pad=pad, chunks=chunks, fill=fill,
                           max_output=max_output)
-    d2 = Deformation.from_dict(straight.metadata["deformation"])
-    ds = straight.metadata["output_spacing"]
     _check_disk(path, straight, fmt, write_options)
+    return (yield from _write_straight([straight], path, fmt, order=order, pad=pad, fill=fill, overwrite=overwrite,
+                                       session=session, scheduler=scheduler, write_options=write_options))
+
+
+def _write_straight(straight: list[Volume], path: str | os.PathLike, fmt: str, *, order: int, pad: int, fill: float,
+                    overwrite: bool, session: Any, scheduler: str | None,
+                    write_options: dict[str, Any]) -> Iterator[Progress]:
+    """Write straight volumes of one deformation (one, or the channels of :func:`straighten_channels`) in ``fmt``:
+    OME-Zarr with the straightening record and the map arrays beside the image, in one atomic folder; any other
+    format as its writer writes it. Returns the path."""
+    from .io.channels import write_channels_iter
+
+    first = straight[0]
+
+    def write(target: Any, **options: Any) -> Iterator[Progress]:
+        if len(straight) == 1:
+            return (yield from write_volume_iter(first, target, overwrite=overwrite, **options))
+        return (yield from write_channels_iter(straight, target, overwrite=overwrite, **options))
+
+    d2 = Deformation.from_dict(first.metadata["deformation"])
+    ds = first.metadata["output_spacing"]
     with use_scheduler(scheduler):
         if fmt != "ome-zarr":
             if "file_chunks" in write_options:
                 raise InvalidInputError(f"file_chunks is an option of OME-Zarr outputs, not of {fmt}")
-            written = yield from write_volume_iter(straight, path, overwrite=overwrite, **write_options)
+            if len(straight) > 1:
+                write_options = {**write_options, "format": fmt}
+            written = yield from write(path, **write_options)
             return written
         info = {
             "deformation": d2.to_dict(),
@@ -1407,9 +1428,11 @@ def export_iter(
             "output_spacing": ds,
             "pad": pad,
             "fill": float(fill),
-            "source": straight.source,
+            "source": first.source,
+            **({"sources": [v.source for v in straight], "channels": [v.metadata["channel"] for v in straight]}
+               if len(straight) > 1 else {}),
             "session": _session_dict(session),
-            **_map_attributes(straight, d2, ds),
+            **_map_attributes(first, d2, ds),
         }
         attributes = dict(write_options.pop("attributes", None) or {})
         attributes["straightening"] = info
@@ -1419,9 +1442,9 @@ def export_iter(
         target = check_writable(path, overwrite=overwrite)
         # the image and the map arrays appear together: write both into a temporary folder, then rename
         with atomic_output(target, overwrite=overwrite) as tmp:
-            yield from write_volume_iter(straight, tmp, format="ome-zarr", attributes=attributes, **write_options)
+            yield from write(tmp, format="ome-zarr", attributes=attributes, **write_options)
             yield Progress("map", 0, 1, "writing the straightening map")
-            _write_map_arrays(tmp, _straight_map(straight, d2, ds), {"description": "straightening map"})
+            _write_map_arrays(tmp, _straight_map(first, d2, ds), {"description": "straightening map"})
             yield Progress("map", 1, 1, "map written")
         return target
 
@@ -1450,7 +1473,7 @@ def export_channels_iter(
     ``.tif`` (ImageJ hyperstack ``ZCYX``). Each slab of output planes is computed for every channel in one pass.
     Other options as for :func:`export` (``file_chunks``: the OME-Zarr chunk of one channel).
     """
-    from .io.channels import CHANNEL_FORMATS, write_channels_iter
+    from .io.channels import CHANNEL_FORMATS
 
     fmt = output_format(path, write_options.get("format"))
     if fmt not in CHANNEL_FORMATS:
@@ -1459,42 +1482,12 @@ def export_channels_iter(
     straight = straighten_channels(volumes, deformation, order=order, spacing=spacing, pad=pad, chunks=chunks,
                                    fill=fill, max_output=max_output)
     first = straight[0]
-    d2 = Deformation.from_dict(first.metadata["deformation"])
-    ds = first.metadata["output_spacing"]
     whole = Volume(da.stack([v.data for v in straight]).reshape((-1, *first.shape[1:])), spacing=first.spacing,
                    unit=first.unit, origin=first.origin)
     _check_disk(path, whole, fmt, write_options)
     write_options.pop("format", None)
-    with use_scheduler(scheduler):
-        if fmt != "ome-zarr":
-            if "file_chunks" in write_options:
-                raise InvalidInputError(f"file_chunks is an option of OME-Zarr outputs, not of {fmt}")
-            written = yield from write_channels_iter(straight, path, format=fmt, overwrite=overwrite,
-                                                     **write_options)
-            return written
-        info = {
-            "deformation": d2.to_dict(),
-            "order": order,
-            "output_spacing": ds,
-            "pad": pad,
-            "fill": float(fill),
-            "source": first.source,
-            "sources": [v.source for v in straight],
-            "channels": [v.metadata["channel"] for v in straight],
-            "session": _session_dict(session),
-            **_map_attributes(first, d2, ds),
-        }
-        attributes = dict(write_options.pop("attributes", None) or {})
-        attributes["straightening"] = info
-        if "file_chunks" in write_options:
-            write_options["chunks"] = write_options.pop("file_chunks")
-        target = check_writable(path, overwrite=overwrite)
-        with atomic_output(target, overwrite=overwrite) as tmp:
-            yield from write_channels_iter(straight, tmp, format="ome-zarr", attributes=attributes, **write_options)
-            yield Progress("map", 0, 1, "writing the straightening map")
-            _write_map_arrays(tmp, _straight_map(first, d2, ds), {"description": "straightening map"})
-            yield Progress("map", 1, 1, "map written")
-        return target
+    return (yield from _write_straight(straight, path, fmt, order=order, pad=pad, fill=fill, overwrite=overwrite,
+                                       session=session, scheduler=scheduler, write_options=write_options))
 
 
 def export(
