@@ -287,12 +287,20 @@ def _skeleton_options(args: argparse.Namespace):
 
 def _pipeline_options(args: argparse.Namespace):
     """The :class:`~napari_unwind.pipeline.PipelineOptions` of ``unwind run`` (the options not given default)."""
-    from .pipeline import ExportOptions, PipelineOptions, SegmentOptions
+    from .pipeline import PipelineOptions, SegmentOptions
 
     seg = {k: v for k, v in dict(features=args.features, level=args.level, isovalue=args.isovalue,
                                   fill_holes=args.fill_holes or None).items() if v is not None}
+    return PipelineOptions(SegmentOptions(**seg), _skeleton_options(args), _export_options(args))
+
+
+def _export_options(args: argparse.Namespace):
+    """The :class:`~napari_unwind.pipeline.ExportOptions` of the export options given (``unwind run``,
+    ``unwind straighten``; the rest default)."""
+    from .pipeline import ExportOptions
+
     exp = {k: v for k, v in dict(order=args.order, spacing=args.spacing, pad=args.pad, chunks=args.chunks,
                                   allow_folds=args.allow_folds or None).items() if v is not None}
     if hasattr(args, "max_output"):
         exp["max_output"] = args.max_output
-    return PipelineOptions(SegmentOptions(**seg), _skeleton_options(args), ExportOptions(**exp))
+    return ExportOptions(**exp)

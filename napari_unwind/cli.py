@@ -37,6 +37,7 @@ from ._cliargs import (  # noqa: F401 (parse_size and the checks are part of thi
     _chunks,
     _default_session_path,
     _endpoints_from_args,
+    _export_options,
     _finite,
     _non_negative,
     _number,
@@ -246,20 +247,6 @@ def _load_session_for(args: argparse.Namespace, input_path: str | None, outputs:
     return session
 
 
-def _check_folds(deformation, allow: bool, folded: float | None = None) -> None:
-    """The one fold rule (:func:`napari_unwind.pipeline.fold_rule`): refuse a fold over the specimen (or where
-    that is unknown, ``folded`` None) unless ``allow``; a fold the rule lets through is one warning line."""
-    from .errors import FoldError
-    from .pipeline import fold_rule
-
-    verdict = fold_rule(deformation, folded=folded, allow_folds=allow)
-    if verdict is None:
-        return
-    if verdict.refused:
-        raise FoldError(verdict.message)
-    print(f"unwind: warning: {verdict.message}", file=sys.stderr)
-
-
 def _channel_count(path: str, args: argparse.Namespace) -> int:
     from .io._formats import detect_format
     from .io.channels import _count
@@ -276,20 +263,23 @@ def _straighten_channels(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from .io import open_channels
+    from .pipeline import export_step
     from .session import SourceInfo
-    from .warp import FoldWarning, export_channels_iter
 
     _check_output(args.output, args.overwrite)
+    options = _export_options(args)
     names = [n.strip() for n in args.channel_names.split(",")] if args.channel_names else None
     # without --same-grid the first input is the session's scan (checked against its checksum); the others are
     # images of its grid (shape here; spacing and origin by the warp)
     session = _load_session_for(args, None if args.same_grid else args.input[0], [args.output], args.input)
     first_opts = _reader_options(args, args.input[0])
     channels = open_channels(args.input, names=names, **first_opts)
+    if len(channels) == 1:
+        raise UnwindError(f"--channel-names names the channels of a multi-channel output, and {args.input[0]} has "
+                          "one channel: leave the option out, or give the other channels' images after it")
     for v in channels:
         _check_same_grid(session, v, str(v.source))
     deformation = session.deformation
-    _check_folds(deformation, args.allow_folds)
     # the session's scan itself (the first input, checked above, when it holds one channel) is its source already
     skip_first = not args.same_grid and _channel_count(args.input[0], args) == 1
     records, digests = [], {}
@@ -303,14 +293,10 @@ def _straighten_channels(args: argparse.Namespace) -> int:
                                shape=tuple(v.shape)))
     embedded = replace(session, channels=(*session.channels, *records))
     t0 = time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FoldWarning)  # reported above
-        written = _run_with_bar(
-            export_channels_iter(channels, deformation, args.output, order=args.order, spacing=args.spacing,
-                                 pad=args.pad, chunks=args.chunks, overwrite=args.overwrite,
-                                 session=embedded.to_dict(), scheduler=args.scheduler, **_max_output(args)),
-            args.quiet,
-        )
+    # the core's one export step (its fold rule, its options' keywords): what unwind run and the server write
+    written = _run_with_bar(export_step(channels[0], deformation, args.output, options=options, session=embedded,
+                                        overwrite=args.overwrite, scheduler=args.scheduler, channels=channels[1:]),
+                            args.quiet)
     if not args.quiet:
         print(f"straightened {len(channels)} channels ({', '.join(v.metadata['channel'] for v in channels)}) -> "
               f"{written} in {time.perf_counter() - t0:.1f} s")
@@ -320,7 +306,7 @@ def _straighten_channels(args: argparse.Namespace) -> int:
 
 def cmd_straighten(args: argparse.Namespace) -> int:
     from .io import open_volume
-    from .warp import FoldWarning, export_iter
+    from .pipeline import export_step
 
     if args.input_channel is not None and (len(args.input) > 1 or args.channel_names):
         raise UnwindError("--input-channel picks one channel of one scan; to straighten several images together "
@@ -330,12 +316,12 @@ def cmd_straighten(args: argparse.Namespace) -> int:
         return _straighten_channels(args)
     args.input = args.input[0]
     _check_output(args.output, args.overwrite)
+    options = _export_options(args)
     session = _load_session_for(args, None if args.same_grid else args.input, [args.output], [args.input])
     volume = open_volume(args.input, **_reader_options(args, args.input))
     if args.same_grid:
         _check_same_grid(session, volume, args.input)
     deformation = session.deformation
-    _check_folds(deformation, args.allow_folds)
     embedded = session
     if args.same_grid:  # the output's own session records the image it was made from
         from dataclasses import replace
@@ -344,14 +330,9 @@ def cmd_straighten(args: argparse.Namespace) -> int:
 
         embedded = replace(session, channels=(*session.channels, SourceInfo.from_path(args.input, volume=volume)))
     t0 = time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FoldWarning)  # reported above
-        written = _run_with_bar(
-            export_iter(volume, deformation, args.output, order=args.order, spacing=args.spacing, pad=args.pad,
-                        chunks=args.chunks, overwrite=args.overwrite, session=embedded.to_dict(),
-                        scheduler=args.scheduler, **_max_output(args)),
-            args.quiet,
-        )
+    # the core's one export step (its fold rule, its options' keywords): what unwind run and the server write
+    written = _run_with_bar(export_step(volume, deformation, args.output, options=options, session=embedded,
+                                        overwrite=args.overwrite, scheduler=args.scheduler), args.quiet)
     if not args.quiet:
         out = open_volume(written)
         print(f"straightened {args.input} -> {written} in {time.perf_counter() - t0:.1f} s")

@@ -304,3 +304,51 @@ def test_convert_and_import_keep_every_channel(tmp_path):
     code, _, err = _run("convert", tmp_path / "h.tif", tmp_path / "b.nrrd", "--input-channel", "b", "-q")
     assert code == 0, err
     np.testing.assert_array_equal(np.asarray(open_channels(tmp_path / "b.nrrd")[0].data), data[:, 1])
+
+
+@pytest.mark.parametrize("channels", [1, 2])
+def test_straighten_writes_what_the_pipeline_export_step_writes(case, tmp_path, channels):
+    """One pipeline: ``unwind straighten --chunks`` writes what the core's ``export_step`` (the step ``unwind run``,
+    the batch, the server and the dock call) writes with the same options, file for file: the OME-Zarr stored in
+    the chunks asked for (it kept zarr's default chunking on disk before), one channel and several."""
+    import json
+
+    from napari_unwind.io import open_volume as ov
+    from napari_unwind.pipeline import ExportOptions, export_step
+    from napari_unwind.progress import run as drive
+    from napari_unwind.session import load_session
+
+    tmp, fish, scan, session_path, d = case
+    inputs = [scan]
+    if channels == 2:
+        inputs.append(write_volume(fish.volume.astype(np.float32) * 2, tmp_path / "c2.nrrd", spacing=fish.spacing,
+                                   unit=fish.unit))
+    cli_out = tmp_path / "cli.ome.zarr"
+    code, _, err = _run("straighten", *inputs, "--session", session_path, "--chunks", "8,12,10", "--pad", "2",
+                        "-o", cli_out, "-q")
+    assert code == 0, err
+    # the chunking on disk, read from the store's own metadata (the reference: what was asked)
+    meta = json.loads((cli_out / "0" / "zarr.json").read_text())
+    chunk = meta["chunk_grid"]["configuration"]["chunk_shape"]
+    assert chunk[-3:] == [8, 12, 10]
+    # and every array file byte for byte what export_step writes
+    api_out = tmp_path / "api.ome.zarr"
+    others = [ov(p) for p in inputs[1:]]
+    for k, v in enumerate(others, start=1):
+        v.metadata["channel"] = f"c{k}"
+    drive(export_step(ov(scan), load_session(session_path).deformation, api_out,
+                      options=ExportOptions(chunks=(8, 12, 10), pad=2), channels=others or None))
+    cli_files = sorted(p.relative_to(cli_out) for p in cli_out.rglob("*") if p.is_file() and p.parent != cli_out)
+    api_files = sorted(p.relative_to(api_out) for p in api_out.rglob("*") if p.is_file() and p.parent != api_out)
+    assert cli_files == api_files
+    for rel in cli_files:
+        if rel.name != "zarr.json":
+            assert (cli_out / rel).read_bytes() == (api_out / rel).read_bytes(), rel
+
+
+def test_channel_names_for_one_image_of_one_channel_is_refused(case, tmp_path):
+    tmp, fish, scan, session_path, d = case
+    code, _, err = _run("straighten", scan, "--session", session_path, "--channel-names", "ct", "-o",
+                        tmp_path / "x.ome.zarr", "-q")
+    assert code == 1 and "--channel-names" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.ome.zarr").exists()
