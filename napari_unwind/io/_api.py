@@ -301,7 +301,8 @@ def import_slabs_iter(
 ) -> Iterator[Progress]:
     """:func:`import_volume_iter` for voxels that arrive in order, e.g. an upload: streamed, never held whole.
 
-    ``blocks`` are consecutive runs of planes along axis0 (each of shape ``(k, N1, N2)``, any ``k``); they are
+    ``blocks`` are consecutive runs of planes along axis0 (each of shape ``(k, N1, N2)``, any ``k``, or a whole slab
+    as an :class:`~napari_unwind.io.ome_zarr.EncodedSlab` whose chunks are stored as they came); they are
     cut into the store's slabs of ``chunks[0]`` planes as they come (without a copy when they already are), checked
     for NaN and infinities (or have them replaced by ``nan_value``), and written by the same OME-Zarr writer, so
     the store is the one :func:`import_volume` writes from the whole array. Fewer or more planes than ``shape``,
@@ -333,9 +334,18 @@ def import_slabs_iter(
             z0 += slab.shape[0]
             return slab
 
+        from .ome_zarr import EncodedSlab
+
         parts: list[np.ndarray] = []
         have = 0
         for block in blocks:
+            if isinstance(block, EncodedSlab) and not parts and block.voxels.dtype == dtype \
+                    and block.voxels.shape == (min(depth, shape[0] - z0), *shape[1:]):
+                voxels = ready(block.voxels)  # a whole slab whose chunks came encoded (an upload of "chunks")
+                yield block if voxels is block.voxels else voxels  # NaN replaced: encoded again
+                continue
+            if isinstance(block, EncodedSlab):
+                block = block.voxels
             block = np.asarray(block)
             if block.ndim != 3 or tuple(block.shape[1:]) != shape[1:] or block.dtype != dtype:
                 raise InvalidInputError(f"a block of planes of a {shape} {dtype} volume must have shape "
