@@ -540,6 +540,7 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
 _BRANCH_SLACK = 2.5  # inscribed radii: a voxel whose detour off the head-to-tail geodesic is larger is off the path
 _BRANCH_MIN_LENGTH = 0.2  # of the path's length: shorter side parts (fins, a caudal lobe) are kept
 _BRANCH_MIN_SHARE = 0.05  # of the mask: smaller side parts are kept
+_TISSUE_JACOBIAN = 0.25  # of min_jacobian: the tissue's own sides are shrunk only where J would fall below this
 _BRANCH_BACK = 1.0  # inscribed radii: a branch is cut where its detour exceeds this (back towards the junction)
 
 
@@ -901,8 +902,11 @@ def estimate_deformation_iter(
         d_c = Deformation.from_keyframes(curve[idx] + org, key_frames, he, pad=pd, spacing=tuple(sp),
                                          origin=tuple(org), unit=unit, offsets=offsets)
         if fold_free:
-            # where the inner side still reaches the centre of curvature: shrink it (the third way out)
-            d_c = unfold(d_c, eps=float(min_jacobian))
+            # where the inner side still reaches the centre of curvature: shrink it (the third way out), margins
+            # first down to min_jacobian, the tissue itself only where holding it would take J under a quarter of it
+            if tissue_c is not None:
+                d_c = unfold(d_c, eps=float(min_jacobian), floor=tissue_c)
+            d_c = unfold(d_c, eps=_TISSUE_JACOBIAN * float(min_jacobian), least="area")
         cov_c = coverage(d_c, mask_pts, bin_width=2 * float(max(wm.working_spacing))) if len(candidates) > 1 \
             else None
         if best is None or cov_c.fraction > best[0].fraction + 1e-4:  # the tilted cages unless no tilt holds more

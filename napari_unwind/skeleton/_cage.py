@@ -136,7 +136,36 @@ def _sections(arr: np.ndarray, pts: np.ndarray, fr: np.ndarray, sp: np.ndarray
     x = np.einsum("ij,ij->i", d, fr[j, 0])
     y = np.einsum("ij,ij->i", d, fr[j, 1])
     z = np.einsum("ij,ij->i", d, fr[j, 2])
-    return t, j, x, y, z, len(pts) - 1
+    last = len(pts) - 1
+    # beyond an end, only the tissue joined to that end's tip: another turn of a tight coil passing beyond the
+    # end plane (nearest to the end point because the body is tall there) would stretch the padding through it
+    keep = np.ones(len(j), dtype=bool)
+    for end, out in ((0, -1.0), (last, 1.0)):
+        sel = (j == end) & (out * z > 0)
+        if sel.any():
+            keep[np.flatnonzero(sel)[_detached_beyond(arr, sp, pts[end], out * fr[end, 2], vox_idx[sel])]] = False
+    return t, j[keep], x[keep], y[keep], z[keep], last
+
+
+def _detached_beyond(arr: np.ndarray, sp: np.ndarray, end: np.ndarray, normal: np.ndarray, idx: np.ndarray
+                     ) -> np.ndarray:
+    """Which voxels ``idx`` (index coordinates, beyond the plane through ``end`` (physical) facing ``normal``) are
+    not joined to the end's tip: the mask beyond the plane, 26-connected within a box around them and the end, split
+    into parts; the parts within two voxels of ``end`` are the tip (there may be none: the body ends before the
+    plane). None is detached when no mask voxel lies within two voxels of ``end`` (a curve that stops off the mask
+    keeps every voxel, as before)."""
+    e = end / sp
+    lo = np.maximum(np.floor(np.minimum(idx.min(axis=0), e)).astype(int) - 3, 0)
+    hi = np.minimum(np.ceil(np.maximum(idx.max(axis=0), e)).astype(int) + 4, np.asarray(arr.shape))
+    sub = arr[tuple(slice(a, b) for a, b in zip(lo, hi, strict=True))]
+    g = np.indices(sub.shape, dtype=float).reshape(3, -1).T + lo
+    beyond = sub & (((g * sp - end) @ normal) > 0).reshape(sub.shape)
+    near = (np.linalg.norm((g - e) * sp, axis=1) <= 2.0 * float(sp.max())).reshape(sub.shape)
+    if not (sub & near).any():
+        return np.zeros(len(idx), dtype=bool)
+    labels, _ = ndimage.label(beyond, _STRUCT26)
+    tip = np.unique(labels[near & beyond])
+    return ~np.isin(labels[tuple((idx - lo).T)], tip[tip > 0])
 
 
 def fit_cages(

@@ -24,8 +24,8 @@ from ..deformation import Deformation, Keyframe
 __all__ = ["unfold", "coverage", "max_tilt", "Coverage", "format_lost"]
 
 
-def unfold(d: Deformation, *, eps: float = 0.2, floor: np.ndarray | None = None, max_sweeps: int = 20
-           ) -> Deformation:
+def unfold(d: Deformation, *, eps: float = 0.2, floor: np.ndarray | None = None, max_sweeps: int = 20,
+           least: str = "length") -> Deformation:
     """Shrink the inner sides of the cages where ``det J < eps``; returns the deformation (unchanged if none).
 
     Parameters
@@ -38,7 +38,14 @@ def unfold(d: Deformation, *, eps: float = 0.2, floor: np.ndarray | None = None,
         margins are given up); default: none (a side may shrink to the curve).
     max_sweeps : int
         Passes over the segments at most.
+    least : {"length", "area"}
+        What the split of a corner's deficit between its x and y sides gives up least of: "length" cuts the side
+        of the faster rotation first (the least cage depth per unit of J); "area" the side whose cut loses the
+        least of the section's area per unit of J (rate over the other side's extent: a tall body's tall side
+        first when the bend turns about both frame axes).
     """
+    if least not in ("length", "area"):
+        raise ValueError(f"least must be 'length' or 'area', got {least!r}")
     bounds = d.bounds.copy()
     # the magnitude a side may shrink to
     keep = np.zeros_like(bounds) if floor is None else np.minimum(np.abs(np.asarray(floor, dtype=float)),
@@ -65,7 +72,12 @@ def unfold(d: Deformation, *, eps: float = 0.2, floor: np.ndarray | None = None,
                 # the deficit comes off the side of the faster rotation first: the least cage lost per unit
                 deficit = (a + b) - max(0.0, base - eps) + 1e-12
                 before = bounds[e].copy()
-                for side, rate, part in sorted(((ix, abs(wy), a), (iy, abs(wx), b)), key=lambda t: -t[1]):
+                if least == "area":  # depth lost per unit of J, times the length of the side that is cut
+                    order = ((ix, abs(wy), a, bounds[e, 3] - bounds[e, 2]),
+                             (iy, abs(wx), b, bounds[e, 1] - bounds[e, 0]))
+                else:
+                    order = ((ix, abs(wy), a, 1.0), (iy, abs(wx), b, 1.0))
+                for side, rate, part, _ in sorted(order, key=lambda t: -t[1] / max(t[3], 1e-12)):
                     if deficit <= 0 or part <= 0 or rate <= 0:
                         continue
                     mag = abs(bounds[e, side])
