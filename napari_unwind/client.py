@@ -17,6 +17,7 @@ Needs the ``server`` extra (grpcio); the core does not import this module.
 
 from __future__ import annotations
 
+import collections
 import csv
 import itertools
 import math
@@ -103,6 +104,31 @@ def _slabs(source: Any, dtype: np.dtype, step: int) -> Iterator[np.ndarray]:
         return np.ascontiguousarray(block, dtype=dtype)  # a view when it already is (no copy)
 
     yield from read_ahead(read, starts, name="unwind-upload-read")
+
+
+#: What a server that takes raw uploads only answers to an upload of format "chunks" (it ignores the format and
+#: counts the chunks' bytes as voxels): the client then uploads raw.
+_RAW_ONLY_SERVER = ("but the chunks held", "the chunks hold more bytes than the header's shape")
+
+
+def _encoded_chunks(source: Any, dtype: np.dtype, codec: Any) -> Iterator[bytes]:
+    """Upload messages of format "chunks": each chunk of ``source`` encoded as the store holds it (a few chunks
+    ahead, on two threads: blosc releases the GIL), in C order of the grid, one message each."""
+    from unwind_services.ingest import encode_chunk
+
+    def encode(part: np.ndarray) -> bytes:
+        return encode_chunk(*codec.encode(codec.chunk(part)))  # the message made with one copy
+
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="unwind-upload-encode") as pool:
+        inflight: collections.deque = collections.deque()
+        for cz, slab in enumerate(_slabs(source, dtype, codec.grid[0])):
+            for c in itertools.product([cz], *[range(n) for n in codec.counts[1:]]):
+                where = codec.bounds(c)
+                inflight.append(pool.submit(encode, slab[(slice(None), *where[1:])]))
+                while len(inflight) > 6:
+                    yield inflight.popleft().result()
+        while inflight:
+            yield inflight.popleft().result()
 
 
 class RemoteError(UnwindError):
@@ -383,10 +409,14 @@ class Client:
 
     # -- volumes -----------------------------------------------------------------------------------------------------
     def upload(self, data: Any, *, name: str | None = None, spacing: Any = None, unit: str | None = None,
-               origin: Any = None, labels: bool = False, timeout: float = 3600.0, **reader_options: Any):
+               origin: Any = None, labels: bool = False, timeout: float = 3600.0, format: str = "chunks",
+               **reader_options: Any):
         """Upload a scan (a path any reader opens, a Volume, or an array); it lands as an OME-Zarr pyramid.
 
-        Returns the server's ``VolumeInfo`` (``.volume_id`` names it in later calls).
+        ``format``: "chunks" (default) encodes the store's chunks here (blosc lz4 and their crc32c, on two threads
+        while they are sent: fewer bytes cross, and the server checks and stores them instead of encoding them);
+        "raw" sends the voxels' bytes. A server of an earlier version, which takes raw voxels only, is sent them
+        raw. Returns the server's ``VolumeInfo`` (``.volume_id`` names it in later calls).
         """
         from unwind_services._proto.unwind.v1 import volume_pb2
         from unwind_services.convert import dtype_enum
@@ -419,17 +449,42 @@ class Client:
         else:
             step = max(1, _SLAB_BYTES // plane)
 
-        def messages() -> Iterator[Any]:
+        if format not in ("chunks", "raw"):
+            raise InvalidInputError(f"format must be \"chunks\" or \"raw\", got {format!r}")
+        codec = None
+        if format == "chunks" and _CRC32C is not None and self._max_message >= 64 * 1024**2:
+            from .io.ome_zarr import ChunkCodec
+
+            codec = ChunkCodec(volume.shape, le)
+            if codec.max_bytes + 16 > self._max_message:
+                codec = None
+
+        def raw_messages() -> Iterator[Any]:
             yield volume_pb2.UploadRequest(header=header)
             for block in _slabs(source, le, step):
                 mv = memoryview(block).cast("B")
                 for a in range(0, len(mv), _CHUNK):
                     yield encode_chunk(mv[a:a + _CHUNK])  # encoded here: one copy, not protobuf's three
 
+        def chunk_messages() -> Iterator[Any]:
+            chunked = volume_pb2.UploadHeader()
+            chunked.CopyFrom(header)
+            chunked.format, chunked.chunk_shape[:] = "chunks", codec.grid
+            yield volume_pb2.UploadRequest(header=chunked)
+            yield from _encoded_chunks(source, le, codec)
+
         upload = self._channel.stream_unary("/unwind.v1.VolumeService/Upload",
                                             request_serializer=encoder(volume_pb2.UploadRequest),
                                             response_deserializer=volume_pb2.VolumeInfo.FromString)
-        return self._retrying(lambda: upload(messages(), timeout=timeout, metadata=self._metadata), "upload: ")
+        if codec is not None:
+            try:
+                return self._retrying(lambda: upload(chunk_messages(), timeout=timeout, metadata=self._metadata),
+                                      "upload: ")
+            except RemoteInvalidInputError as exc:
+                if not any(m in str(exc) for m in _RAW_ONLY_SERVER):
+                    raise
+                # a server of an earlier version took the chunks for raw voxels and refused their count: send raw
+        return self._retrying(lambda: upload(raw_messages(), timeout=timeout, metadata=self._metadata), "upload: ")
 
     def register(self, path: str, *, name: str = ""):
         """Register a scan already under the server's data root (``path`` relative to it)."""

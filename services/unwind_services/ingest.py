@@ -39,7 +39,8 @@ import numpy as np
 
 from napari_unwind.errors import InvalidInputError
 
-__all__ = ["UploadPipe", "import_stream", "encode_chunk", "chunk_payload", "encoder", "decoder", "level_slabs"]
+__all__ = ["UploadPipe", "import_stream", "upload_framing", "encode_chunk", "chunk_payload", "encoder", "decoder",
+           "level_slabs"]
 
 CHUNK_TAG = b"\x12"  # field 2, wire type 2 (length-delimited): ``chunk`` of UploadRequest and DownloadResponse
 
@@ -56,9 +57,10 @@ def _varint(n: int) -> bytes:
             return bytes(out)
 
 
-def encode_chunk(part: Any) -> bytes:
-    """The encoded message ``{chunk: part}`` (an UploadRequest or a DownloadResponse), made with one copy."""
-    return b"".join((CHUNK_TAG, _varint(len(part)), part))
+def encode_chunk(*parts: Any) -> bytes:
+    """The encoded message ``{chunk: the parts' bytes one after the other}`` (an UploadRequest or a
+    DownloadResponse), made with one copy."""
+    return b"".join((CHUNK_TAG, _varint(sum(len(p) for p in parts)), *parts))
 
 
 def chunk_payload(data: bytes) -> memoryview | None:
@@ -132,12 +134,14 @@ class UploadPipe:
             fcntl.fcntl(fd, _F_SETPIPE_SZ, _PIPE_BYTES)
         self.fd = fd
 
-    def write(self, data: bytes) -> bool:
-        """Send ``data`` to the worker; False when the worker stopped reading (its error is in the Future)."""
-        view = memoryview(data)
+    def write(self, *parts: Any) -> bool:
+        """Send ``parts`` (bytes-like) to the worker; False when the worker stopped reading (its error is in the
+        Future)."""
         try:
-            while view:
-                view = view[os.write(self.fd, view):]
+            for data in parts:
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(self.fd, view):]
         except BrokenPipeError:
             return False
         return True
@@ -159,6 +163,73 @@ class UploadPipe:
             os.close(self.fd)
             self.fd = None
         self.path.unlink(missing_ok=True)
+
+
+class _RawFraming:
+    """Upload format "raw": the voxels' bytes, cut anywhere; they go down the pipe as they came."""
+
+    format = "raw"
+
+    def __init__(self, shape: tuple[int, ...], dtype: np.dtype):
+        self.shape, self.dtype = shape, dtype
+        self.expected, self.received = int(np.prod(shape)) * dtype.itemsize, 0
+
+    def parts(self, chunk: Any) -> tuple:
+        self.received += len(chunk)
+        if self.received > self.expected:
+            raise InvalidInputError(f"the chunks hold more bytes than the header's shape {list(self.shape)} and "
+                                    f"dtype {self.dtype.name} ({self.expected} bytes)")
+        return (chunk,)
+
+    def check_complete(self) -> None:
+        if self.received != self.expected:
+            raise InvalidInputError(f"the header promises {self.expected} bytes (shape {list(self.shape)}, "
+                                    f"{self.dtype.name}) but the chunks held {self.received}")
+
+
+class _ChunkFraming:
+    """Upload format "chunks": one stored chunk a message; each goes down the pipe after its length (4 bytes,
+    little-endian). The worker checks and decodes it (:func:`_chunk_slabs`); here only the count and the size."""
+
+    format = "chunks"
+
+    def __init__(self, shape: tuple[int, ...], dtype: np.dtype, chunk_shape: tuple[int, ...], max_message: int):
+        from napari_unwind.io.ome_zarr import ChunkCodec
+
+        self.codec = ChunkCodec(shape, dtype)
+        if tuple(chunk_shape) != self.codec.grid:
+            raise InvalidInputError(f"chunk_shape must be {list(self.codec.grid)} for a volume of shape "
+                                    f"{list(shape)} (the server's chunks), got {list(chunk_shape)}")
+        if self.codec.max_bytes + 16 > max_message:
+            raise InvalidInputError(f"format \"chunks\" of this volume needs messages of up to "
+                                    f"{self.codec.max_bytes + 16} bytes, more than this server's limit of "
+                                    f"{max_message}; upload it raw")
+        self.expected, self.received = int(np.prod(self.codec.counts)), 0
+
+    def parts(self, chunk: Any) -> tuple:
+        if self.received >= self.expected:
+            raise InvalidInputError(f"more chunks than the {self.expected} of the volume arrived")
+        if not 4 < len(chunk) <= self.codec.max_bytes:
+            raise InvalidInputError(f"chunk {self.received} is {len(chunk)} bytes: not a stored chunk of "
+                                    f"{self.codec.nbytes} bytes of voxels and its checksum")
+        self.received += 1
+        return len(chunk).to_bytes(4, "little"), chunk
+
+    def check_complete(self) -> None:
+        if self.received != self.expected:
+            raise InvalidInputError(f"the volume has {self.expected} chunks but {self.received} arrived")
+
+
+def upload_framing(header: Any, dtype: np.dtype, max_message: int) -> _RawFraming | _ChunkFraming:
+    """How an upload's messages go down the pipe, from its header (format "raw" or "chunks"); a header asking for
+    anything else is an :class:`InvalidInputError`."""
+    shape = tuple(int(n) for n in header.shape)
+    fmt = (header.format or "raw").lower()
+    if fmt == "raw":
+        return _RawFraming(shape, dtype)
+    if fmt == "chunks":
+        return _ChunkFraming(shape, dtype, tuple(int(n) for n in header.chunk_shape), max_message)
+    raise InvalidInputError(f"format must be \"raw\" or \"chunks\", got {header.format!r}")
 
 
 def _chunk_reader(vol: Any, index: int) -> Any:
@@ -259,16 +330,65 @@ def _planes(fd: int, shape: tuple[int, int, int], dtype: np.dtype) -> Iterator[n
             yield slab
 
 
+def _chunk_slabs(fd: int, shape: tuple[int, int, int], dtype: np.dtype) -> Iterator[Any]:
+    """The stored chunks from the pipe (format "chunks", each after its length), a row of the grid at a time: each
+    chunk checked and decoded (:meth:`ChunkCodec.decode`, on two threads while the next ones arrive) into the row's
+    slab; yields the slabs with their chunks' bytes (:class:`EncodedSlab`), which the writer stores as they are."""
+    from napari_unwind.io.ome_zarr import ChunkCodec, EncodedSlab
+
+    codec = ChunkCodec(shape, dtype)
+    total, got = int(np.prod(codec.counts)), 0
+
+    with open(fd, "rb", buffering=0, closefd=False) as f, \
+            ThreadPoolExecutor(max_workers=2, thread_name_prefix="unwind-upload-decode") as pool:
+
+        def exact(n: int) -> bytearray:
+            buf = bytearray(n)
+            view, pos = memoryview(buf), 0
+            while pos < n:
+                k = f.readinto(view[pos:])
+                if not k:
+                    raise InvalidInputError(f"the upload ended after {got} of its {total} chunks")
+                pos += k
+            return buf
+
+        for cz in range(codec.counts[0]):
+            z0 = cz * codec.grid[0]
+            slab = np.empty((min(codec.grid[0], shape[0] - z0), *shape[1:]), dtype=codec.dtype)
+            chunks: dict = {}
+            decoding = []
+
+            def place(c: tuple[int, ...], blob: bytearray, slab: np.ndarray = slab) -> None:
+                where = codec.bounds(c)
+                slab[(slice(None), *where[1:])] = codec.decode(blob, c)
+
+            for c in itertools.product([cz], *[range(n) for n in codec.counts[1:]]):
+                n = int.from_bytes(exact(4), "little")
+                if n > codec.max_bytes:
+                    raise InvalidInputError(f"chunk {got} is {n} bytes, more than a stored chunk")
+                blob = exact(n)
+                got += 1
+                chunks[c] = blob
+                decoding.append(pool.submit(place, c, blob))
+            for d in decoding:
+                d.result()
+            yield EncodedSlab(slab, chunks, codec)
+        if f.read(1):
+            raise InvalidInputError(f"more than the {total} chunks of the volume arrived")
+
+
 def import_stream(fifo: str, shape: tuple, dtype: str, spacing: tuple | None, unit: str | None,
-                  origin: tuple | None, labels: bool, dst: str) -> None:
-    """Import the voxels arriving through ``fifo`` into the OME-Zarr pyramid ``dst`` (runs in a worker process)."""
+                  origin: tuple | None, labels: bool, dst: str, fmt: str = "raw") -> None:
+    """Import the voxels arriving through ``fifo`` into the OME-Zarr pyramid ``dst`` (runs in a worker process);
+    ``fmt``: the upload's format ("raw" voxels or the store's "chunks", see :func:`upload_framing`)."""
     from napari_unwind.io import import_slabs_iter
     from napari_unwind.progress import run
 
     shape = tuple(int(n) for n in shape)
     fd = _open_reader(fifo)
     try:
-        run(import_slabs_iter(_planes(fd, shape, np.dtype(dtype)), dst, shape=shape, dtype=dtype, spacing=spacing,
-                              unit=unit, origin=origin, labels=labels))
+        blocks = _chunk_slabs(fd, shape, np.dtype(dtype)) if fmt == "chunks" else _planes(fd, shape, np.dtype(dtype))
+        run(import_slabs_iter(blocks, dst, shape=shape, dtype=dtype, spacing=spacing, unit=unit, origin=origin,
+                              labels=labels))
     finally:
         os.close(fd)

@@ -34,7 +34,16 @@ from ._proto.unwind.v1 import (
 from .catalog import Catalog
 from .errors import CancelledError, DeadlineError, LimitError
 from .fairness import UserSlots, idle_limited, idle_sends
-from .ingest import UploadPipe, decoder, encode_chunk, encoder, import_stream, level_slabs, stored_chunks
+from .ingest import (
+    UploadPipe,
+    decoder,
+    encode_chunk,
+    encoder,
+    import_stream,
+    level_slabs,
+    stored_chunks,
+    upload_framing,
+)
 from .interceptor import current_user
 from .jobs import JobManager
 from .paths import check_file_name
@@ -109,17 +118,18 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             raise LimitError(f"the upload would be {expected} bytes, more than this server's limit of "
                              f"{limits.max_upload_bytes}")
         self.catalog.check_quota(owner, expected, "this upload")
+        framing = upload_framing(h, dtype, limits.max_message_bytes or 64 * 1024**2)  # "raw" or "chunks"
         vid = f"vol-{uuid.uuid4().hex[:12]}"
         dst = root.user_dir(owner) / "volumes" / f"{vid}.zarr"
         dst.parent.mkdir(parents=True, exist_ok=True)
         # a process of the import pool imports the voxels while they arrive (ingest.py); this thread checks, forwards
         pipe = UploadPipe(root.tmp, vid, lambda fifo: self.jobs.start_import(
             import_stream, fifo, tuple(h.shape), dtype.newbyteorder("<").str, tuple(h.spacing) or None,
-            h.unit or None, tuple(h.origin) or None, h.labels, str(dst)))
+            h.unit or None, tuple(h.origin) or None, h.labels, str(dst), framing.format))
         try:
             t0 = time.perf_counter()
             pipe.open(context.is_active)
-            received, stopped = 0, False
+            stopped = False
             for msg in request_iterator:
                 if isinstance(msg, memoryview):  # a chunk, not copied out of its message (ingest.decoder)
                     chunk = msg
@@ -127,17 +137,12 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
                     raise InvalidInputError("only the first message of an upload is a header; the rest are chunks")
                 else:
                     chunk = msg.chunk
-                received += len(chunk)
-                if received > expected:
-                    raise InvalidInputError(f"the chunks hold more bytes than the header's shape {list(h.shape)} "
-                                            f"and dtype {dtype.name} ({expected} bytes)")
-                if not pipe.write(chunk):
-                    stopped = True  # the import stopped (e.g. NaN voxels): finish() raises its error
+                if not pipe.write(*framing.parts(chunk)):  # counted and bounded against the header first
+                    stopped = True  # the import stopped (e.g. NaN voxels, a bad chunk): finish() raises its error
                     break
             t1 = time.perf_counter()
-            if not stopped and received != expected:
-                raise InvalidInputError(f"the header promises {expected} bytes (shape {list(h.shape)}, "
-                                        f"{dtype.name}) but the chunks held {received}")
+            if not stopped:
+                framing.check_complete()
             pipe.finish()
             log.info("upload %s of %s: %.1f MiB received in %.2f s, imported %.2f s after the last byte", vid,
                      owner, expected / 2**20, t1 - t0, time.perf_counter() - t1)

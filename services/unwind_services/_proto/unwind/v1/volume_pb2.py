@@ -26,7 +26,7 @@ _sym_db = _symbol_database.Default()
 from unwind_services._proto.unwind.v1 import common_pb2 as unwind_dot_v1_dot_common__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16unwind/v1/volume.proto\x12\tunwind.v1\x1a\x16unwind/v1/common.proto\"\x8b\x01\n\x0cUploadHeader\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\x1f\n\x05\x64type\x18\x03 \x01(\x0e\x32\x10.unwind.v1.DType\x12\x0f\n\x07spacing\x18\x04 \x03(\x01\x12\x0c\n\x04unit\x18\x05 \x01(\t\x12\x0e\n\x06origin\x18\x06 \x03(\x01\x12\x0e\n\x06labels\x18\x07 \x01(\x08\"S\n\rUploadRequest\x12)\n\x06header\x18\x01 \x01(\x0b\x32\x17.unwind.v1.UploadHeaderH\x00\x12\x0f\n\x05\x63hunk\x18\x02 \x01(\x0cH\x00\x42\x06\n\x04part\"-\n\x0fRegisterRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\"\x1e\n\tVolumeRef\x12\x11\n\tvolume_id\x18\x01 \x01(\t\"\xe2\x01\n\nVolumeInfo\x12\x11\n\tvolume_id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\r\n\x05shape\x18\x03 \x03(\x03\x12\x1f\n\x05\x64type\x18\x04 \x01(\x0e\x32\x10.unwind.v1.DType\x12\x0f\n\x07spacing\x18\x05 \x03(\x01\x12\x0c\n\x04unit\x18\x06 \x01(\t\x12\x0e\n\x06origin\x18\x07 \x03(\x01\x12\x0e\n\x06levels\x18\x08 \x01(\x05\x12\x0e\n\x06\x66ormat\x18\t \x01(\t\x12\x13\n\x0borigin_kind\x18\n \x01(\t\x12\x0f\n\x07\x63reated\x18\x0b \x01(\x01\x12\x0e\n\x06job_id\x18\x0c \x01(\t\"#\n\x12ListVolumesRequest\x12\r\n\x05limit\x18\x01 \x01(\x05\"=\n\x13ListVolumesResponse\x12&\n\x07volumes\x18\x01 \x03(\x0b\x32\x15.unwind.v1.VolumeInfo\"C\n\x0f\x44ownloadRequest\x12\x11\n\tvolume_id\x18\x01 \x01(\t\x12\x0e\n\x06\x66ormat\x18\x02 \x01(\t\x12\r\n\x05level\x18\x03 \x01(\x05\"\x81\x02\n\x0e\x44ownloadHeader\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\x1f\n\x05\x64type\x18\x03 \x01(\x0e\x32\x10.unwind.v1.DType\x12\x0f\n\x07spacing\x18\x04 \x03(\x01\x12\x0c\n\x04unit\x18\x05 \x01(\t\x12\x0e\n\x06origin\x18\x06 \x03(\x01\x12\x0e\n\x06\x66ormat\x18\x07 \x01(\t\x12\x13\n\x0btotal_bytes\x18\x08 \x01(\x03\x12\x0b\n\x03tar\x18\t \x01(\x08\x12\x11\n\tfile_name\x18\n \x01(\t\x12\x13\n\x0b\x63hunk_shape\x18\x0b \x03(\x03\x12\x14\n\x0c\x63hunk_crc32c\x18\x0c \x01(\x08\x12\x12\n\nfill_value\x18\r \x01(\x01\"X\n\x10\x44ownloadResponse\x12+\n\x06header\x18\x01 \x01(\x0b\x32\x19.unwind.v1.DownloadHeaderH\x00\x12\x0f\n\x05\x63hunk\x18\x02 \x01(\x0cH\x00\x42\x06\n\x04part2\xce\x02\n\rVolumeService\x12;\n\x06Upload\x12\x18.unwind.v1.UploadRequest\x1a\x15.unwind.v1.VolumeInfo(\x01\x12=\n\x08Register\x12\x1a.unwind.v1.RegisterRequest\x1a\x15.unwind.v1.VolumeInfo\x12\x45\n\x04List\x12\x1d.unwind.v1.ListVolumesRequest\x1a\x1e.unwind.v1.ListVolumesResponse\x12\x33\n\x04Info\x12\x14.unwind.v1.VolumeRef\x1a\x15.unwind.v1.VolumeInfo\x12\x45\n\x08\x44ownload\x12\x1a.unwind.v1.DownloadRequest\x1a\x1b.unwind.v1.DownloadResponse0\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16unwind/v1/volume.proto\x12\tunwind.v1\x1a\x16unwind/v1/common.proto\"\xb0\x01\n\x0cUploadHeader\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\x1f\n\x05\x64type\x18\x03 \x01(\x0e\x32\x10.unwind.v1.DType\x12\x0f\n\x07spacing\x18\x04 \x03(\x01\x12\x0c\n\x04unit\x18\x05 \x01(\t\x12\x0e\n\x06origin\x18\x06 \x03(\x01\x12\x0e\n\x06labels\x18\x07 \x01(\x08\x12\x0e\n\x06\x66ormat\x18\x08 \x01(\t\x12\x13\n\x0b\x63hunk_shape\x18\t \x03(\x03\"S\n\rUploadRequest\x12)\n\x06header\x18\x01 \x01(\x0b\x32\x17.unwind.v1.UploadHeaderH\x00\x12\x0f\n\x05\x63hunk\x18\x02 \x01(\x0cH\x00\x42\x06\n\x04part\"-\n\x0fRegisterRequest\x12\x0c\n\x04path\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\"\x1e\n\tVolumeRef\x12\x11\n\tvolume_id\x18\x01 \x01(\t\"\xe2\x01\n\nVolumeInfo\x12\x11\n\tvolume_id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\r\n\x05shape\x18\x03 \x03(\x03\x12\x1f\n\x05\x64type\x18\x04 \x01(\x0e\x32\x10.unwind.v1.DType\x12\x0f\n\x07spacing\x18\x05 \x03(\x01\x12\x0c\n\x04unit\x18\x06 \x01(\t\x12\x0e\n\x06origin\x18\x07 \x03(\x01\x12\x0e\n\x06levels\x18\x08 \x01(\x05\x12\x0e\n\x06\x66ormat\x18\t \x01(\t\x12\x13\n\x0borigin_kind\x18\n \x01(\t\x12\x0f\n\x07\x63reated\x18\x0b \x01(\x01\x12\x0e\n\x06job_id\x18\x0c \x01(\t\"#\n\x12ListVolumesRequest\x12\r\n\x05limit\x18\x01 \x01(\x05\"=\n\x13ListVolumesResponse\x12&\n\x07volumes\x18\x01 \x03(\x0b\x32\x15.unwind.v1.VolumeInfo\"C\n\x0f\x44ownloadRequest\x12\x11\n\tvolume_id\x18\x01 \x01(\t\x12\x0e\n\x06\x66ormat\x18\x02 \x01(\t\x12\r\n\x05level\x18\x03 \x01(\x05\"\x81\x02\n\x0e\x44ownloadHeader\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\r\n\x05shape\x18\x02 \x03(\x03\x12\x1f\n\x05\x64type\x18\x03 \x01(\x0e\x32\x10.unwind.v1.DType\x12\x0f\n\x07spacing\x18\x04 \x03(\x01\x12\x0c\n\x04unit\x18\x05 \x01(\t\x12\x0e\n\x06origin\x18\x06 \x03(\x01\x12\x0e\n\x06\x66ormat\x18\x07 \x01(\t\x12\x13\n\x0btotal_bytes\x18\x08 \x01(\x03\x12\x0b\n\x03tar\x18\t \x01(\x08\x12\x11\n\tfile_name\x18\n \x01(\t\x12\x13\n\x0b\x63hunk_shape\x18\x0b \x03(\x03\x12\x14\n\x0c\x63hunk_crc32c\x18\x0c \x01(\x08\x12\x12\n\nfill_value\x18\r \x01(\x01\"X\n\x10\x44ownloadResponse\x12+\n\x06header\x18\x01 \x01(\x0b\x32\x19.unwind.v1.DownloadHeaderH\x00\x12\x0f\n\x05\x63hunk\x18\x02 \x01(\x0cH\x00\x42\x06\n\x04part2\xce\x02\n\rVolumeService\x12;\n\x06Upload\x12\x18.unwind.v1.UploadRequest\x1a\x15.unwind.v1.VolumeInfo(\x01\x12=\n\x08Register\x12\x1a.unwind.v1.RegisterRequest\x1a\x15.unwind.v1.VolumeInfo\x12\x45\n\x04List\x12\x1d.unwind.v1.ListVolumesRequest\x1a\x1e.unwind.v1.ListVolumesResponse\x12\x33\n\x04Info\x12\x14.unwind.v1.VolumeRef\x1a\x15.unwind.v1.VolumeInfo\x12\x45\n\x08\x44ownload\x12\x1a.unwind.v1.DownloadRequest\x1a\x1b.unwind.v1.DownloadResponse0\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -34,25 +34,25 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'unwind.v1.volume_pb2', _glo
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_UPLOADHEADER']._serialized_start=62
-  _globals['_UPLOADHEADER']._serialized_end=201
-  _globals['_UPLOADREQUEST']._serialized_start=203
-  _globals['_UPLOADREQUEST']._serialized_end=286
-  _globals['_REGISTERREQUEST']._serialized_start=288
-  _globals['_REGISTERREQUEST']._serialized_end=333
-  _globals['_VOLUMEREF']._serialized_start=335
-  _globals['_VOLUMEREF']._serialized_end=365
-  _globals['_VOLUMEINFO']._serialized_start=368
-  _globals['_VOLUMEINFO']._serialized_end=594
-  _globals['_LISTVOLUMESREQUEST']._serialized_start=596
-  _globals['_LISTVOLUMESREQUEST']._serialized_end=631
-  _globals['_LISTVOLUMESRESPONSE']._serialized_start=633
-  _globals['_LISTVOLUMESRESPONSE']._serialized_end=694
-  _globals['_DOWNLOADREQUEST']._serialized_start=696
-  _globals['_DOWNLOADREQUEST']._serialized_end=763
-  _globals['_DOWNLOADHEADER']._serialized_start=766
-  _globals['_DOWNLOADHEADER']._serialized_end=1023
-  _globals['_DOWNLOADRESPONSE']._serialized_start=1025
-  _globals['_DOWNLOADRESPONSE']._serialized_end=1113
-  _globals['_VOLUMESERVICE']._serialized_start=1116
-  _globals['_VOLUMESERVICE']._serialized_end=1450
+  _globals['_UPLOADHEADER']._serialized_end=238
+  _globals['_UPLOADREQUEST']._serialized_start=240
+  _globals['_UPLOADREQUEST']._serialized_end=323
+  _globals['_REGISTERREQUEST']._serialized_start=325
+  _globals['_REGISTERREQUEST']._serialized_end=370
+  _globals['_VOLUMEREF']._serialized_start=372
+  _globals['_VOLUMEREF']._serialized_end=402
+  _globals['_VOLUMEINFO']._serialized_start=405
+  _globals['_VOLUMEINFO']._serialized_end=631
+  _globals['_LISTVOLUMESREQUEST']._serialized_start=633
+  _globals['_LISTVOLUMESREQUEST']._serialized_end=668
+  _globals['_LISTVOLUMESRESPONSE']._serialized_start=670
+  _globals['_LISTVOLUMESRESPONSE']._serialized_end=731
+  _globals['_DOWNLOADREQUEST']._serialized_start=733
+  _globals['_DOWNLOADREQUEST']._serialized_end=800
+  _globals['_DOWNLOADHEADER']._serialized_start=803
+  _globals['_DOWNLOADHEADER']._serialized_end=1060
+  _globals['_DOWNLOADRESPONSE']._serialized_start=1062
+  _globals['_DOWNLOADRESPONSE']._serialized_end=1150
+  _globals['_VOLUMESERVICE']._serialized_start=1153
+  _globals['_VOLUMESERVICE']._serialized_end=1487
 # @@protoc_insertion_point(module_scope)

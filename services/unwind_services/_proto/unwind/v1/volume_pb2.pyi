@@ -9,7 +9,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class UploadHeader(_message.Message):
-    __slots__ = ("name", "shape", "dtype", "spacing", "unit", "origin", "labels")
+    __slots__ = ("name", "shape", "dtype", "spacing", "unit", "origin", "labels", "format", "chunk_shape")
     NAME_FIELD_NUMBER: _ClassVar[int]
     SHAPE_FIELD_NUMBER: _ClassVar[int]
     DTYPE_FIELD_NUMBER: _ClassVar[int]
@@ -17,6 +17,8 @@ class UploadHeader(_message.Message):
     UNIT_FIELD_NUMBER: _ClassVar[int]
     ORIGIN_FIELD_NUMBER: _ClassVar[int]
     LABELS_FIELD_NUMBER: _ClassVar[int]
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    CHUNK_SHAPE_FIELD_NUMBER: _ClassVar[int]
     name: str
     shape: _containers.RepeatedScalarFieldContainer[int]
     dtype: _common_pb2.DType
@@ -24,7 +26,9 @@ class UploadHeader(_message.Message):
     unit: str
     origin: _containers.RepeatedScalarFieldContainer[float]
     labels: bool
-    def __init__(self, name: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., dtype: _Optional[_Union[_common_pb2.DType, str]] = ..., spacing: _Optional[_Iterable[float]] = ..., unit: _Optional[str] = ..., origin: _Optional[_Iterable[float]] = ..., labels: _Optional[bool] = ...) -> None: ...
+    format: str
+    chunk_shape: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, name: _Optional[str] = ..., shape: _Optional[_Iterable[int]] = ..., dtype: _Optional[_Union[_common_pb2.DType, str]] = ..., spacing: _Optional[_Iterable[float]] = ..., unit: _Optional[str] = ..., origin: _Optional[_Iterable[float]] = ..., labels: _Optional[bool] = ..., format: _Optional[str] = ..., chunk_shape: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class UploadRequest(_message.Message):
     __slots__ = ("header", "chunk")

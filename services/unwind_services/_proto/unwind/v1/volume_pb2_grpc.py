@@ -70,8 +70,9 @@ class VolumeServiceServicer:
     """
 
     def Upload(self, request_iterator, context):
-        """Upload a scan: first a header, then the voxels as raw C-order bytes in chunks (<= the message limit each).
-        The server imports it into an OME-Zarr pyramid under its data root and returns its description.
+        """Upload a scan: first a header, then the voxels as raw C-order bytes in chunks (<= the message limit each), or
+        as the store's encoded chunks (UploadHeader.format "chunks"). The server imports it into an OME-Zarr pyramid
+        under its data root and returns its description.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')

@@ -1,0 +1,210 @@
+"""Uploads of format "chunks": the client sends the store's encoded chunks, the server checks them and stores
+their bytes as they are. A real server in another process; the chunks of the hostile cases are made here with
+numcodecs' Blosc and google_crc32c directly (not with the code under test)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+from pathlib import Path
+
+import google_crc32c
+import grpc
+import numpy as np
+import pytest
+from _servers import ServerProcess
+from numcodecs import Blosc
+
+from napari_unwind.client import Client, RemoteError
+from napari_unwind.io import as_volume, import_volume
+from unwind_services._proto.unwind.v1 import common_pb2 as pb
+from unwind_services._proto.unwind.v1 import volume_pb2, volume_pb2_grpc
+
+SHAPE = (200, 20, 150)  # 2 x 1 x 2 chunks of 128^3 (clipped to 20 along axis 1), edges partial
+GRID = (128, 20, 128)
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("upload-chunks")
+    srv = ServerProcess(tmp / "data", "--workers", 1)
+    yield srv
+    srv.stop()
+
+
+def _files(store: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(store)): p.read_bytes() for p in sorted(store.rglob("*")) if p.is_file()}
+
+
+def _store(srv: ServerProcess, volume_id: str) -> Path:
+    (found,) = list((srv.data_root / ".unwind").rglob(f"{volume_id}.zarr"))
+    return found
+
+
+def _leftovers(srv: ServerProcess) -> list[str]:
+    private = srv.data_root / ".unwind"
+    return [os.path.relpath(os.path.join(d, n), private) for d, dirs, files in os.walk(private)
+            for n in dirs + files if "unwind-tmp" in n or n.endswith(".fifo") or Path(d) == private / "tmp"]
+
+
+def _volume(seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    smooth = np.linspace(0, 3000, SHAPE[2])[None, None, :] + np.linspace(0, 2000, SHAPE[1])[None, :, None]
+    return (smooth + rng.normal(0, 30, SHAPE)).astype(np.uint16)
+
+
+def _stored(chunk: np.ndarray, *, cname: str = "lz4", typesize: int = 2, shuffle: int = Blosc.SHUFFLE) -> bytes:
+    enc = Blosc(cname=cname, clevel=5, shuffle=shuffle, typesize=typesize).encode(np.ascontiguousarray(chunk))
+    return enc + google_crc32c.value(enc).to_bytes(4, "little")
+
+
+def _chunks(a: np.ndarray, **codec) -> list[bytes]:
+    """Every chunk of ``a`` as the store holds it, padded with zeros, in C order of the grid."""
+    out = []
+    for c in itertools.product(*[range(-(-n // g)) for n, g in zip(a.shape, GRID, strict=True)]):
+        part = a[tuple(slice(i * g, (i + 1) * g) for i, g in zip(c, GRID, strict=True))]
+        whole = np.zeros(GRID, a.dtype)
+        whole[tuple(slice(0, n) for n in part.shape)] = part
+        out.append(_stored(whole, **codec))
+    return out
+
+
+def _upload(srv: ServerProcess, chunks: list[bytes], *, shape=SHAPE, grid=GRID, fmt="chunks",
+            dtype=pb.DTYPE_UINT16, name="hostile"):
+    header = volume_pb2.UploadHeader(name=name, shape=list(shape), dtype=dtype, format=fmt, chunk_shape=list(grid))
+    msgs = [volume_pb2.UploadRequest(header=header)] + [volume_pb2.UploadRequest(chunk=c) for c in chunks]
+    opts = [("grpc.max_send_message_length", 64 * 2**20)]
+    with grpc.insecure_channel(srv.address, opts) as ch:
+        return volume_pb2_grpc.VolumeServiceStub(ch).Upload(iter(msgs), timeout=60)
+
+
+@pytest.mark.parametrize("fmt", ["chunks", "raw"])
+def test_both_formats_store_what_import_volume_writes(server, tmp_path, fmt):
+    a = _volume()
+    with Client(server.address, progress=False) as c:
+        info = c.upload(a, spacing=(3, 2, 1), unit="um", name="s", format=fmt)
+        np.testing.assert_array_equal(c.open(info.volume_id).data.compute(), a)
+    import_volume(as_volume(a, spacing=(3, 2, 1), unit="um"), tmp_path / "ref.zarr")
+    got, want = _files(_store(server, info.volume_id)), _files(tmp_path / "ref.zarr")
+    assert got.keys() == want.keys()
+    for name in want:
+        if name == "zarr.json":  # the root attributes name the store (its folder)
+            g, w = json.loads(got[name]), json.loads(want[name])
+            for d in (g, w):
+                d["attributes"]["ome"]["multiscales"][0].pop("name")
+            assert g == w
+        else:
+            assert got[name] == want[name], name
+    assert not _leftovers(server)
+
+
+def test_chunks_made_apart_are_stored_byte_for_byte(server):
+    """The level-0 files are the bytes sent, made here by numcodecs (not the client's encoder)."""
+    a = _volume(1)
+    sent = _chunks(a)
+    info = _upload(server, sent, name="apart")
+    store = _store(server, info.volume_id)
+    coords = itertools.product(*[range(-(-n // g)) for n, g in zip(SHAPE, GRID, strict=True)])
+    for c, blob in zip(coords, sent, strict=True):
+        assert (store / "0" / "c" / "/".join(map(str, c))).read_bytes() == blob
+
+
+def _flip(blob: bytes, at: int) -> bytes:
+    b = bytearray(blob)
+    b[at] ^= 0xFF
+    return bytes(b)
+
+
+def _recrc(blob: bytes) -> bytes:
+    return blob[:-4] + google_crc32c.value(blob[:-4]).to_bytes(4, "little")
+
+
+def _hostile_cases() -> dict:
+    a = _volume(2)
+    good = _chunks(a)
+    padded = a.copy()
+    big = np.full((256, 20, 256), 7, np.uint16)
+    big[:SHAPE[0], :, :SHAPE[2]] = a  # the edge chunks' padding is 7, not zeros
+    bad_padding = [_stored(big[tuple(slice(i * g, (i + 1) * g) for i, g in zip(c, GRID, strict=True))])
+                   for c in itertools.product(range(2), range(1), range(2))]
+    del padded
+    return {
+        "crc flipped": ([_flip(good[0], len(good[0]) - 1)] + good[1:], "crc32c"),
+        "block offsets broken, crc made again": ([_recrc(good[0][:16] + b"\xff" * 4 + good[0][20:-4] + b"0000")]
+                                                  + good[1:], "chunk 0/0/0 cannot be decoded"),
+        "another compressor": (_chunks(a, cname="zstd"), "codec"),
+        "another type size": (_chunks(a, typesize=1), "codec"),
+        "bit shuffle": (_chunks(a, shuffle=Blosc.BITSHUFFLE), "codec"),
+        "not blosc": ([_recrc(b"\0" * 64)] + good[1:], "codec"),
+        "edge padding not zeros": (bad_padding, "padding"),
+        "a chunk missing": (good[:-1], "chunks"),
+        "a chunk too many": (good + good[:1], "chunks"),
+        "an empty chunk": ([b""] + good[1:], "bytes"),
+    }
+
+
+CASES = _hostile_cases()
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_a_bad_chunk_is_invalid_argument_and_leaves_nothing(server, case):
+    chunks, words = CASES[case]
+    with pytest.raises(grpc.RpcError) as info:
+        _upload(server, chunks, name=case.replace(" ", "_").replace(",", ""))
+    assert info.value.code() == grpc.StatusCode.INVALID_ARGUMENT, info.value.details()
+    details = info.value.details()
+    assert words in details and "\n" not in details and str(server.data_root) not in details, details
+    assert not _leftovers(server)
+    with Client(server.address, progress=False) as c:
+        assert case.replace(" ", "_").replace(",", "") not in {v.name for v in c.volumes()}
+
+
+@pytest.mark.parametrize("header, words", [
+    (dict(grid=(64, 20, 128)), "chunk_shape must be [128, 20, 128]"),
+    (dict(grid=()), "chunk_shape must be"),
+    (dict(fmt="tiff"), "format must be"),
+])
+def test_a_bad_chunks_header_is_invalid_argument(server, header, words):
+    with pytest.raises(grpc.RpcError) as info:
+        _upload(server, _chunks(_volume()), **header)
+    assert info.value.code() == grpc.StatusCode.INVALID_ARGUMENT and words in info.value.details()
+    assert not _leftovers(server)
+
+
+def test_nan_in_an_upload_of_chunks_is_refused_with_its_voxel(server):
+    a = np.ones((200, 10, 12), np.float32)
+    a[150, 3, 4] = np.nan
+    with Client(server.address, progress=False) as c, pytest.raises(RemoteError) as info:
+        c.upload(a, name="nan", format="chunks")
+    assert info.value.code == "INVALID_ARGUMENT" and "NaN at voxel (150, 3, 4)" in str(info.value)
+    assert not _leftovers(server)
+
+
+def test_a_client_falls_back_to_raw_when_the_server_counts_the_chunks_as_voxels(server, monkeypatch):
+    """A server of before (raw uploads only) ignores the header's format and counts the chunks' bytes as voxels; the
+    client then sends raw. Emulated by clearing the format of the header on the wire, as that server's parser does."""
+    import unwind_services.ingest as ingest
+
+    sent = []
+    real = ingest.encoder
+
+    def old_wire(message_type):
+        encode = real(message_type)
+
+        def strip(message):
+            if not isinstance(message, bytes) and message.WhichOneof("part") == "header":
+                sent.append(message.header.format or "raw")
+                message = volume_pb2.UploadRequest(header=volume_pb2.UploadHeader(
+                    **{f.name: getattr(message.header, f.name) for f in message.header.DESCRIPTOR.fields
+                       if f.name not in ("format", "chunk_shape")}))
+            return encode(message)
+
+        return strip
+
+    monkeypatch.setattr(ingest, "encoder", old_wire)
+    a = _volume(3)
+    with Client(server.address, progress=False) as c:
+        info = c.upload(a, name="fallback")
+        np.testing.assert_array_equal(c.open(info.volume_id).data.compute(), a)
+    assert sent == ["chunks", "raw"]
