@@ -128,7 +128,8 @@ def test_the_fold_rule_is_the_same_on_the_cli_and_in_the_server_job(tmp_path):
     cli_message = err.strip()[len("unwind: error: "):]
 
     volume = open_volume(scan)
-    catalog = SimpleNamespace(volume=lambda owner, vid: (None, volume), session=lambda owner, sid: (None, session),
+    catalog = SimpleNamespace(volume=lambda owner, vid: (SimpleNamespace(id=vid, name="scan.nrrd"), volume),
+                              session=lambda owner, sid: (None, session),
                               add_volume=lambda *a: (SimpleNamespace(id="vol-out"), None))
     (tmp_path / "job").mkdir()
     ctx = tasks.TaskContext(catalog=catalog, owner="u", job_id="job-1", workdir=tmp_path / "job")

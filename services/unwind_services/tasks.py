@@ -101,6 +101,14 @@ def _portable(source: Any, row: Any) -> Any:
     return replace(source, path=row.name)
 
 
+def _named(volume: Any, row: Any) -> Any:
+    """A stored volume as a job's output may describe it: its ``source`` the name the user gave it, not the
+    server's path (written into outputs as their source, e.g. a straight volume's ``straightening.source``)."""
+    from dataclasses import replace
+
+    return replace(volume, source=row.name)
+
+
 def _register_session(ctx: TaskContext, path: Path) -> tuple[str, str]:
     name = Path(path).name
     row = ctx.catalog.store.add_object(ctx.owner, "session", name, ctx.catalog.root.relative(path), {}, ctx.job_id)
@@ -112,6 +120,7 @@ def segment(ctx: TaskContext, req: Any) -> TaskGen:
     from napari_unwind.segmentation import join_tree_iter, save_features_iter
 
     vrow, volume = ctx.catalog.volume(ctx.owner, req.volume_id)
+    volume = _named(volume, vrow)
     k = req.features or 5
     t0 = time.perf_counter()
     tree = yield from join_tree_iter(volume, level=req.level if req.has_level else None,
@@ -134,7 +143,8 @@ def select(ctx: TaskContext, req: Any) -> TaskGen:
     from napari_unwind.segmentation import default_isovalue, load_features, refine_mask_iter, select, selected_ids
 
     seg = ctx.catalog.segmentation(ctx.owner, req.segmentation_id)
-    _, volume = ctx.catalog.volume(ctx.owner, seg.meta["volume_id"])
+    vrow, volume = ctx.catalog.volume(ctx.owner, seg.meta["volume_id"])
+    volume = _named(volume, vrow)
     out = ctx.output(req.output_name, "mask.zarr")
     seeds = convert.points(req.seeds, "seed")
     k = req.features or int(seg.meta["k"])
@@ -182,10 +192,17 @@ def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:
 
 
 def straighten(ctx: TaskContext, req: Any) -> TaskGen:
-    from napari_unwind.pipeline import export_step
+    from dataclasses import replace
 
-    _, volume = ctx.catalog.volume(ctx.owner, req.volume_id)
+    from napari_unwind.pipeline import export_step
+    from napari_unwind.session import SourceInfo
+
+    vrow, volume = ctx.catalog.volume(ctx.owner, req.volume_id)
+    volume = _named(volume, vrow)
     _, session = ctx.catalog.session(ctx.owner, req.session_id)
+    # the session embedded in the output names its scan as the session file does (a name beside it), not by the
+    # server's path that loading it resolved
+    session = replace(session, source=replace(session.source, path=Path(session.source.path).name))
     out = ctx.output(req.options.output_name, "straight.zarr")
     if tuple(session.source.shape) != tuple(volume.shape):
         raise InvalidInputError(f"the session was made on a scan of shape {tuple(session.source.shape)} but the "
@@ -197,12 +214,19 @@ def straighten(ctx: TaskContext, req: Any) -> TaskGen:
             raise InvalidInputError(f"the scan's channel name {names[0]!r} is also another channel's: name each "
                                     "channel once")
         volume = volume.with_data(volume.data, metadata={**volume.metadata, "channel": names[0]})
+        records = []
         for c in req.channels:
-            _, v = ctx.catalog.volume(ctx.owner, c.volume_id)
+            crow, v = ctx.catalog.volume(ctx.owner, c.volume_id)
             if tuple(v.shape) != tuple(volume.shape):
                 raise InvalidInputError(f"channel {c.name!r} has shape {tuple(v.shape)} but the scan has "
                                         f"{tuple(volume.shape)}: channels must share the scan's grid")
-            channels.append(v.with_data(v.data, metadata={**v.metadata, "channel": c.name}))
+            yield Progress("checksum", len(records), len(req.channels), f"describing channel {c.name}")
+            # the session of the output records each other channel, as `unwind straighten A B` does: by its
+            # volume's name and content checksum (never the server's path)
+            records.append(replace(_portable(SourceInfo.from_path(ctx.catalog.path(crow), volume=v), crow),
+                                   channel=c.name, dtype=str(v.dtype), shape=tuple(v.shape)))
+            channels.append(_named(v, crow).with_data(v.data, metadata={**v.metadata, "channel": c.name}))
+        session = replace(session, channels=(*session.channels, *records))
     t0 = time.perf_counter()
     written = yield from export_step(volume, session.deformation, out, options=convert.export_options(req.options),
                                      session=session, scheduler=ctx.scheduler, channels=channels)
@@ -291,8 +315,10 @@ def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
     skeleton, session, straighten); the figures carry the specimen's status and reason."""
     from napari_unwind.pipeline import run_iter
     from napari_unwind.segmentation import load_features
+    from napari_unwind.session import SourceInfo
 
     vrow, volume = ctx.catalog.volume(ctx.owner, req.volume_id)
+    path, volume = ctx.catalog.path(vrow), _named(volume, vrow)
     out = ctx.output(req.export.output_name, "straight.zarr")
     seeds = convert.points(req.select, "select point")
     _one_specimen(req)
@@ -312,15 +338,14 @@ def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
         chosen["seeds"] = seeds
     stem = out.name.split(".")[0] or "straight"
     session_path = ctx.workdir / f"{stem}.unwind.json"
+    # the session (its file and the copy inside the straight volume) names the scan by its volume's name, never by
+    # the server's path (see _portable)
+    yield Progress("checksum", 0, 1, "describing the source")
+    source = _portable(SourceInfo.from_path(path, volume=volume), vrow)
+    yield Progress("checksum", 1, 1)
     r = yield from run_iter(volume, endpoints=endpoints, options=options, output=out, session_path=session_path,
-                            source=ctx.catalog.path(vrow), notes=f"unwind run (server job {ctx.job_id})",
+                            source=source, notes=f"unwind run (server job {ctx.job_id})",
                             scheduler=ctx.scheduler, **chosen)
-    if r.session is not None and session_path.exists():  # recorded again with the scan by name (see _portable)
-        from dataclasses import replace
-
-        from napari_unwind.session import save_session
-
-        save_session(replace(r.session, source=_portable(r.session.source, vrow)), session_path, overwrite=True)
     sid, text = _register_session(ctx, session_path)
     figures: dict[str, Any] = convert.result_figures(r)
     seg_record = r.session.segmentation

@@ -83,7 +83,7 @@ def test_each_step_on_the_server_matches_the_core(setup, tmp_path):
     from napari_unwind.segmentation import join_tree, refine_mask, select
     from napari_unwind.warp import bend, map_points, straighten
 
-    _, t, scan, srv = setup
+    tmp, t, scan, srv = setup
     fish = t.fish[1]
     volume = open_volume(scan)
     with Client(srv.address, progress=False) as c:
@@ -162,6 +162,15 @@ def test_each_step_on_the_server_matches_the_core(setup, tmp_path):
 
         chans = open_channels(got)
         assert [ch.metadata["channel"] for ch in chans] == ["ct", "mask"]
+        # what the output says of its sources: the volumes by name and checksum, never the server's paths; its
+        # session records the other channel as the command line's does
+        text = (got / "zarr.json").read_text()
+        assert str((tmp / "data").resolve()) not in text and str(tmp / "data") not in text
+        info = json.loads(text)["attributes"]["unwind"]["straightening"]
+        records = info["session"]["channels"]
+        assert [r["channel"] for r in records] == ["mask"]
+        assert records[0]["path"] == c.info(mask_job.result.volume_id).name
+        assert records[0]["checksum"].startswith("sha256:")
         np.testing.assert_array_equal(np.asarray(chans[0].data), expected)
         np.testing.assert_array_equal(np.asarray(chans[1].data),
                                       straighten(c.open(mask_job.result.volume_id), d).data.compute()
@@ -178,6 +187,18 @@ def test_each_step_on_the_server_matches_the_core(setup, tmp_path):
         kinds = {pb.JobKind.Name(j.kind) for j in c.jobs()}
         assert {"JOB_KIND_SEGMENT", "JOB_KIND_SELECT", "JOB_KIND_ESTIMATE_DEFORMATION", "JOB_KIND_STRAIGHTEN",
                 "JOB_KIND_BEND", "JOB_KIND_MEASURE"} <= kinds
+    # nothing a job wrote for the user names the server's own files (a straight volume's source, a mask's, the
+    # features'; they named the stored volume's path on the server)
+    assert _server_paths_in_outputs(tmp / "data") == []
+
+
+def _server_paths_in_outputs(data_root):
+    """Files a job wrote for a user (what a download hands over: metadata, sessions, tables) that name the server's
+    own data root."""
+    root = str(data_root.resolve()).encode()
+    return [str(f.relative_to(data_root)) for f in (data_root / ".unwind" / "users").rglob("*")
+            if f.is_file() and f.suffix in (".json", ".csv", ".txt", ".nhdr", ".zattrs", ".zgroup", ".zarray")
+            and root in f.read_bytes()[:200_000]]
 
 
 def test_a_batch_straightens_every_fish_of_a_tank_and_writes_a_summary(setup, tmp_path):
@@ -186,6 +207,7 @@ def test_a_batch_straightens_every_fish_of_a_tank_and_writes_a_summary(setup, tm
         rows = c.run_batch([BatchItem(scan=str(scan), select="all", name="tank", features=3),
                             BatchItem(scan=str(tmp / "missing.zarr"), select="all", name="missing")],
                            max_parallel=2, out_dir=tmp_path / "out", suffix=".nrrd")
+    assert _server_paths_in_outputs(tmp / "data") == []
     by_name = {r["name"]: r for r in rows}
     assert set(by_name) == {"tank_f1", "tank_f2", "tank_f3", "missing"}
     assert by_name["missing"]["state"] == "failed" and "does not exist" in by_name["missing"]["error"]
