@@ -472,6 +472,9 @@ def _part_curve(
     return np.vstack([head, cents[ok], tail])
 
 
+_TISSUE_JACOBIAN = 0.25  # of min_jacobian: the tissue's own sides are shrunk only where J would fall below this
+
+
 def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx: np.ndarray, eps: float,
                      margin: float, context: float = 0.0) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
     """Keyframe frames and cage sides ``(m, 4)``: cages fitted per side to the sections, their margins given up
@@ -540,7 +543,6 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
 _BRANCH_SLACK = 2.5  # inscribed radii: a voxel whose detour off the head-to-tail geodesic is larger is off the path
 _BRANCH_MIN_LENGTH = 0.2  # of the path's length: shorter side parts (fins, a caudal lobe) are kept
 _BRANCH_MIN_SHARE = 0.05  # of the mask: smaller side parts are kept
-_TISSUE_JACOBIAN = 0.25  # of min_jacobian: the tissue's own sides are shrunk only where J would fall below this
 _BRANCH_BACK = 1.0  # inscribed radii: a branch is cut where its detour exceeds this (back towards the junction)
 
 
@@ -1005,8 +1007,10 @@ def estimate_deformation(
         ``end_window_factor`` (2: the curve's ends, over this many times the largest inscribed radius, are
         replaced by a quadratic fit, see :func:`~napari_unwind.skeleton.regularise_ends`; 0 keeps them),
         ``fold_free`` (True: each keyframe's cage fitted per side to the sections there, and inner sides shrunk
-        where the Jacobian would fall below ``min_jacobian``, 0.2; False: one centred cage for the whole body, as
-        before), ``cage_margin`` (0.1: the cage's relative margin; 2 working voxels are added besides),
+        where the Jacobian would fall below ``min_jacobian``, 0.2, the margins only: the tissue's own extent is
+        cut only where holding it would take the Jacobian under a quarter of ``min_jacobian``; False: one centred
+        cage for the whole body, as before), ``cage_margin`` (0.1: the cage's relative margin; 2 working voxels
+        are added besides),
         ``context`` (0: physical units added to every side of the fitted cages and to the end padding, so that
         the straight volume shows what surrounds the specimen; given up where a bend would fold the cage, and
         reported),
