@@ -132,3 +132,25 @@ def test_the_tissue_is_lost_when_the_shrink_cuts_it_like_a_margin(helix_1011, mo
 def test_same_mask_same_keyframes(helix_1011):
     a, b = _solve(helix_1011).deformation, _solve(helix_1011).deformation
     assert a.to_dict() == b.to_dict()
+
+
+def test_unfold_by_least_area_cuts_the_tall_side_of_a_tall_cage():
+    """The arc of tests/test_fold_free.py turned by 30 degrees about n (det J = cos(h) - x kx + y ky at the inner
+    corner x_hi, y_lo; x turns faster, kx = k cos 30 > ky = k sin 30) with a tall cage, x in [-3, 8], y in
+    [-30, 3]. By length the faster x side goes first, onto the curve, and y_lo takes the rest; by area (rate over
+    the other side's length: kx / 33 < ky / 11) y_lo alone is cut, to where det J = eps with x_hi = 8 kept."""
+    from test_fold_free import _turned_arc
+
+    radius, eps, cage = 10.0, 0.2, (-3.0, 8.0, -30.0, 3.0)
+    d, base, k = _turned_arc(radius, np.radians(30.0), cage)
+    assert d.folds()
+    kx, ky = k * np.cos(np.radians(30.0)), k * np.sin(np.radians(30.0))
+    m = base - eps
+    by_area = ff.unfold(d, eps=eps, least="area").bounds
+    np.testing.assert_allclose(by_area, np.tile([-3.0, 8.0, -(m - 8.0 * kx) / ky, 3.0], (len(d), 1)), rtol=1e-9,
+                               atol=1e-9)
+    by_length = ff.unfold(d, eps=eps).bounds
+    np.testing.assert_allclose(by_length[:, 1], 0.0, atol=1e-4)  # x_hi onto the curve (a sliver)
+    np.testing.assert_allclose(by_length[:, 2], -m / ky, rtol=1e-9)
+    with pytest.raises(ValueError, match="least"):
+        ff.unfold(d, eps=eps, least="volume")
