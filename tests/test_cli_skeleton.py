@@ -315,9 +315,10 @@ def test_bad_cage_is_refused_in_one_line(fish, tmp_path, capsys, bad):
     assert _one_error_line(err) and "--cage" in err and bad in err
 
 
-def test_a_fold_over_no_specimen_voxel_is_a_warning_and_one_over_the_specimen_is_refused(capsys):
-    from napari_unwind.cli import UnwindError, _check_folds
+def test_a_fold_over_no_specimen_voxel_is_a_warning_and_one_over_the_specimen_is_refused():
+    """The one fold rule (pipeline.fold_rule, which export_step applies for every face)."""
     from napari_unwind.deformation import Deformation
+    from napari_unwind.pipeline import fold_rule
 
     t = np.linspace(0, np.pi / 2, 40)
     pos = np.stack([np.zeros_like(t), 10 * np.sin(t), 10 * (1 - np.cos(t))], axis=1)
@@ -325,14 +326,14 @@ def test_a_fold_over_no_specimen_voxel_is_a_warning_and_one_over_the_specimen_is
     v = np.tile([1.0, 0.0, 0.0], (len(t), 1))
     folding = Deformation.from_keyframes(pos, np.stack([np.cross(v, n), v, n], axis=1), 12.0)
     assert folding.folds()
-    _check_folds(folding, False, folded=0.0)
-    err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and "no voxel of the specimen" in err and "--cage" in err
+    verdict = fold_rule(folding, folded=0.0, allow_folds=False)
+    assert not verdict.refused and len(verdict.message.splitlines()) == 1
+    assert "no voxel of the specimen" in verdict.message and "--cage" in verdict.message
     for folded in (0.01, None):
-        with pytest.raises(UnwindError, match="--allow-folds"):
-            _check_folds(folding, False, folded=folded)
-    _check_folds(folding, True, folded=0.01)
-    assert "1 % of the specimen" in capsys.readouterr().err
+        verdict = fold_rule(folding, folded=folded, allow_folds=False)
+        assert verdict.refused and "--allow-folds" in verdict.message
+    verdict = fold_rule(folding, folded=0.01, allow_folds=True)
+    assert not verdict.refused and "1 % of the specimen" in verdict.message
 
 
 def test_run_with_fill_holes_refines_at_the_lowest_threshold_the_mask_covers(tmp_path):
