@@ -7,7 +7,8 @@
 Everything runs in one invocation, each server in its own process on 127.0.0.1:
 
 1. Transfer: a ``--mib`` MiB uint16 volume (smooth + noise) uploaded with ``Client.upload`` (the server imports it
-   into an OME-Zarr pyramid while it streams) and downloaded with ``Client.open`` (level 0 as the store's
+   into an OME-Zarr pyramid while it streams; the default format "chunks", where the client encodes the store's
+   chunks, and format "raw", where the server does) and downloaded with ``Client.open`` (level 0 as the store's
    chunks, decoded by the client), against a bare gRPC server that only receives / sends the same number of bytes in
    the same 2 MiB messages (identity serializers, no protobuf, no disk). Two more rows bound the upload: the
    client's own messages (``Client.upload``'s, from the same array) into the bare server, i.e. the transfer without
@@ -27,6 +28,7 @@ Everything runs in one invocation, each server in its own process on 127.0.0.1:
 from __future__ import annotations
 
 import argparse
+import inspect
 import re
 import select
 import shutil
@@ -179,13 +181,20 @@ def transfer(address: str, raw_address: str, mib: int, repeats: int, tmp: Path) 
     nbytes = vol.nbytes
     raw_up, raw_down = _raw_rates(raw_address, nbytes, repeats)
     client_up = _client_messages_rate(raw_address, vol, repeats)
-    up, down, imp = [], [], []
+    up, up_raw, down, imp = [], [], [], []
+    formats = "format" in inspect.signature(Client.upload).parameters  # the code of before (--before) has none
     with Client(address, progress=False, timeout=600) as c:
         c.upload(vol[:8], name="warm-up")  # the job worker's first task loads its imports
+        if formats:
+            c.upload(vol[:8], name="warm-up", format="raw")
         for i in range(repeats):
             t0 = time.perf_counter()
             vid = c.upload(vol, name=f"bench{i}").volume_id
             up.append(time.perf_counter() - t0)
+            if formats:  # the raw voxels, imported (encoded) by the server
+                t0 = time.perf_counter()
+                c.upload(vol, name=f"bench{i}-raw", format="raw")
+                up_raw.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
             back = c.open(vid)
             down.append(time.perf_counter() - t0)
@@ -197,8 +206,10 @@ def transfer(address: str, raw_address: str, mib: int, repeats: int, tmp: Path) 
     size = nbytes / MiB
     up_s, down_s, imp_s = min(up), min(down), min(imp)
     rows = [["stream", "ours MiB/s", "raw gRPC MiB/s", "ratio"],
-            ["upload, including the OME-Zarr import (streamed)", f"{size / up_s:.0f}", f"{raw_up:.0f}",
-             f"{size / up_s / raw_up:.2f}"],
+            ["upload, including the OME-Zarr import (streamed; Client.upload's default format)", f"{size / up_s:.0f}",
+             f"{raw_up:.0f}", f"{size / up_s / raw_up:.2f}"],
+            *([["upload of format raw (the server encodes)", f"{size / min(up_raw):.0f}", f"{raw_up:.0f}",
+                f"{size / min(up_raw) / raw_up:.2f}"]] if up_raw else []),
             ["upload transfer: Client.upload's messages into the bare server", f"{client_up:.0f}", f"{raw_up:.0f}",
              f"{client_up / raw_up:.2f}"],
             ["import_volume alone (same array, in this process)", f"{size / imp_s:.0f}", f"{raw_up:.0f}",

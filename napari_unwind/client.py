@@ -107,8 +107,9 @@ def _slabs(source: Any, dtype: np.dtype, step: int) -> Iterator[np.ndarray]:
 
 
 #: What a server that takes raw uploads only answers to an upload of format "chunks" (it ignores the format and
-#: counts the chunks' bytes as voxels): the client then uploads raw.
-_RAW_ONLY_SERVER = ("but the chunks held", "the chunks hold more bytes than the header's shape")
+#: counts the chunks' bytes as voxels), or one whose message limit is below a chunk's: the client then uploads raw.
+_RAW_ONLY_SERVER = ("but the chunks held", "the chunks hold more bytes than the header's shape",
+                    "; upload it raw")  # (the last: a server whose message limit is below a chunk's size)
 
 
 def _encoded_chunks(source: Any, dtype: np.dtype, codec: Any) -> Iterator[bytes]:
@@ -480,10 +481,12 @@ class Client:
             try:
                 return self._retrying(lambda: upload(chunk_messages(), timeout=timeout, metadata=self._metadata),
                                       "upload: ")
-            except RemoteInvalidInputError as exc:
-                if not any(m in str(exc) for m in _RAW_ONLY_SERVER):
+            except RemoteError as exc:
+                too_large = exc.code == "RESOURCE_EXHAUSTED" and "larger than max" in str(exc)  # gRPC's own limit
+                if not (too_large or (exc.code == "INVALID_ARGUMENT" and any(m in str(exc) for m in _RAW_ONLY_SERVER))):
                     raise
-                # a server of an earlier version took the chunks for raw voxels and refused their count: send raw
+                # a server of an earlier version took the chunks for raw voxels and refused their count, or a
+                # chunk is over the server's message limit: send raw
         return self._retrying(lambda: upload(raw_messages(), timeout=timeout, metadata=self._metadata), "upload: ")
 
     def register(self, path: str, *, name: str = ""):

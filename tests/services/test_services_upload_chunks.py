@@ -208,3 +208,17 @@ def test_a_client_falls_back_to_raw_when_the_server_counts_the_chunks_as_voxels(
         info = c.upload(a, name="fallback")
         np.testing.assert_array_equal(c.open(info.volume_id).data.compute(), a)
     assert sent == ["chunks", "raw"]
+
+
+def test_a_server_whose_message_limit_is_below_a_chunk_gets_the_upload_raw(tmp_path):
+    srv = ServerProcess(tmp_path / "data", "--workers", 1, "--max-message-bytes", 4 * 2**20)
+    try:
+        a = np.random.default_rng(4).integers(0, 4000, (130, 130, 130), dtype=np.uint16)  # 4 MiB chunks of 128^3
+        with pytest.raises(grpc.RpcError) as info:
+            _upload(srv, [], shape=a.shape, grid=(128, 128, 128))
+        assert info.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "upload it raw" in info.value.details()
+        with Client(srv.address, progress=False) as c:
+            info = c.upload(a, name="small-limit")
+            np.testing.assert_array_equal(c.open(info.volume_id).data.compute(), a)
+    finally:
+        srv.stop()
