@@ -94,6 +94,10 @@ class BentOverlays:
     def __init__(self, viewer: Any) -> None:
         self.viewer = viewer
 
+    def missing(self) -> bool:
+        """Some of the three layers is not in the viewer (the next update adds it)."""
+        return any(name not in self.viewer.layers for name in OVERLAY_NAMES)
+
     def _put(self, name: str, data: np.ndarray, colors: np.ndarray, width: float) -> None:
         layers = self.viewer.layers
         if name in layers:
@@ -105,13 +109,15 @@ class BentOverlays:
             layer.data = data
             layer.edge_color = colors
         else:
-            active = layers.selection.active  # adding a layer selects it: keep the user's selection
+            from napari.layers import Vectors
+
+            from . import _reveal
             from ._layers import scan_units
 
-            self.viewer.add_vectors(data, name=name, edge_color=colors, edge_width=width, vector_style="line",
-                                    metadata={"napari_unwind": {"overlay": True}}, **scan_units(self.viewer))
-            if active is not None and active in layers:
-                layers.selection.active = active
+            # into the viewer hidden, shown on a later turn (:mod:`._reveal`); the user's selection is kept
+            _reveal.add_layer(self.viewer, Vectors(data, name=name, edge_color=colors, edge_width=width,
+                                                   vector_style="line", metadata={"napari_unwind": {"overlay": True}},
+                                                   **scan_units(self.viewer)), keep_active=True)
 
     def update(self, d: Deformation | None, s: float | None = None, keyframe: int | None = None, *,
                new_layers: int | None = None) -> bool:

@@ -64,20 +64,34 @@ class StraightPreview:
         self._worker: Any = None
         self._pending: tuple[int, Any, Deformation] | None = None
         self._closed = False
+        self._coming: Any = None  # the new preview layer while it goes into the viewer (a step a turn)
 
     def close(self) -> None:
         """Stop for good (the dock is going away): queued requests are dropped and a running worker's result too."""
         self._closed = True
         self._pending = None
+        if self._coming is not None:
+            from . import _reveal
+
+            _reveal.cancel(self._coming)
 
     @property
     def idle(self) -> bool:
-        """No worker running and none queued."""
-        return self._worker is None and self._pending is None
+        """No worker running and none queued, and the layer in the viewer (:mod:`._reveal`)."""
+        from . import _reveal
+
+        return self._worker is None and self._pending is None and not (
+            self._coming is not None and _reveal.waiting(self._coming))
 
     @property
     def layer(self) -> Any:
-        """The preview layer, or None when there is none in the viewer."""
+        """The preview layer, or None when there is none in the viewer (or on its way in: :mod:`._reveal`)."""
+        from . import _reveal
+
+        coming = self._coming
+        if coming is not None and (coming in self.viewer.layers or _reveal.waiting(coming)):
+            return coming
+        self._coming = None
         return self.viewer.layers[PREVIEW_NAME] if PREVIEW_NAME in self.viewer.layers else None
 
     def request(self, deformation: Deformation | None = None) -> None:
@@ -136,15 +150,16 @@ class StraightPreview:
         translate = self._placed(array, ds, origin)
         meta = {"napari_unwind": {"preview": True, "straight_origin": tuple(float(v) for v in origin)}}
         if layer is None:
-            layers = self.viewer.layers
-            active = layers.selection.active  # adding a layer selects it: keep the user's selection
+            from napari.layers import Image
+
+            from . import _reveal
             from ._layers import scan_units
 
-            self.viewer.add_image(array, name=PREVIEW_NAME, scale=scale, translate=translate, metadata=meta,
-                                  **scan_units(self.viewer))
-            if active is not None and active in layers:
-                layers.selection.active = active
-            self.viewer.reset_view()   # first shown: the camera takes in the scan and the preview beside it
+            # into the viewer and shown on later turns, one step a turn; the user's selection is kept; then the
+            # camera takes in the scan and the preview beside it (first shown)
+            self._coming = Image(array, name=PREVIEW_NAME, scale=scale, translate=translate, metadata=meta,
+                                 **scan_units(self.viewer))
+            _reveal.add_layer(self.viewer, self._coming, keep_active=True, now=False, then=self.viewer.reset_view)
             return
         layer.data = array
         layer.scale = scale

@@ -280,7 +280,7 @@ def memoise_program_parse() -> None:
         code = "\n\n".join(sh.code for sh in self._shaders)
         known = _PARSED.get(code)
         if known is None:
-            original(self, update_variables=False)
+            _parse_variables(self, code)
             if len(_PARSED) < _PARSED_MAX:
                 _PARSED[code] = dict(self._code_variables)
         else:
@@ -291,3 +291,92 @@ def memoise_program_parse() -> None:
     parse._unwind_memoised = True  # type: ignore[attr-defined]
     parse._unwind_original = original  # type: ignore[attr-defined]
     Program._parse_variables_from_code = parse
+
+
+# -- napari's text glyphs, rendered ahead --------------------------------------------------------------------------
+# napari's canvas renders each character of a text (a Points layer's labels) once, into its font manager's atlas,
+# when a text first shows it (``canvas._font_info``: ``font_manager.get_font(face)[char]``, napari's QtTextureFont);
+# vispy's TextVisual also measures a line with "ÅÉÑŐ", "jgpqy" and " " on its first draw. About 4-5 ms a glyph
+# under Xvfb: 40-50 ms of the first paint of the dock's "ends" layer.
+#: the characters the dock's texts need: vispy's line metrics and the ends' roles ("head", "tail", "point 3")
+GLYPHS = "ÅÉÑŐjgpqy headtailpoin0123456789"
+
+
+def warm_glyphs(viewer: Any, chars: str = GLYPHS, limit: int | None = None) -> bool:
+    """Render up to ``limit`` (None: all) of ``chars``'s glyphs that the viewer's canvas font has not rendered yet;
+    True when none is left. A viewer without napari's Qt font (another napari) is left alone (True)."""
+    try:
+        info = viewer.window._qt_viewer.canvas._font_info
+        font = info.font_manager.get_font(info.face)
+        glyphs = font._glyphs
+    except AttributeError:
+        return True
+    todo = [c for c in dict.fromkeys(chars) if c not in glyphs]
+    for c in todo[:limit]:
+        font[c]
+    return limit is None or len(todo) <= limit
+
+
+# -- a layer added without napari selecting it ---------------------------------------------------------------------
+def add_layer_unselected(viewer: Any, layer: Any) -> None:
+    """``viewer.add_layer(layer)`` without napari making the new layer the active one (its layer list's
+    ``_activate_on_insert``): the selection's change (napari's layer controls and buttons follow it) is 15-25 % of
+    napari's cost of adding a layer, and twice that when the previous selection is put back."""
+    layers = viewer.layers
+    before = layers.__dict__.get("_activate_on_insert")
+    if before is None:
+        viewer.add_layer(layer)
+        return
+    layers._activate_on_insert = False
+    try:
+        viewer.add_layer(layer)
+    finally:
+        layers._activate_on_insert = before
+
+
+def viewer_closed(viewer: Any) -> bool:
+    """The viewer's window was closed (napari's ``Window.close`` deletes its ``_qt_window``); False for a viewer
+    without a window (a ViewerModel)."""
+    window = getattr(viewer, "window", None)
+    return window is not None and not hasattr(window, "_qt_window")
+
+
+def _strip_line_comments(code: str) -> str:
+    """vispy's ``re.sub(r'(.*)(//.*)', r'\\1', code, flags=re.M)`` without its regex: on each line that holds
+    ``//``, the text from the last ``//`` on (the greedy ``(.*)`` keeps what precedes the last one). The regex
+    backtracks over every line at every position: about 25 ms of the first paint of napari's Points layer."""
+    lines = code.split("\n")
+    for i, line in enumerate(lines):
+        at = line.rfind("//")
+        if at >= 0:
+            lines[i] = line[:at]
+    return "\n".join(lines)
+
+
+def _parse_variables(program: Any, code: str) -> None:
+    """vispy 0.15's ``Program._parse_variables_from_code(update_variables=False)`` on ``code`` (the program's
+    shaders' code joined), with the comments stripped by :func:`_strip_line_comments`."""
+    import re
+
+    from vispy.gloo.program import REGEX_VAR
+
+    code = _strip_line_comments(code)
+    variables: dict[str, tuple] = {}
+    for kind in ("uniform", "attribute", "varying", "const", "in", "out"):
+        reg = REGEX_VAR[kind]
+        if kind == "in":
+            kind = "attribute"
+        elif kind == "out":
+            kind = "varying"
+        for m in re.finditer(reg, code):
+            gtype = m.group("type")
+            size = int(m.group("size")) if m.group("size") else -1
+            this_kind = kind
+            if size >= 1:
+                for i in range(size):
+                    name = f"{m.group('name')}[{i}]"
+                    variables[name] = kind, gtype, name, -1
+                this_kind = "uniform_array"
+            name = m.group("name")
+            variables[name] = this_kind, gtype, name, size
+    program._code_variables = variables

@@ -420,19 +420,27 @@ class RefinePanel(QWidget):
 
     @property
     def pending(self) -> bool:
-        """True while the folds and the bent-view wireframes wait for the event loop."""
-        return self._slow.isActive()
+        """True while the folds and the bent-view wireframes wait for the event loop (a new layer, to be shown)."""
+        from . import _reveal
 
-    def _update_slow(self) -> None:
+        return self._slow.isActive() or _reveal.pending()
+
+    def _update_slow(self, queued: bool = False) -> None:
+        from . import _private, _reveal
+
         d, m = self.model.deformation, self.model
-        if d is None:
+        if d is None or _private.viewer_closed(self.viewer):
             return
         if self._folds[0] is not d:
             self._folds = (d, m.folds())
             self.strip.set_state(d.length, m.s, d.knots, self._folds[1], m.keyframe)
             self._label(d, self._folds[1])
+        if not queued and self.overlays.missing():
+            # a new wireframe layer costs napari ~50 ms: it waits its turn behind the other new layers' steps
+            _reveal.later(lambda: self._update_slow(queued=True), self)
+            return
         if not self.overlays.update(d, m.s, m.keyframe, new_layers=1):
-            self._slow.start()  # one new wireframe layer per turn of the event loop (each costs napari ~0.1 s)
+            self._slow.start()  # one new wireframe layer per turn of the event loop
 
     def _label(self, d: Any, folds: list[tuple[float, float]]) -> None:
         m = self.model
@@ -449,6 +457,9 @@ class RefinePanel(QWidget):
             self.status.setText(message)
 
     def _disconnect(self, model: EditModel) -> None:
+        from . import _reveal
+
+        _reveal.cancel(self)  # a queued wireframe update of a panel that is gone
         self.preview.close()
         if self.live is not None:
             self.live.close()

@@ -315,9 +315,11 @@ class UnwindWidget(QWidget):
     def idle(self) -> bool:
         """No job running, no re-simplification or measurement of the selection, and nothing left for the Refine
         panel's straight preview."""
+        from . import _reveal
+
         preview = getattr(self.refine_panel, "preview", None)
         return ((self.job is None or self.job.done) and not self.segment_step.busy
-                and bool(getattr(preview, "idle", True)))
+                and bool(getattr(preview, "idle", True)) and not _reveal.pending())
 
     def cancel(self) -> None:
         """Cancel the running job (it stops at its next progress step)."""
@@ -383,10 +385,16 @@ class UnwindWidget(QWidget):
         """Make ``volume`` (shown by ``layer``) the scan (step 1 shows it)."""
         self.scan_step.set_scan(volume, layer)
 
-    def _add_layer(self, layer_tuple: tuple) -> Any:
+    def _add_layer(self, layer_tuple: tuple, *, reveal: bool = False) -> Any:
+        """Add a layer from a layer-data tuple. ``reveal``: added hidden and shown on the next turn of the event
+        loop (:mod:`._reveal`: napari's insert and the first paint of the new visual in two UI stalls, not one)."""
         from napari.layers import Layer
 
         layer = Layer.create(*layer_tuple)
+        if reveal:
+            from . import _reveal
+
+            return _reveal.add_layer(self.viewer, layer)
         self.viewer.add_layer(layer)
         return layer
 

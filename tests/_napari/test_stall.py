@@ -6,9 +6,13 @@ worker. A gap is measured in the process's CPU time (at most its wall time): a w
 compiled call keeps the process busy for the whole gap, while a process that the machine's other work keeps off the
 cores accrues no CPU time, so the figure does not grow with the machine's load (a wall-time bound failed on a
 loaded CI machine). The goal is 100 ms (benchmarks); the test allows 500 ms.
-Showing the result on the UI thread (napari adding a layer: the ends, the straight volume) is measured apart: it
-is napari's own cost of a new layer (a few hundred ms under Xvfb's software GL), once at the end of a job.
-The figures are printed (``pytest -s``).
+Showing the result on the UI thread (napari adding layers: the ends, the straight preview, the wireframes, the
+exported volume) is measured apart. napari's cost of a new layer is 40-80 ms to add it and 10-80 ms for its first
+paint under Xvfb's software GL; the dock adds each new layer hidden and shows it on a later turn, one step a turn
+(``_reveal``), so no turn holds two of them: checked by counting, per turn, the layers added and the layers shown
+(a layer added visible counts twice: it is drawn in the same turn), and by the longest gap, which must stay under
+SHOWN_LIMIT (150 ms: 81-97 ms measured on a loaded machine, 147-438 ms before the steps were split; the 100 ms goal
+is in benchmarks/RESULTS.md). The figures are printed (``pytest -s``).
 """
 
 import time
@@ -27,15 +31,46 @@ from napari_unwind.io import write_volume  # noqa: E402
 pytestmark = pytest.mark.gui
 
 LIMIT = 0.5  # seconds
+SHOWN_LIMIT = 0.15  # seconds, the longest gap while the dock shows a result
 
 
-def longest_stall(qtbot, start, timeout=120_000, settled=lambda: True):
+def layer_steps(viewer, ticks):
+    """Record, for each layer added to ``viewer`` and each layer shown, the number of timer ticks so far: a list of
+    (tick count, what). A layer added visible is recorded twice (added, and drawn in the same turn)."""
+    steps = []
+
+    def on_visible(event):
+        if event.source.visible:
+            steps.append((len(ticks), f"shown {event.source.name}"))
+
+    def on_inserted(event):
+        layer = event.value
+        steps.append((len(ticks), f"added {layer.name}"))
+        if layer.visible:
+            steps.append((len(ticks), f"shown {layer.name}"))
+        layer.events.visible.connect(on_visible)
+
+    viewer.layers.events.inserted.connect(on_inserted)
+    return steps
+
+
+def crowded_turns(steps):
+    """The turns (tick counts) in which more than one layer was added or shown, with what."""
+    by_turn = {}
+    for turn, what in steps:
+        by_turn.setdefault(turn, []).append(what)
+    return {turn: whats for turn, whats in by_turn.items() if len(whats) > 1}
+
+
+def longest_stall(qtbot, start, timeout=120_000, settled=lambda: True, viewer=None):
     """Start a job with ``start()`` from the event loop (as a button click does) and run the loop until it is done
     and ``settled()``; return the longest gap between 10 ms timer ticks until the result reached the UI thread (the
     click included), the longest gap after it (the dock showing the result: its layers, the Refine panel's
-    wireframes and preview), and the number of ticks."""
+    wireframes and preview), the number of ticks, and the turns that added or showed more than one layer of
+    ``viewer``."""
     ticks = [time.perf_counter()]
     cpu = [time.process_time()]
+    steps = layer_steps(viewer, ticks) if viewer is not None else []
 
     def tick():
         ticks.append(time.perf_counter())
@@ -61,7 +96,7 @@ def longest_stall(qtbot, start, timeout=120_000, settled=lambda: True):
     gaps = np.minimum(np.diff(t), np.diff(np.asarray(cpu)))
     during = gaps[t[1:] <= job.returned_at]  # gaps over before the result reached the UI thread
     shown = gaps[t[1:] > job.returned_at]  # the dock showing the result
-    return float(during.max(initial=0.0)), float(shown.max(initial=0.0)), len(ticks)
+    return float(during.max(initial=0.0)), float(shown.max(initial=0.0)), len(ticks), crowded_turns(steps)
 
 
 def test_no_long_stall_during_skeleton_and_export(make_napari_viewer, qtbot, tmp_path):
@@ -81,15 +116,24 @@ def test_no_long_stall_during_skeleton_and_export(make_napari_viewer, qtbot, tmp
     def settled():
         return w.idle and not w.refine_panel.pending
 
-    skeleton, shown1, n1 = longest_stall(qtbot, w.run_skeleton, settled=settled)
+    skeleton, shown1, n1, crowded1 = longest_stall(qtbot, w.run_skeleton, settled=settled, viewer=viewer)
     assert w.model.deformation is not None, w.status.text()
+    names = {layer.name for layer in viewer.layers}
+    assert {"ends", "straight preview", "unwind curve", "unwind frames", "unwind cage"} <= names, names
+    assert all(layer.visible for layer in viewer.layers), [layer.name for layer in viewer.layers if not layer.visible]
+    assert viewer.layers.selection.active is viewer.layers["ends"]  # as when napari adds it
     w.export_step.spacing_box.setValue(0.5)  # 8 times the voxels of the default spacing: a longer export
-    export, shown2, n2 = longest_stall(qtbot, lambda: w.export(tmp_path / "straight.ome.zarr"),
-                                         settled=settled)
+    export, shown2, n2, crowded2 = longest_stall(qtbot, lambda: w.export(tmp_path / "straight.ome.zarr"),
+                                                 settled=settled, viewer=viewer)
     assert w.exported is not None, w.status.text()
+    straight = viewer.layers[f"straight {w.exported.name}"]
+    assert straight.visible and viewer.layers.selection.active is straight
     print(f"\nlongest UI stall: skeleton solve {1000 * skeleton:.0f} ms ({n1} ticks; showing the result "
           f"{1000 * shown1:.0f} ms), export {1000 * export:.0f} ms ({n2} ticks; opening the result as a layer "
           f"{1000 * shown2:.0f} ms)")
     assert skeleton < LIMIT, f"the UI stalled {skeleton:.3f} s during the skeleton solve"
     assert export < LIMIT, f"the UI stalled {export:.3f} s during the export"
+    assert not crowded1 and not crowded2, f"turns that added or showed more than one layer: {crowded1} {crowded2}"
+    assert shown1 < SHOWN_LIMIT, f"the UI stalled {shown1:.3f} s showing the skeleton"
+    assert shown2 < SHOWN_LIMIT, f"the UI stalled {shown2:.3f} s opening the export as a layer"
     qtbot.waitUntil(lambda: w.idle, timeout=60_000)  # the Refine panel's preview

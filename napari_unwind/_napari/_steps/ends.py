@@ -65,39 +65,62 @@ class EndsStep(Step):
 
         return self.dock._start(task.make, task.label, done)
 
-    def set_ends(self, voxels: list, roles: list[str] | None = None) -> Any:
-        """Show ends (full-resolution voxel coordinates, head first) in the "ends" Points layer."""
+    def set_ends(self, voxels: list, roles: list[str] | None = None, *, later: bool = False) -> Any:
+        """Show ends (full-resolution voxel coordinates, head first) in the "ends" Points layer. ``later``: a new
+        layer goes into the viewer, is shown and the view moves to the head on the next turns of the event loop,
+        one a turn (:mod:`.._reveal`: after a skeleton, whose result adds other layers too)."""
         dock, volume = self.dock, self.dock.volume
         pts = np.asarray(voxels, dtype=float).reshape(-1, 3)
         world = pts * np.asarray(volume.spacing) + np.asarray(volume.origin)
         if roles is None:
             roles = ["head" if i == 0 else "tail" if i == len(pts) - 1 else f"point {i + 1}" for i in range(len(pts))]
         size = ends_size(volume.shape, volume.spacing)
+        from .. import _reveal
+
+        if dock._ends_layer is not None and dock._ends_layer not in self.viewer.layers:
+            _reveal.flush()  # a new "ends" layer still on its way in
         if dock._ends_layer is not None and dock._ends_layer in self.viewer.layers:
+            later = False
             dock._ends_layer.data = world
             dock._ends_layer.features = {"end": roles}
         else:
+            from napari.layers import Points
+
             from .._layers import scan_units
 
-            dock._ends_layer = dock._add_layer((world, {"name": "ends", "features": {"end": roles}, "size": size,
-                                                        "face_color": "yellow", "border_color": "black",
-                                                        "text": {"string": "{end}", "size": 12, "color": "yellow",
-                                                                 "anchor": "upper_left"},
-                                                        **scan_units(self.viewer)}, "points"))
-        dock._ends_layer.mode = "select"
-        self.viewer.layers.selection.active = dock._ends_layer
+            layer = Points(world, name="ends", features={"end": roles}, size=size, face_color="yellow",
+                           border_color="black", text={"string": "{end}", "size": 12, "color": "yellow",
+                                                       "anchor": "upper_left"}, **scan_units(self.viewer))
+            layer.mode = "select"
+
+            def needs() -> None:
+                if layer in self.viewer.layers:
+                    dock._update_needs()
+
+            if later:  # into the viewer, shown, made active, the step's text, one a turn
+                dock._ends_layer = _reveal.add_layer(self.viewer, layer, now=False, then=needs)
+            else:  # at once, drawn on the next paint (the suggest step's result)
+                dock._ends_layer = layer
+                self.viewer.add_layer(layer)
+        layer = dock._ends_layer
+        layer.mode = "select"
+        if later:
+            if len(world):
+                _reveal.later(lambda: self._go_to(world[0]), layer)
+            return layer
+        self.viewer.layers.selection.active = layer
         if len(world):
             self._go_to(world[0])
         dock._update_needs()
-        return dock._ends_layer
+        return layer
 
-    def show_session_ends(self, ends: Any) -> None:
+    def show_session_ends(self, ends: Any, *, later: bool = False) -> None:
         """Show an :class:`~napari_unwind.session.Endpoints` (a session's, the skeleton's suggestion)."""
         if ends.chain:
             pts = [p for pair in ends.chain for p in pair]
         else:
             pts = [ends.head, ends.tail]
-        self.set_ends(pts)
+        self.set_ends(pts, later=later)
 
     def _go_to(self, world: Any) -> None:
         """Show the slice through a world point (2D) with the point at the centre of the view."""
@@ -113,8 +136,11 @@ class EndsStep(Step):
         Two points are head and tail; more are read in order as a chain: the start and end of each part.
         """
         from ...session import Endpoints
+        from .. import _reveal
 
         layer, volume = self.dock._ends_layer, self.dock.volume
+        if layer is not None and layer not in self.viewer.layers:
+            _reveal.flush()  # a new "ends" layer still on its way in
         if layer is None or layer not in self.viewer.layers or len(layer.data) == 0:
             return None
         world = np.asarray(layer.data, dtype=float)[:, -3:]

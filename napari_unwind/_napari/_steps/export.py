@@ -195,22 +195,21 @@ class ExportStep(Step):
                 from .._reader import read
 
                 return value, read(str(value[0]))  # the layers of every channel, made off the UI thread
-            return value, contrast_limits(open_volume(value[0]).levels)
-
-        def done(result: tuple) -> None:
             from .._layers import image_layer
 
-            value, clim = result
+            volume = open_volume(value[0])  # the layer's tuple made off the UI thread too
+            return value, [image_layer(volume, name=f"straight {Path(value[0]).name}",
+                                       contrast_limits=contrast_limits(volume.levels))]
+
+        def done(result: tuple) -> None:
+            value, tuples = result
             task.apply(value)
             written, warned = value
             self.exported = Path(written)
-            if isinstance(clim, list):  # one layer per channel
-                for data, meta, kind in clim:
+            for data, meta, kind in tuples:  # one layer per channel; each shown a turn after napari adds it
+                if channels:
                     meta["name"] = f"straight {meta['name']}"
-                    dock._add_layer((data, meta, kind))
-            else:
-                dock._add_layer(image_layer(open_volume(written), name=f"straight {self.exported.name}",
-                                            contrast_limits=clim))
+                dock._add_layer((data, meta, kind), reveal=True)
             self.export_info.setText(for_dock("\n".join([f"written: {self.exported}{where}"]
                                                          + [f"warning: {w}" for w in warned])))
             self._say(f"exported to {self.exported}{where}" + (f" (warning: {warned[0]})" if warned else ""))

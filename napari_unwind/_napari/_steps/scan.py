@@ -222,6 +222,18 @@ class ScanStep(Step):
             self.scan_warning.hide()
         self._say(f"scan: {layer.name}")
         dock._update_needs()
+        self._warm_glyphs()
+
+    def _warm_glyphs(self) -> None:
+        """Render the glyphs of the ends' labels a few per turn of the event loop, while the user segments (they
+        were 40-50 ms of the first paint of the "ends" layer; issue 21)."""
+        from .. import _private, _reveal
+
+        def step() -> None:
+            if not _private.viewer_closed(self.viewer) and not _private.warm_glyphs(self.viewer, limit=3):
+                _reveal.later(step, self)
+
+        _reveal.later(step, self)
 
     def _open_dialog(self) -> None:
         path, _ = QFileDialog.getOpenFileName(self, "Open a scan")

@@ -104,6 +104,6 @@ class SkeletonStep(Step):
         lines += [f"warning: {w}" for w in specimen.warnings]
         self.skeleton_report.setPlainText(for_dock("\n".join(lines)))
         if show_ends and outcome.endpoints is not None:
-            self.dock.ends_step.show_session_ends(outcome.endpoints)
+            self.dock.ends_step.show_session_ends(outcome.endpoints, later=True)  # one layer a turn (issue 21)
         self._say(status_line(specimen) + (" (server)" if where else "")
                   + (" (warnings: see Skeleton)" if specimen.warnings or folds else ""))
