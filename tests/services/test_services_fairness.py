@@ -195,7 +195,9 @@ def test_sigterm_drains_for_the_set_time_then_interrupts_and_the_server_exits(tm
         t0 = time.monotonic()
         assert srv.terminate(timeout=60) == 0
         took = time.monotonic() - t0
-        assert took < 2 + 5, f"the server took {took:.1f} s to stop with --drain 2"
+        # the drain, then a second for the job to see its stop and the workers to exit; the margin is for a loaded
+        # machine (8.9 s seen with three other test runs on 2 cores); without the drain it took minutes
+        assert took < 2 + 10, f"the server took {took:.1f} s to stop with --drain 2"
         srv.start()
         with Client(srv.address, progress=False) as c:
             after = c.job(running.id)
