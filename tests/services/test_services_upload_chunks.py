@@ -54,8 +54,9 @@ def _volume(seed: int = 0) -> np.ndarray:
     return (smooth + rng.normal(0, 30, SHAPE)).astype(np.uint16)
 
 
-def _stored(chunk: np.ndarray, *, cname: str = "lz4", typesize: int = 2, shuffle: int = Blosc.SHUFFLE) -> bytes:
-    enc = Blosc(cname=cname, clevel=5, shuffle=shuffle, typesize=typesize).encode(np.ascontiguousarray(chunk))
+def _stored(chunk: np.ndarray, *, cname: str = "lz4", typesize: int = 2, shuffle: int = Blosc.SHUFFLE,
+            clevel: int = 5) -> bytes:
+    enc = Blosc(cname=cname, clevel=clevel, shuffle=shuffle, typesize=typesize).encode(np.ascontiguousarray(chunk))
     return enc + google_crc32c.value(enc).to_bytes(4, "little")
 
 
@@ -108,6 +109,23 @@ def test_chunks_made_apart_are_stored_byte_for_byte(server):
     coords = itertools.product(*[range(-(-n // g)) for n, g in zip(SHAPE, GRID, strict=True)])
     for c, blob in zip(coords, sent, strict=True):
         assert (store / "0" / "c" / "/".join(map(str, c))).read_bytes() == blob
+
+
+def test_chunks_encoded_otherwise_give_the_store_import_volume_writes(server, tmp_path):
+    """Same voxels, same bytes, whoever uploads them: valid chunks of the store's compressor made with other settings
+    (here blosc level 9: another block size, other bytes) are decoded and the store is encoded by the server, byte
+    for byte what import_volume writes (without the check the client's bytes were stored)."""
+    a = _volume(2)
+    sent = _chunks(a, clevel=9)
+    assert sent != _chunks(a)  # the precondition: other bytes for the same voxels
+    info = _upload(server, sent, name="otherwise")
+    got = _files(_store(server, info.volume_id))
+    import_volume(as_volume(a), tmp_path / "ref.zarr")
+    want = _files(tmp_path / "ref.zarr")
+    assert got.keys() == want.keys()
+    assert all(got[k] == want[k] for k in want if k != "zarr.json")
+    with Client(server.address, progress=False) as c:
+        np.testing.assert_array_equal(c.open(info.volume_id).data.compute(), a)
 
 
 def _flip(blob: bytes, at: int) -> bytes:
