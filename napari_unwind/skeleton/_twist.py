@@ -24,9 +24,7 @@ Method
    (an orientation modulo pi), ``w`` its reliability: 1 for a section of at least 50 voxels, proportionally
    less for smaller ones, whose orientation is dominated by the voxel staircase.
 3. Continuity and confidence. The doubled-angle vectors are smoothed along the arclength by a Gaussian-weighted
-   local linear fit (no bias at the ends): their direction over 5.5 % of the length (the staircase of sections a
-   few voxels across errs alike over 10-15 voxels where a tail runs nearly along a grid axis), their length over
-   3 %. The length of the smoothed vector, the orientation strength, is the
+   local linear fit (no bias at the ends). The length of the smoothed vector, the orientation strength, is the
    anisotropy that survives averaging: sections whose major axes disagree along s (a round vessel's noise, the
    90-degree flip of a near-round section) cancel in it, although each alone may look elongated. The confidence
    is 0 below half of ``min_anisotropy`` and 1 from twice it (a smoothstep between). The twist is the blend
@@ -83,8 +81,6 @@ _MAX_RADIUS_VOXELS = 50_000  # mask voxels used to estimate the default radius
 _CUES = ("auto", "density", "shape")
 _ORIENTED = 0.25  # orientation strength of a clearly oriented stretch (a fish's trunk: 0.4-0.5; a 0.8 ellipse: 0.22)
 _AXES = ("major", "minor")
-_SMOOTHING = 0.055  # of the length: the default smoothing of the orientations along s
-_STIFFNESS = 0.03  # of the length: the blend's default stiffness (its smoothing length)
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -227,9 +223,7 @@ def estimate_twist(
         distance from the mask voxels to the curve.
     smoothing : float, optional
         Standard deviation (arclength, physical units) of the Gaussian weights of the local linear fit along the
-        curve (the direction), and of the strength's fit and the blend's stiffness. Default: the largest of 5.5 %
-        of the curve length, 2 voxels and 1.5 point spacings for the direction, of 3 % of it, 2 voxels and 1.5 point
-        spacings for the strength and the blend.
+        curve. Default: the largest of 3 % of the curve length, 2 voxels and 1.5 point spacings.
     dorsal_axis : {"major", "minor"}
         Which principal axis of the cross-sections is dorsoventral: ``"major"`` for laterally compressed
         specimens (most fish: taller than wide), ``"minor"`` for depressed ones (rays, catfish heads).
@@ -302,16 +296,8 @@ def estimate_twist(
     radius = float(radius)
     vox = float(sp.min())
     if smoothing is None:
-        # the sections' direction is averaged over 5.5 % of the length; their strength (the confidence) and the
-        # blend's stiffness over 3 %. A tail's sections a few voxels across are off by 10-20 degrees together
-        # over 10-15 stations (the staircase of a tail running nearly along a grid axis), which the 3 % average
-        # followed (hard phantoms helix-1026, coil-2019: 11-13 degrees); a longer one lags where a tail keeps
-        # twisting (coil-1013), and a strength averaged longer no longer sees a short round stretch
         step = float(np.median(np.diff(s_all)))
-        floor = max(2.0 * float(sp.max()), 1.5 * step)
-        smoothing, stiffness = max(_SMOOTHING * length, floor), max(_STIFFNESS * length, floor)
-    else:
-        smoothing = stiffness = float(smoothing)
+        smoothing = max(0.03 * length, 2.0 * float(sp.max()), 1.5 * step)
     smoothing = float(smoothing)
 
     # -- sections: a subset of the points about one (finest) voxel apart, at most _MAX_SECTIONS
@@ -358,8 +344,7 @@ def estimate_twist(
 
     # -- smooth along s (local linear fit of the doubled-angle vectors), evaluated at every point
     s_sec = s_all[sec]
-    zdir, _ = _local_linear(s_sec, z, conf, s_all, smoothing)  # the direction: over the longer window
-    zhat, conf_s = _local_linear(s_sec, z, conf, s_all, stiffness)  # the strength: over the shorter one
+    zhat, conf_s = _local_linear(s_sec, z, conf, s_all, smoothing)
     # -- confidence: the smoothed doubled-angle vector's length is the anisotropy that survives averaging the
     # orientations along s; sections that disagree (a round vessel's noise, the flip of a near-round section's
     # major axis) cancel in it although each alone may look elongated
@@ -383,10 +368,10 @@ def estimate_twist(
         angles = np.zeros(k_pts)
         return (angles, info) if return_info else angles
     good = confidence > 0
-    two_phi = _unwrapped_interp(s_all, np.angle(zdir), good)
+    two_phi = _unwrapped_interp(s_all, np.angle(zhat), good)
     estimate = 0.5 * two_phi - 0.5 * np.pi  # v' = -sin(t) u + cos(t) v lies along the axis at angle phi from u
     # follow the estimate where it is confident, the minimal-rotation frames (a constant twist) elsewhere
-    theta = _blend(s_all, estimate, confidence, stiffness)
+    theta = _blend(s_all, estimate, confidence, smoothing)
 
     # -- the dorsal side: one sign for the whole specimen
     conf_sec = np.interp(s_sec, s_all, confidence)
