@@ -83,6 +83,53 @@ from ._workers import Job, JobCancelled, in_child, start_job, start_process_job
 __all__ = ["DOCK_SHORTCUTS", "EXPORT_FORMATS", "UnwindWidget", "ends_size", "volume_from_layer"]
 
 
+#: what napari imports on the UI thread for the dock's first Labels layer (its features table: pandas, with pyarrow
+#: and dateutil; 1.2-1.5 s of the segment step's result without bytecode caches, issue 21)
+WARM_IMPORTS = ("pandas",)
+_WARM_STARTED: list[bool] = []
+
+
+def _warm_dashes() -> None:
+    """vispy's dash patterns of its agg lines (module-level lru_cache; 13 patterns of 1024 argmins each, ~80 ms of
+    the first Labels layer's insert: napari's polygon overlay of a Labels layer draws one)."""
+    from vispy.visuals.line.dash_atlas import DashAtlas
+
+    DashAtlas()
+
+
+def _warm_imports() -> None:
+    """Import :data:`WARM_IMPORTS` and make vispy's dash patterns in a background thread, once per process, while
+    the user opens a scan (the import lock makes a UI thread that needs one meanwhile wait for it rather than import
+    it again)."""
+    import threading
+
+    if _WARM_STARTED:
+        return
+    _WARM_STARTED.append(True)
+
+    def run() -> None:
+        import importlib
+
+        for name in WARM_IMPORTS:
+            try:
+                importlib.import_module(name)
+            except ImportError:  # napari imports it later or does without
+                pass
+        try:
+            _warm_dashes()
+        except Exception:  # noqa: BLE001 - another vispy: the first Labels layer pays it as before
+            pass
+
+    threading.Thread(target=run, name="unwind-warm-imports", daemon=True).start()
+
+
+def _warming() -> bool:
+    """True while :func:`_warm_imports` runs."""
+    import threading
+
+    return any(t.name == "unwind-warm-imports" for t in threading.enumerate())
+
+
 class UnwindWidget(QWidget):
     """The Unwind dock (see the module docstring): the step widgets of :mod:`._steps` on a tool box over one
     :class:`~napari_unwind.workflow.Workflow`.
@@ -98,6 +145,7 @@ class UnwindWidget(QWidget):
         from . import _private
 
         _private.memoise_program_parse()  # each new layer's first paint parses no GLSL it has parsed before
+        _warm_imports()
         self.viewer = napari_viewer
         #: The workflow's state and steps (Qt-free); the steps show it and turn clicks into its calls. Its
         #: backend runs the steps on this computer (the skeleton in a child process) or on a server.
@@ -319,7 +367,7 @@ class UnwindWidget(QWidget):
 
         preview = getattr(self.refine_panel, "preview", None)
         return ((self.job is None or self.job.done) and not self.segment_step.busy
-                and bool(getattr(preview, "idle", True)) and not _reveal.pending())
+                and bool(getattr(preview, "idle", True)) and not _reveal.pending() and not _warming())
 
     def cancel(self) -> None:
         """Cancel the running job (it stops at its next progress step)."""
@@ -385,12 +433,13 @@ class UnwindWidget(QWidget):
         """Make ``volume`` (shown by ``layer``) the scan (step 1 shows it)."""
         self.scan_step.set_scan(volume, layer)
 
-    def _add_layer(self, layer_tuple: tuple, *, reveal: bool = False) -> Any:
-        """Add a layer from a layer-data tuple. ``reveal``: added hidden and shown on the next turn of the event
-        loop (:mod:`._reveal`: napari's insert and the first paint of the new visual in two UI stalls, not one)."""
+    def _add_layer(self, layer_tuple: Any, *, reveal: bool = False) -> Any:
+        """Add a layer from a layer-data tuple (or a napari Layer made in a worker). ``reveal``: added hidden and
+        shown on the next turn of the event loop (:mod:`._reveal`: napari's insert and the first paint of the new
+        visual in two UI stalls, not one)."""
         from napari.layers import Layer
 
-        layer = Layer.create(*layer_tuple)
+        layer = layer_tuple if isinstance(layer_tuple, Layer) else Layer.create(*layer_tuple)
         if reveal:
             from . import _reveal
 
@@ -399,16 +448,23 @@ class UnwindWidget(QWidget):
         return layer
 
     def _put_layer(self, attr: str, layer_tuple: tuple) -> Any:
-        """Update the dock's layer ``attr`` with new data and geometry, or add it when it is gone."""
+        """Update the dock's layer ``attr`` with new data and geometry, or add it when it is gone: made now, put
+        into the viewer hidden as a step and shown as the next (:mod:`._reveal`: the segment step's result makes two
+        layers, each insert and first paint on its own turn; the active layer stays)."""
+        from napari.layers import Layer
+
+        from . import _reveal
+
         data, meta, _ = layer_tuple
         layer = getattr(self, attr)
-        if layer is not None and layer in self.viewer.layers:
+        if layer is not None and (layer in self.viewer.layers or _reveal.waiting(layer)):
             layer.data = data
             for key in ("scale", "translate"):
                 if key in meta:
                     setattr(layer, key, meta[key])
         else:
-            layer = self._add_layer(layer_tuple)
+            layer = Layer.create(*layer_tuple)
+            _reveal.add_layer(self.viewer, layer, now=False, keep_active=True)
             setattr(self, attr, layer)
             self.segment_step.refresh_mask_combo()  # the dock's own layers are no masks to choose
             from ._layers import in_3d

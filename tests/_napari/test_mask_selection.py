@@ -32,6 +32,7 @@ def test_a_mask_file_is_the_selection_and_the_cord_is_straightened(make_napari_v
     assert f"{int((truth != 0).sum()):,} voxels" in w.segment_step.selection_label.text()
     assert w.ends_step.suggest_button.isEnabled() and w.skeleton_step.skeleton_button.isEnabled()
     wait(qtbot, w, w.suggest_ends())
+    qtbot.waitUntil(lambda: w.idle, timeout=60_000)  # the new "ends" layer is shown a turn after it is added
     # the ends: large enough to see, and the view moved to the head (its slice, centred)
     ends = viewer.layers["ends"]
     head = np.asarray(ends.data)[0]

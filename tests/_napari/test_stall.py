@@ -16,6 +16,7 @@ is in benchmarks/RESULTS.md). The figures are printed (``pytest -s``).
 """
 
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -137,3 +138,86 @@ def test_no_long_stall_during_skeleton_and_export(make_napari_viewer, qtbot, tmp
     assert shown1 < SHOWN_LIMIT, f"the UI stalled {shown1:.3f} s showing the skeleton"
     assert shown2 < SHOWN_LIMIT, f"the UI stalled {shown2:.3f} s opening the export as a layer"
     qtbot.waitUntil(lambda: w.idle, timeout=60_000)  # the Refine panel's preview
+
+
+def at_once(step):
+    """A start function for ``longest_stall`` of a step that runs on the UI thread (no worker): its result
+    "reaches the UI thread" at the click, so its whole cost counts as showing it."""
+    def start():
+        job = SimpleNamespace(done=True, returned_at=time.perf_counter())
+        step()
+        return job
+    return start
+
+
+def test_no_long_stall_opening_segmenting_selecting_and_suggesting(make_napari_viewer, qtbot, tmp_path):
+    """Steps 1-3 each from the click until the dock has settled: opening a scan (its Image layer), segmenting (the
+    "features" and "selection" Labels layers), a click selecting a feature (the selection layer's data), suggesting
+    head and tail (the "ends" layer), choosing a mask (the selection layer removed) and a click after it (the
+    selection layer back)."""
+    fish = fish_phantom(length=80, body_radius=5, tube=False, seed=1)
+    scan = tmp_path / "fish.nrrd"
+    write_volume(fish.volume, scan, spacing=fish.spacing, unit=fish.unit)
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    viewer.window.add_dock_widget(w, name="Unwind")
+    p = np.round(fish.centerline[len(fish.centerline) // 2]).astype(int)
+    figures = {}
+
+    def measure(name, start):
+        figures[name] = longest_stall(qtbot, start, settled=lambda: w.idle, viewer=viewer)
+
+    qtbot.waitUntil(lambda: w.idle, timeout=60_000)  # the dock's imports ahead (_warm_imports), as a user looks
+    measure("open scan", lambda: w.open_scan(scan))
+    assert [ly.name for ly in viewer.layers] == ["fish.nrrd"] and w.scan_layer.visible
+    assert viewer.layers.selection.active is w.scan_layer
+    measure("segment", w.segment)
+    assert [ly.name for ly in viewer.layers] == ["fish.nrrd", "selection", "features"]
+    assert all(ly.visible for ly in viewer.layers)
+    assert viewer.layers.selection.active is viewer.layers["features"]
+    fid = int(w.features.labels[tuple(p)])
+    measure("select a feature", at_once(lambda: w.select_features([fid])))
+    assert np.array_equal(np.unique(viewer.layers["selection"].data), [0, fid])
+    measure("suggest head and tail", w.suggest_ends)
+    ends = viewer.layers["ends"]
+    assert ends.visible and len(ends.data) == 2 and viewer.layers.selection.active is ends
+    mask = viewer.add_labels(fish.mask.astype(np.uint8), name="mask", scale=fish.spacing)
+    qtbot.wait(300)
+    measure("choose a mask", at_once(lambda: w.use_labels(mask)))
+    assert w.mask_choice == (mask, None) and "selection" not in [ly.name for ly in viewer.layers]
+    measure("select a feature after a mask", at_once(lambda: w.select_features([fid])))
+    assert w.mask_choice is None and viewer.layers["selection"].visible
+    assert viewer.layers.selection.active is viewer.layers["features"]
+    print("\nlongest UI stall from the click until settled (until the result / showing it): " + ", ".join(
+        f"{name} {1000 * during:.0f} / {1000 * shown:.0f} ms" for name, (during, shown, _, _) in figures.items()))
+    crowded = {name: c for name, (_, _, _, c) in figures.items() if c}
+    assert not crowded, f"turns that added or showed more than one layer: {crowded}"
+    running = {name: round(during, 3) for name, (during, _, _, _) in figures.items() if during >= LIMIT}
+    assert not running, f"the UI stalled (s) from the click until the result: {running}"
+    slow = {name: round(shown, 3) for name, (_, shown, _, _) in figures.items() if shown >= SHOWN_LIMIT}
+    assert not slow, f"the UI stalled (s) showing the result: {slow}"
+
+
+def test_the_imports_ahead_run_in_a_thread_and_keep_the_dock_busy(make_napari_viewer, qtbot, monkeypatch):
+    """``_warm_imports``: once per process, in a background thread (the dock is not idle meanwhile); a module that
+    is missing is skipped."""
+    import threading
+
+    from napari_unwind._napari import _widget
+
+    ran, release = [], threading.Event()
+
+    def dashes():
+        ran.append(threading.current_thread().name)
+        release.wait(10)
+
+    monkeypatch.setattr(_widget, "_WARM_STARTED", [])
+    monkeypatch.setattr(_widget, "WARM_IMPORTS", ("napari_unwind_no_such_module",))
+    monkeypatch.setattr(_widget, "_warm_dashes", dashes)
+    w = UnwindWidget(make_napari_viewer())
+    qtbot.waitUntil(lambda: bool(ran), timeout=10_000)
+    assert ran == ["unwind-warm-imports"] and not w.idle
+    UnwindWidget(make_napari_viewer())  # a second dock starts none
+    release.set()
+    qtbot.waitUntil(lambda: w.idle, timeout=10_000)
+    assert ran == ["unwind-warm-imports"]

@@ -79,6 +79,7 @@ class EndsStep(Step):
 
         if dock._ends_layer is not None and dock._ends_layer not in self.viewer.layers:
             _reveal.flush()  # a new "ends" layer still on its way in
+        added = False
         if dock._ends_layer is not None and dock._ends_layer in self.viewer.layers:
             later = False
             dock._ends_layer.data = world
@@ -99,16 +100,17 @@ class EndsStep(Step):
 
             if later:  # into the viewer, shown, made active, the step's text, one a turn
                 dock._ends_layer = _reveal.add_layer(self.viewer, layer, now=False, then=needs)
-            else:  # at once, drawn on the next paint (the suggest step's result)
-                dock._ends_layer = layer
-                self.viewer.add_layer(layer)
+            else:  # into the viewer now, shown and made active on the next turns (the suggest step's result)
+                dock._ends_layer = _reveal.add_layer(self.viewer, layer)
+                added = True
         layer = dock._ends_layer
         layer.mode = "select"
         if later:
             if len(world):
                 _reveal.later(lambda: self._go_to(world[0]), layer)
             return layer
-        self.viewer.layers.selection.active = layer
+        if not added:
+            self.viewer.layers.selection.active = layer
         if len(world):
             self._go_to(world[0])
         dock._update_needs()

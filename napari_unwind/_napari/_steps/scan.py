@@ -245,15 +245,18 @@ class ScanStep(Step):
         from .._layers import image_layer
 
         def make() -> Generator[Progress, None, tuple]:
+            from napari.layers import Layer
+
             yield Progress("open", 0, 1, str(path))
             volume = open_volume(path)
             clim = contrast_limits(volume.levels)  # from its voxels, as the reader does (napari's: [0, 1])
+            layer = Layer.create(*image_layer(volume, contrast_limits=clim))  # here, not on the UI thread (~50 ms)
             yield Progress("open", 1, 1)
-            return volume, clim
+            return volume, layer
 
         def done(value: tuple) -> None:
-            volume, clim = value
-            layer = self.dock._add_layer(image_layer(volume, contrast_limits=clim))
+            volume, layer = value
+            layer = self.dock._add_layer(layer, reveal=True)  # shown on a later turn, then made active
             self.set_scan(volume, layer)
             if then is not None:
                 then()

@@ -338,9 +338,24 @@ class SegmentStep(Step):
             self._measure()
         else:
             self.mask_info.setText("")
-        if dock._features_layer is not None and dock._features_layer in self.viewer.layers:
-            self.viewer.layers.selection.active = dock._features_layer  # clicks keep reaching its callback
+        self._activate_features()
         dock._update_needs()
+
+    def _activate_features(self) -> None:
+        """Make the features layer the active one (clicks keep reaching its callback); after the new layers'
+        steps when some wait (:mod:`.._reveal`)."""
+        from .. import _reveal
+
+        layer = self.dock._features_layer
+
+        def activate() -> None:
+            if layer is self.dock._features_layer and layer in self.viewer.layers:
+                self.viewer.layers.selection.active = layer
+
+        if layer is not None and _reveal.pending():
+            _reveal.later(activate, layer)
+        else:
+            activate()
 
     def _on_table_selection(self) -> None:
         if self._syncing or self.workflow.features is None:
@@ -484,8 +499,14 @@ class SegmentStep(Step):
             self._fail(exc)
             return 0
         dock.mask_choice = (layer, label or None)
+        from .. import _reveal
+
+        if dock._selection_layer is not None:
+            _reveal.cancel(dock._selection_layer)  # a new selection layer on its way in stays out
         if dock._selection_layer is not None and dock._selection_layer in self.viewer.layers:
-            self.viewer.layers.remove(dock._selection_layer)
+            from .. import _private
+
+            _private.remove_layer_uncollected(self.viewer, dock._selection_layer)  # napari's collection: 0.3 s
         dock._selection_layer = None
         if self._mask_click not in layer.mouse_drag_callbacks:
             layer.mouse_drag_callbacks.append(self._mask_click)
