@@ -125,5 +125,21 @@ def on_click(callback: Callable[[Any, Any], Any]) -> Callable[[Any, Any], Genera
     return handler
 
 
+def labels_layers(dock: Dock, shape: tuple[int, ...] | None = None) -> list[Any]:
+    """The viewer's 3D Labels layers a user may choose (the dock's own "features" and "selection" layers left out),
+    only those whose data (a multiscale layer's finest level) has ``shape`` when given."""
+    from napari.layers import Labels
+
+    own = {id(dock._features_layer), id(dock._selection_layer)}
+    out = []
+    for layer in dock.viewer.layers:
+        if not isinstance(layer, Labels) or layer.ndim != 3 or id(layer) in own:
+            continue
+        data = layer.data[0] if getattr(layer, "multiscale", False) else layer.data
+        if shape is None or tuple(int(n) for n in data.shape) == tuple(int(n) for n in shape):
+            out.append(layer)
+    return out
+
+
 def fmt(values: Any, digits: int = 4) -> str:
     return " x ".join(f"{float(v):.{digits}g}" for v in values)

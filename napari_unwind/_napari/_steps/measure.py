@@ -2,11 +2,16 @@
 
 A collapsible section (closed until opened, so the Export page keeps its size): Measure runs the core's
 :func:`napari_unwind.measure.measure_iter` in a worker with the dock's progress bar and Cancel, on the model's
-deformation, the selection's mask (the cross-section columns; none without a selection) and the scan (its intensity
-as the ``scan`` channel), at the finest scan spacing. The profile's plot (:meth:`napari_unwind.measure.Profile.plot`,
-the same panels as ``unwind measure --plot``) is drawn in the dock on matplotlib's Qt canvas. "Save profile..."
-writes it as CSV, Parquet or the PNG plot, by the suffix (:meth:`~napari_unwind.measure.Profile.save`); an existing
-file is replaced only after the dock's confirmation. Measured on this computer, whichever backend runs the steps.
+deformation, the selection's mask (the cross-section columns; none without a selection), the scan (its intensity
+as the ``scan`` channel) and, when one is chosen in "labels:", a Labels layer (each label's area along ``s``: an
+``area_label_N`` column per label, as ``unwind measure --labels``), at the finest scan spacing. "labels:" lists
+"(none)" and the viewer's 3D Labels layers of the scan's shape (not the dock's own "features" and "selection"),
+kept up to date as layers are added, removed, renamed or given new data; a chosen layer that goes or changes
+shape falls back to "(none)". Its voxels are read in the worker, integer labels as they are. The profile's plot
+(:meth:`napari_unwind.measure.Profile.plot`, the same panels as ``unwind measure --plot``) is drawn in the dock on
+matplotlib's Qt canvas. "Save profile..." writes it as CSV, Parquet or the PNG plot, by the suffix
+(:meth:`~napari_unwind.measure.Profile.save`); an existing file is replaced only after the dock's confirmation.
+Measured on this computer, whichever backend runs the steps.
 """
 
 from __future__ import annotations
@@ -16,17 +21,30 @@ from collections.abc import Generator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from qtpy.QtCore import Qt
-from qtpy.QtWidgets import QFileDialog, QLabel, QPushButton, QSizePolicy, QToolButton, QVBoxLayout, QWidget
+from qtpy.QtWidgets import (
+    QComboBox,
+    QFileDialog,
+    QHBoxLayout,
+    QLabel,
+    QPushButton,
+    QSizePolicy,
+    QToolButton,
+    QVBoxLayout,
+    QWidget,
+)
 
 from ...errors import InvalidInputError, UnwindError
 from ...io._volume import unit_label
 from ...progress import Progress
 from .._workers import Job
-from ._base import Step
+from ._base import Step, fmt, labels_layers
 
 #: The save dialog's filters: (filter, suffix); the typed suffix wins.
 SAVE_FILTERS = (("CSV table (*.csv)", ".csv"), ("Parquet table (*.parquet)", ".parquet"), ("PNG plot (*.png)", ".png"))
+#: The "labels:" choice of no label image.
+NO_LABELS = "(none)"
 #: Height of one panel of the plot in the dock (px): its y label, rotated, fits.
 PANEL_HEIGHT = 170
 
@@ -59,6 +77,19 @@ class MeasurePanel(Step):
         self.need = QLabel("")
         self.need.setWordWrap(True)
         body.addWidget(self.need)
+        row = QHBoxLayout()
+        row.addWidget(QLabel("labels:"))
+        self.labels_combo = QComboBox()
+        self.labels_combo.setSizeAdjustPolicy(QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+        self.labels_combo.setMinimumContentsLength(8)
+        self.labels_combo.setMinimumWidth(1)  # a long layer name is cut at the dock's edge, never widens it
+        self.labels_combo.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Fixed)
+        self.labels_combo.setToolTip("A Labels layer of the scan's shape (parts, organs, a segmentation): the "
+                                     "profile gets each label's cross-section area along s (an area_label_N column "
+                                     "per label, nearest-neighbour); (none): no label areas")
+        self.labels_combo.addItem(NO_LABELS, None)
+        row.addWidget(self.labels_combo, 1)
+        body.addLayout(row)
         self.measure_button, self.cancel_button = self.job_buttons(body, "Measure", self.measure)
         self.save_button = QPushButton("Save profile...")
         self.save_button.setToolTip("Write the profile: .csv or .parquet (units with each column), or .png (the plot)")
@@ -72,6 +103,12 @@ class MeasurePanel(Step):
         body.addLayout(self.plot_box)
         self.body.setVisible(False)
         lay.addWidget(self.body)
+        # the Labels layers to choose from follow the viewer's layers (added, removed, renamed, new data)
+        layers = self.viewer.layers
+        layers.events.inserted.connect(self._on_layer_inserted)
+        layers.events.removed.connect(self._on_layer_removed)
+        for layer in layers:
+            self._watch(layer)
         self.update_needs()
 
     def set_open(self, open_: bool) -> None:
@@ -82,7 +119,58 @@ class MeasurePanel(Step):
         self.toggle.setArrowType(Qt.ArrowType.DownArrow if open_ else Qt.ArrowType.RightArrow)
         self.body.setVisible(bool(open_))
 
+    # ---- labels: ----------------------------------------------------------------------------------------------------
+    @property
+    def labels_layer(self) -> Any:
+        """The Labels layer chosen in "labels:" (None: "(none)")."""
+        return self.labels_combo.currentData()
+
+    def set_labels_layer(self, layer: Any) -> bool:
+        """Choose ``layer`` (None: "(none)") in "labels:"; False (and "(none)") when it is not one of the listed."""
+        self.refresh_labels()
+        index = self.labels_combo.findData(layer) if layer is not None else 0
+        self.labels_combo.setCurrentIndex(max(index, 0))
+        return index >= 0
+
+    def refresh_labels(self, event: Any = None) -> None:
+        """List "(none)" and the viewer's Labels layers of the scan's shape; keep the choice while it is listed."""
+        volume = self.dock.volume
+        found = labels_layers(self.dock, tuple(volume.shape)) if volume is not None else []
+        combo, current = self.labels_combo, self.labels_combo.currentData()
+        listed = [combo.itemData(i) for i in range(1, combo.count())]
+        names = [combo.itemText(i) for i in range(1, combo.count())]
+        if len(listed) == len(found) and all(a is b for a, b in zip(listed, found, strict=True)) and \
+                names == [layer.name for layer in found]:
+            return  # nothing changed (most layer events): the open popup stays as it is
+        combo.blockSignals(True)
+        combo.clear()
+        combo.addItem(NO_LABELS, None)
+        for layer in found:
+            combo.addItem(layer.name, layer)
+        index = next((i + 1 for i, layer in enumerate(found) if layer is current), 0)
+        combo.setCurrentIndex(index)  # a chosen layer gone, or of another shape now: back to "(none)"
+        combo.blockSignals(False)
+
+    def _watch(self, layer: Any) -> None:
+        from napari.layers import Labels
+
+        if isinstance(layer, Labels):
+            layer.events.name.connect(self.refresh_labels)
+            layer.events.data.connect(self.refresh_labels)
+
+    def _on_layer_inserted(self, event: Any) -> None:
+        self._watch(event.value)
+        self.refresh_labels()
+
+    def _on_layer_removed(self, event: Any) -> None:
+        layer = event.value
+        for emitter in (getattr(layer.events, "name", None), getattr(layer.events, "data", None)):
+            if emitter is not None:
+                emitter.disconnect(self.refresh_labels)
+        self.refresh_labels()
+
     def update_needs(self) -> None:
+        self.refresh_labels()  # the scan may have changed: its shape decides the layers listed
         d, scan = self.workflow.edit.deformation, self.dock.volume is not None
         if d is None or not scan:
             self.need.setText("Needs a scan and a deformation (step 4 or a session).")
@@ -116,6 +204,17 @@ class MeasurePanel(Step):
             selected = dock.has_selection
             if selected:
                 dock._check_selection()
+            labels_layer = self.labels_layer
+            labels_data = None
+            if labels_layer is not None:
+                if labels_layer not in self.viewer.layers:
+                    raise InvalidInputError(f"the Labels layer {labels_layer.name!r} is no longer in the viewer: "
+                                            "choose another in \"labels:\" or (none)")
+                labels_data = labels_layer.data[0] if getattr(labels_layer, "multiscale", False) else labels_layer.data
+                if tuple(labels_data.shape) != tuple(volume.shape):
+                    raise InvalidInputError(
+                        f"the Labels layer {labels_layer.name!r} has {fmt(labels_data.shape, 6)} voxels, the scan "
+                        f"{fmt(volume.shape, 6)}: choose a Labels layer of the scan's shape in \"labels:\" or (none)")
             # the Export page's other channels (when "with the other channels" is ticked) are measured too
             channels = {"scan": volume}
             for v in dock.export_step.channels_box.volumes():
@@ -133,11 +232,20 @@ class MeasurePanel(Step):
             if selected:  # the features refined by the pipeline's select step, or the chosen mask: in the worker
                 mask = Volume(workflow.mask().astype("uint8"), spacing=volume.spacing, origin=volume.origin,
                               unit=volume.unit)
-            return (yield from measure_iter(d, mask=mask, channels=channels))
+            labels = None
+            if labels_data is not None:  # the layer's voxels read here, in the worker (a lazy layer loads now)
+                data = np.asarray(labels_data)
+                labels = Volume(data.astype(np.uint8) if data.dtype == bool else data, spacing=volume.spacing,
+                                origin=volume.origin, unit=volume.unit)
+            return (yield from measure_iter(d, mask=mask, labels=labels, channels=channels))
 
         def done(profile: Any) -> None:
             self.profile, self._measured_on = profile, d
-            self.info.setText(self._summary() + ("" if selected else " (no selection: no cross-sections)"))
+            parts = [n for n in profile.names if n.startswith("area_label_")]
+            text = self._summary() + ("" if selected else " (no selection: no cross-sections)")
+            if labels_layer is not None:
+                text += f"; {len(parts)} label{'s' if len(parts) != 1 else ''} of {labels_layer.name!r}"
+            self.info.setText(text)
             try:
                 self.show_plot()
             except UnwindError as exc:  # no matplotlib: the profile is there to save as a table all the same
