@@ -8,6 +8,7 @@ of these names may change without notice.
 The private names used:
 
 - ``viewer.window._qt_viewer.canvas.layer_to_visual[layer]`` -> napari's vispy layer;
+- ``viewer.window._qt_window`` -> the main window (its Close event: :func:`main_window`, ``_gc.py``);
 - the canvas's ``_pause_scene_graph``, ``_update_scenegraph`` and ``_scene_canvas.context.finish()`` (a layer
   removed without napari's ``gc.collect()``: :func:`remove_layer_uncollected`);
 - ``vispy_layer._layer_node._volume_node`` -> the 3D node (a vispy ``VolumeVisual``);
@@ -360,10 +361,17 @@ def remove_layer_uncollected(viewer: Any, layer: Any) -> None:
     canvas._update_scenegraph()
 
 
+def main_window(viewer: Any) -> Any:
+    """The viewer's Qt main window (napari's ``Window._qt_window``), or None: no window, or closed. A viewer given
+    to a plugin's widget through napari's ``PublicOnlyProxy`` is unwrapped (the proxy's window is no QObject)."""
+    viewer = getattr(viewer, "__wrapped__", viewer)
+    return getattr(getattr(viewer, "window", None), "_qt_window", None)
+
+
 def viewer_closed(viewer: Any) -> bool:
     """The viewer's window was closed (napari's ``Window.close`` deletes its ``_qt_window``); False for a viewer
     without a window (a ViewerModel)."""
-    window = getattr(viewer, "window", None)
+    window = getattr(getattr(viewer, "__wrapped__", viewer), "window", None)  # napari's proxy unwrapped
     return window is not None and not hasattr(window, "_qt_window")
 
 

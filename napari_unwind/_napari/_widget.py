@@ -60,7 +60,7 @@ from ..errors import InvalidInputError, UnwindError
 from ..pipeline import ExportOptions
 from ..progress import Progress
 from ..workflow import LocalBackend, Workflow
-from . import _docks
+from . import _docks, _gc
 from ._messages import for_dock
 from ._steps import (
     DOCK_SHORTCUTS,
@@ -164,6 +164,7 @@ class UnwindWidget(QWidget):
         _private.memoise_program_parse()  # each new layer's first paint parses no GLSL it has parsed before
         _warm_imports()
         self.viewer = napari_viewer
+        _gc.engage(self)  # full collections skip the heap that survived one while the viewer is open (_gc.py)
         #: The workflow's state and steps (Qt-free); the steps show it and turn clicks into its calls. Its
         #: backend runs the steps on this computer (the skeleton in a child process) or on a server.
         self.workflow = Workflow(LocalBackend(runner=in_child))

@@ -15,7 +15,6 @@ SHOWN_LIMIT (150 ms: 81-97 ms measured on a loaded machine, 147-438 ms before th
 is in benchmarks/RESULTS.md). The figures are printed (``pytest -s``).
 """
 
-import gc
 import time
 from types import SimpleNamespace
 
@@ -26,6 +25,7 @@ pytest.importorskip("napari")
 
 from qtpy.QtCore import QTimer  # noqa: E402
 
+from napari_unwind._napari import _gc  # noqa: E402
 from napari_unwind._napari._widget import UnwindWidget, warming_kernels  # noqa: E402
 from napari_unwind.datasets import fish_phantom  # noqa: E402
 from napari_unwind.io import write_volume  # noqa: E402
@@ -74,7 +74,6 @@ def longest_stall(qtbot, start, timeout=120_000, settled=lambda: True, viewer=No
     wireframes and preview), the number of ticks, and the turns that added or showed more than one layer of
     ``viewer``. A full garbage collection first, so that the step's own work is measured, not the collector's
     pass that the process's earlier allocations had made due."""
-    gc.collect()  # Python's automatic full collections (0.26-0.61 s on this heap, at any turn: RESULTS.md) apart
     ticks = [time.perf_counter()]
     cpu = [time.process_time()]
     steps = layer_steps(viewer, ticks) if viewer is not None else []
@@ -113,7 +112,8 @@ def test_no_long_stall_during_skeleton_and_export(make_napari_viewer, qtbot, tmp
     viewer = make_napari_viewer()
     w = UnwindWidget(viewer)
     viewer.window.add_dock_widget(w, name="Unwind")
-    qtbot.waitUntil(lambda: not warming_kernels(), timeout=300_000)  # numba's cache filled (_warm_kernels)
+    # numba's cache filled (_warm_kernels), the heap collected and frozen once the dock is idle (_gc)
+    qtbot.waitUntil(lambda: w.idle and not warming_kernels() and not _gc.pending(), timeout=300_000)
     job = w.open_scan(scan)
     qtbot.waitUntil(lambda: job.done, timeout=60_000)
     job = w.segment()
@@ -175,7 +175,7 @@ def test_no_long_stall_opening_segmenting_selecting_and_suggesting(make_napari_v
         figures[name] = longest_stall(qtbot, start, settled=lambda: w.idle, viewer=viewer)
 
     # the dock's imports ahead (_warm_imports) and numba's cache filled by its child (_warm_kernels), as a user looks
-    qtbot.waitUntil(lambda: w.idle and not warming_kernels(), timeout=300_000)
+    qtbot.waitUntil(lambda: w.idle and not warming_kernels() and not _gc.pending(), timeout=300_000)
     measure("open scan", lambda: w.open_scan(scan))
     assert [ly.name for ly in viewer.layers] == ["fish.nrrd"] and w.scan_layer.visible
     assert viewer.layers.selection.active is w.scan_layer

@@ -1,0 +1,60 @@
+"""``_napari._gc``: while a dock's viewer is open, the heap that survived a full collection is frozen, so later full
+passes walk only new objects; a removed layer (it lives in reference cycles) is still freed, and closing the viewer
+lifts the freeze. The reference is Python's own ``gc`` bookkeeping (the frozen count, the objects of the oldest
+generation) and weak references to the objects that must be freed."""
+
+import gc
+import weakref
+
+import numpy as np
+import pytest
+
+pytest.importorskip("napari")
+
+from napari_unwind._napari import _gc  # noqa: E402
+from napari_unwind._napari._widget import UnwindWidget  # noqa: E402
+
+pytestmark = pytest.mark.gui
+
+
+def _dock(make_napari_viewer, qtbot):
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    viewer.window.add_dock_widget(w, name="Unwind")
+    qtbot.waitUntil(lambda: w.idle and not _gc.pending(), timeout=120_000)
+    return viewer, w
+
+
+def test_full_passes_skip_the_frozen_heap_while_the_viewer_is_open_and_not_after(make_napari_viewer, qtbot):
+    viewer, w = _dock(make_napari_viewer, qtbot)
+    assert _gc.engaged()
+    frozen = gc.get_freeze_count()
+    assert frozen > 100_000, frozen  # napari's heap, frozen after the dock's first collection
+    gc.collect()
+    assert len(gc.get_objects(generation=2)) < frozen / 10  # what a full pass walks now: the survivors are frozen
+    viewer.close()
+    assert not _gc.engaged() and gc.get_freeze_count() == 0  # closing the viewer lifted the freeze
+    gc.collect()
+    assert gc.get_freeze_count() == 0  # and no later collection freezes again
+
+
+def test_a_removed_layer_is_freed_once_the_dock_is_idle(make_napari_viewer, qtbot, monkeypatch):
+    monkeypatch.setattr(_gc, "RELEASE_AFTER_MS", 200)
+    viewer, w = _dock(make_napari_viewer, qtbot)
+
+    class Data(np.ndarray):  # a weak reference to the layer's voxels (a plain ndarray takes none)
+        pass
+
+    layer = viewer.add_labels(np.zeros((64, 64, 64), np.uint8).view(Data), name="big")
+    data = weakref.ref(layer.data)
+    qtbot.wait(100)
+    gc.collect()  # the layer survives a full pass: frozen with the rest
+    assert data() is not None
+    viewer.layers.remove(layer)
+    del layer
+    gc.collect()
+    assert data() is not None, "the removed layer was freed without the release: this test shows nothing"
+    assert _gc.pending()
+    qtbot.waitUntil(lambda: not _gc.pending(), timeout=10_000)
+    assert data() is None, "the removed layer's voxels were never freed (its cycles frozen)"
+    assert gc.get_freeze_count() > 100_000  # the survivors frozen again
