@@ -5,7 +5,7 @@ A QTimer fires every 10 ms on the UI thread and records the gaps between its cal
 worker. A gap is measured in the process's CPU time (at most its wall time): a worker that holds the GIL in a long
 compiled call keeps the process busy for the whole gap, while a process that the machine's other work keeps off the
 cores accrues no CPU time, so the figure does not grow with the machine's load (a wall-time bound failed on a
-loaded CI machine). The goal is 100 ms (benchmarks); the test allows 500 ms.
+loaded CI machine). The goal is 100 ms (benchmarks); the test allows 250 ms.
 Showing the result on the UI thread (napari adding layers: the ends, the straight preview, the wireframes, the
 exported volume) is measured apart. napari's cost of a new layer is 40-80 ms to add it and 10-80 ms for its first
 paint under Xvfb's software GL; the dock adds each new layer hidden and shows it on a later turn, one step a turn
@@ -32,10 +32,13 @@ from napari_unwind.io import write_volume  # noqa: E402
 
 pytestmark = pytest.mark.gui
 
-LIMIT = 0.5  # seconds
+#: seconds, the longest gap until the result: 9-21 ms measured with the dock's numba warm-up and collection policy;
+#: without them 221-241 ms (a first call compiling) and 224-227 ms (a full collection of napari's heap)
+LIMIT = 0.25
 SHOWN_LIMIT = 0.15  # seconds, the longest gap while the dock shows a result
-#: seconds, the longest gap of steps 1-3 from the click until settled: 21-110 ms measured (one run 151 ms, the click
-#: after a mask; RESULTS.md); before the steps were split 0.25-1.6 s, and turns with two layers, which fail apart
+#: seconds, the longest gap of steps 1-3 from the click until settled: 19-120 ms measured (RESULTS.md); the click
+#: after a mask 344-372 ms without the dock's collection policy; before the steps were split 0.25-1.6 s, and turns
+#: with two layers, which fail apart
 STEP_LIMIT = 0.25
 
 
@@ -72,8 +75,8 @@ def longest_stall(qtbot, start, timeout=120_000, settled=lambda: True, viewer=No
     and ``settled()``; return the longest gap between 10 ms timer ticks until the result reached the UI thread (the
     click included), the longest gap after it (the dock showing the result: its layers, the Refine panel's
     wireframes and preview), the number of ticks, and the turns that added or showed more than one layer of
-    ``viewer``. A full garbage collection first, so that the step's own work is measured, not the collector's
-    pass that the process's earlier allocations had made due."""
+    ``viewer``. Python's automatic full collections are measured with the step (the dock keeps them short:
+    ``_napari/_gc.py``)."""
     ticks = [time.perf_counter()]
     cpu = [time.process_time()]
     steps = layer_steps(viewer, ticks) if viewer is not None else []
