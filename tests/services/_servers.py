@@ -113,3 +113,43 @@ def wait_for(predicate, timeout: float = 60.0, interval: float = 0.05):
             return value
         time.sleep(interval)
     raise TimeoutError("condition not met in time")
+
+
+def stored_volume(srv: ServerProcess, volume_id: str) -> Path:
+    """The OME-Zarr store of an uploaded volume under the server's own folder."""
+    found = list((srv.data_root / ".unwind").rglob(f"{volume_id}.zarr"))
+    assert len(found) == 1, found
+    return found[0]
+
+
+def store_files(store: Path) -> dict[str, bytes]:
+    """Every file of a store: its path inside the store -> its bytes."""
+    return {str(p.relative_to(store)): p.read_bytes() for p in sorted(store.rglob("*")) if p.is_file()}
+
+
+def assert_same_store(got: Path, want: Path) -> None:
+    """The two OME-Zarr stores hold the same files byte for byte, but for the name in the root attributes (the
+    store's folder)."""
+    import json
+
+    g_files, w_files = store_files(got), store_files(want)
+    assert g_files.keys() == w_files.keys()
+    for name in w_files:
+        if name == "zarr.json":
+            g, w = json.loads(g_files[name]), json.loads(w_files[name])
+            for d in (g, w):
+                d["attributes"]["ome"]["multiscales"][0].pop("name")
+            assert g == w
+        else:
+            assert g_files[name] == w_files[name], name
+
+
+def leftovers(srv: ServerProcess) -> list[str]:
+    """Partial stores, pipes or staging files anywhere under the server's own folder."""
+    private = srv.data_root / ".unwind"
+    found = []
+    for folder, dirs, files in os.walk(private):  # (os.walk skips what vanishes while it looks)
+        for name in dirs + files:
+            if "unwind-tmp" in name or name.endswith(".fifo") or Path(folder) == private / "tmp":
+                found.append(os.path.relpath(os.path.join(folder, name), private))
+    return found

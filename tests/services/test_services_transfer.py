@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import json
-import os
 import threading
 import time
-from pathlib import Path
 
 import dask.array as da
 import grpc
 import numpy as np
 import psutil
 import pytest
-from _servers import ServerProcess
+from _servers import ServerProcess, assert_same_store, leftovers, stored_volume
 from google.protobuf.message import DecodeError
 
 from napari_unwind.client import Client, RemoteError
@@ -31,27 +29,6 @@ def server(tmp_path_factory):
     srv.stop()
 
 
-def _store(srv: ServerProcess, volume_id: str) -> Path:
-    found = list((srv.data_root / ".unwind").rglob(f"{volume_id}.zarr"))
-    assert len(found) == 1, found
-    return found[0]
-
-
-def _files(store: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(store)): p.read_bytes() for p in sorted(store.rglob("*")) if p.is_file()}
-
-
-def _leftovers(srv: ServerProcess) -> list[str]:
-    """Partial stores, pipes or staging files anywhere under the server's own folder."""
-    private = srv.data_root / ".unwind"
-    found = []
-    for folder, dirs, files in os.walk(private):  # (os.walk skips what vanishes while it looks)
-        for name in dirs + files:
-            if "unwind-tmp" in name or name.endswith(".fifo") or Path(folder) == private / "tmp":
-                found.append(os.path.relpath(os.path.join(folder, name), private))
-    return found
-
-
 @pytest.mark.parametrize("shape, dtype, labels", [
     ((300, 20, 270), np.uint16, False),  # 3 slabs of the store (128 + 128 + 44 planes), a pyramid level
     ((131, 9, 261), np.float32, False),
@@ -66,17 +43,8 @@ def test_a_streamed_upload_stores_what_import_volume_writes(server, tmp_path, sh
     ref = import_volume(as_volume(a, spacing=(3, 2, 1), unit="um", origin=(1, 2, 3)), tmp_path / "ref.zarr",
                         labels=labels)
     assert info.levels == len(ref.levels) >= 2
-    got, want = _files(_store(server, info.volume_id)), _files(tmp_path / "ref.zarr")
-    assert got.keys() == want.keys()
-    for name in want:
-        if name == "zarr.json":  # the root attributes name the store (its folder)
-            g, w = json.loads(got[name]), json.loads(want[name])
-            for d in (g, w):
-                d["attributes"]["ome"]["multiscales"][0].pop("name")
-            assert g == w
-        else:
-            assert got[name] == want[name], name
-    assert not _leftovers(server)
+    assert_same_store(stored_volume(server, info.volume_id), tmp_path / "ref.zarr")
+    assert not leftovers(server)
 
 
 def test_downloads_of_every_level_and_of_a_registered_file_are_the_voxels(server, tmp_path):
@@ -125,7 +93,7 @@ def test_a_header_disagreeing_with_chunks_after_whole_slabs_leaves_nothing(serve
     with grpc.insecure_channel(server.address) as ch, pytest.raises(grpc.RpcError) as info:
         volume_pb2_grpc.VolumeServiceStub(ch).Upload(iter([header] + [part] * 3), timeout=30)
     assert info.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "promises" in info.value.details()
-    assert not _leftovers(server)
+    assert not leftovers(server)
     with Client(server.address, progress=False) as c:
         assert "x" not in {v.name for v in c.volumes()}
 
@@ -149,9 +117,9 @@ def test_a_cancelled_upload_leaves_no_volume(server):
         time.sleep(0.5)
         assert fut.cancel()
     deadline = time.monotonic() + 15
-    while _leftovers(server) and time.monotonic() < deadline:
+    while leftovers(server) and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert not _leftovers(server)
+    assert not leftovers(server)
     with Client(server.address, progress=False) as c:
         assert "cancelled" not in {v.name for v in c.volumes()}
         c.upload(np.ones((3, 4, 5), np.uint8))  # the worker is free again
@@ -163,7 +131,7 @@ def test_nan_in_a_streamed_upload_is_refused_with_its_voxel(server):
     with Client(server.address, progress=False) as c, pytest.raises(RemoteError) as info:
         c.upload(a, name="nan")
     assert info.value.code == "INVALID_ARGUMENT" and "NaN at voxel (150, 3, 4)" in str(info.value)
-    assert not _leftovers(server)
+    assert not leftovers(server)
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -225,9 +193,9 @@ def test_a_server_killed_mid_upload_leaves_no_volume_after_its_restart(server):
         fut = volume_pb2_grpc.VolumeServiceStub(ch).Upload.future(messages(), timeout=60)
         assert sent.wait(20)
         deadline = time.monotonic() + 10  # the worker has begun the store
-        while not any("unwind-tmp" in p for p in _leftovers(server)) and time.monotonic() < deadline:
+        while not any("unwind-tmp" in p for p in leftovers(server)) and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert any("unwind-tmp" in p for p in _leftovers(server))
+        assert any("unwind-tmp" in p for p in leftovers(server))
         children = psutil.Process(server.proc.pid).children(recursive=True)  # job workers, the import's process
         assert children
         server.kill()
@@ -236,7 +204,7 @@ def test_a_server_killed_mid_upload_leaves_no_volume_after_its_restart(server):
     _, alive = psutil.wait_procs(children, timeout=10)
     assert not alive, [p.cmdline() for p in alive]
     server.start()
-    assert not _leftovers(server)  # the partial store and the pipe were swept at the start
+    assert not leftovers(server)  # the partial store and the pipe were swept at the start
     with Client(server.address, progress=False) as c:
         assert "killed" not in {v.name for v in c.volumes()}
 
@@ -286,7 +254,7 @@ def test_open_receives_the_stored_chunks_and_a_volume_stored_otherwise_raw(serve
         vid = c.upload(a, name="chunks").volume_id
         header, chunks = c._download_stream(vid, "chunks", 0, 60)  # noqa: SLF001 - what the wire holds
         blobs = [bytes(b) for b in chunks]
-        grid = json.loads((_store(server, vid) / "0" / "zarr.json").read_text())["chunk_grid"]
+        grid = json.loads((stored_volume(server, vid) / "0" / "zarr.json").read_text())["chunk_grid"]
         assert header.format == "chunks" and list(header.chunk_shape) == grid["configuration"]["chunk_shape"]
         counts = [-(-n // g) for n, g in zip(a.shape, header.chunk_shape)]
         assert header.total_bytes == a.nbytes and len(blobs) == np.prod(counts) > 1  # the grid, in C order
@@ -315,7 +283,7 @@ def test_a_chunk_never_written_comes_as_the_fill_value_and_a_corrupt_one_is_data
         reg = c.register("scans/holes.zarr").volume_id
         np.testing.assert_array_equal(c.open(reg).data.compute(), want)
         vid = c.upload(a, name="to-corrupt").volume_id
-        chunk = _store(server, vid) / "0" / "c" / "0" / "0" / "1"
+        chunk = stored_volume(server, vid) / "0" / "c" / "0" / "0" / "1"
         blob = bytearray(chunk.read_bytes())
         blob[len(blob) // 2] ^= 0xFF
         chunk.write_bytes(bytes(blob))

@@ -5,15 +5,12 @@ numcodecs' Blosc and google_crc32c directly (not with the code under test)."""
 from __future__ import annotations
 
 import itertools
-import json
-import os
-from pathlib import Path
 
 import google_crc32c
 import grpc
 import numpy as np
 import pytest
-from _servers import ServerProcess
+from _servers import ServerProcess, assert_same_store, leftovers, store_files, stored_volume
 from numcodecs import Blosc
 
 from napari_unwind.client import Client, RemoteError
@@ -31,21 +28,6 @@ def server(tmp_path_factory):
     srv = ServerProcess(tmp / "data", "--workers", 1)
     yield srv
     srv.stop()
-
-
-def _files(store: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(store)): p.read_bytes() for p in sorted(store.rglob("*")) if p.is_file()}
-
-
-def _store(srv: ServerProcess, volume_id: str) -> Path:
-    (found,) = list((srv.data_root / ".unwind").rglob(f"{volume_id}.zarr"))
-    return found
-
-
-def _leftovers(srv: ServerProcess) -> list[str]:
-    private = srv.data_root / ".unwind"
-    return [os.path.relpath(os.path.join(d, n), private) for d, dirs, files in os.walk(private)
-            for n in dirs + files if "unwind-tmp" in n or n.endswith(".fifo") or Path(d) == private / "tmp"]
 
 
 def _volume(seed: int = 0) -> np.ndarray:
@@ -87,17 +69,8 @@ def test_both_formats_store_what_import_volume_writes(server, tmp_path, fmt):
         info = c.upload(a, spacing=(3, 2, 1), unit="um", name="s", format=fmt)
         np.testing.assert_array_equal(c.open(info.volume_id).data.compute(), a)
     import_volume(as_volume(a, spacing=(3, 2, 1), unit="um"), tmp_path / "ref.zarr")
-    got, want = _files(_store(server, info.volume_id)), _files(tmp_path / "ref.zarr")
-    assert got.keys() == want.keys()
-    for name in want:
-        if name == "zarr.json":  # the root attributes name the store (its folder)
-            g, w = json.loads(got[name]), json.loads(want[name])
-            for d in (g, w):
-                d["attributes"]["ome"]["multiscales"][0].pop("name")
-            assert g == w
-        else:
-            assert got[name] == want[name], name
-    assert not _leftovers(server)
+    assert_same_store(stored_volume(server, info.volume_id), tmp_path / "ref.zarr")
+    assert not leftovers(server)
 
 
 def test_chunks_made_apart_are_stored_byte_for_byte(server):
@@ -105,7 +78,7 @@ def test_chunks_made_apart_are_stored_byte_for_byte(server):
     a = _volume(1)
     sent = _chunks(a)
     info = _upload(server, sent, name="apart")
-    store = _store(server, info.volume_id)
+    store = stored_volume(server, info.volume_id)
     coords = itertools.product(*[range(-(-n // g)) for n, g in zip(SHAPE, GRID, strict=True)])
     for c, blob in zip(coords, sent, strict=True):
         assert (store / "0" / "c" / "/".join(map(str, c))).read_bytes() == blob
@@ -119,9 +92,9 @@ def test_chunks_encoded_otherwise_give_the_store_import_volume_writes(server, tm
     sent = _chunks(a, clevel=9)
     assert sent != _chunks(a)  # the precondition: other bytes for the same voxels
     info = _upload(server, sent, name="otherwise")
-    got = _files(_store(server, info.volume_id))
+    got = store_files(stored_volume(server, info.volume_id))
     import_volume(as_volume(a), tmp_path / "ref.zarr")
-    want = _files(tmp_path / "ref.zarr")
+    want = store_files(tmp_path / "ref.zarr")
     assert got.keys() == want.keys()
     assert all(got[k] == want[k] for k in want if k != "zarr.json")
     with Client(server.address, progress=False) as c:
@@ -173,7 +146,7 @@ def test_a_bad_chunk_is_invalid_argument_and_leaves_nothing(server, case):
     assert info.value.code() == grpc.StatusCode.INVALID_ARGUMENT, info.value.details()
     details = info.value.details()
     assert words in details and "\n" not in details and str(server.data_root) not in details, details
-    assert not _leftovers(server)
+    assert not leftovers(server)
     with Client(server.address, progress=False) as c:
         assert case.replace(" ", "_").replace(",", "") not in {v.name for v in c.volumes()}
 
@@ -187,7 +160,7 @@ def test_a_bad_chunks_header_is_invalid_argument(server, header, words):
     with pytest.raises(grpc.RpcError) as info:
         _upload(server, _chunks(_volume()), **header)
     assert info.value.code() == grpc.StatusCode.INVALID_ARGUMENT and words in info.value.details()
-    assert not _leftovers(server)
+    assert not leftovers(server)
 
 
 def test_nan_in_an_upload_of_chunks_is_refused_with_its_voxel(server):
@@ -196,7 +169,7 @@ def test_nan_in_an_upload_of_chunks_is_refused_with_its_voxel(server):
     with Client(server.address, progress=False) as c, pytest.raises(RemoteError) as info:
         c.upload(a, name="nan", format="chunks")
     assert info.value.code == "INVALID_ARGUMENT" and "NaN at voxel (150, 3, 4)" in str(info.value)
-    assert not _leftovers(server)
+    assert not leftovers(server)
 
 
 def test_a_client_falls_back_to_raw_when_the_server_counts_the_chunks_as_voxels(server, monkeypatch):
