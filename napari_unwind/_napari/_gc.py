@@ -10,10 +10,11 @@ What: after each full collection while a dock's viewer is open, the survivors ar
 passes walk only the objects made since (3-40 ms measured). The first such collection runs once the new dock is idle
 (its imports ahead done), so that its cost falls between the user's steps, not inside one. Frozen objects are still
 freed by reference counting, but the cyclic collector never frees them, and a napari layer lives in reference cycles
-(its events call its own methods). So the freeze is lifted (``gc.unfreeze``) and the heap collected once, when the
-dock is idle, a few seconds after a layer left a viewer (:data:`RELEASE_AFTER_MS`); and lifted at once when a viewer
-closes, so that everything the viewer held is collectable. The collection that follows freezes the survivors again
-while a dock's viewer is still open. With no dock open the collector is Python's own.
+(its events call its own methods), as may what a step leaves behind. So the freeze is lifted (``gc.unfreeze``) and
+the heap collected once when the docks have been idle a few seconds (:data:`RELEASE_AFTER_MS`) after a layer left a
+viewer or a dock's job ended (at most one full pass per step, at a moment the user is not using the dock); and
+lifted at once when a viewer closes, so that everything the viewer held is collectable. The collection that follows
+freezes the survivors again while a dock's viewer is still open. With no dock open the collector is Python's own.
 """
 
 from __future__ import annotations
@@ -26,13 +27,12 @@ from qtpy.QtCore import QEvent, QObject, QTimer
 
 from . import _private
 
-__all__ = ["RELEASE_AFTER_MS", "engage", "engaged", "pending", "release"]
+__all__ = ["RELEASE_AFTER_MS", "engage", "engaged", "pending", "release", "soon"]
 
 #: ms after a layer's removal, the docks idle, before the freeze is lifted and the heap collected once
 RELEASE_AFTER_MS = 3000
-#: ms after a dock opens before its first collection (then every :data:`RETRY_MS` until the docks are idle)
+#: ms after a dock opens before its first collection (when the docks are busy then: :data:`RELEASE_AFTER_MS` later)
 FIRST_AFTER_MS = 500
-RETRY_MS = 250
 
 _DOCKS: weakref.WeakSet = weakref.WeakSet()  # the open docks (their ``idle`` and their viewer)
 _TIMER: list[QTimer] = []  # the release timer, made with the first dock
@@ -66,9 +66,17 @@ def _busy(dock: Any) -> bool:
 
 def _release_when_idle() -> None:
     if any(_busy(dock) for dock in list(_DOCKS)):
-        _TIMER[0].start(RETRY_MS)  # a step runs (or the dock's imports ahead): its turns are not disturbed
+        _TIMER[0].start(RELEASE_AFTER_MS)  # a step runs (or the dock's imports ahead): after it, idle again a while
         return
     release()
+
+
+def soon() -> None:
+    """Lift the freeze and collect the heap once the docks have been idle for :data:`RELEASE_AFTER_MS` (restarted
+    by each call): after a layer's removal and after each of a dock's jobs, so that what they left in reference
+    cycles is freed."""
+    if _TIMER:
+        _TIMER[0].start(RELEASE_AFTER_MS)
 
 
 def pending() -> bool:
@@ -77,8 +85,7 @@ def pending() -> bool:
 
 
 def _on_removed(event: Any = None) -> None:
-    if _TIMER:
-        _TIMER[0].start(RELEASE_AFTER_MS)  # restarted by each removal
+    soon()
 
 
 class _OnClose(QObject):

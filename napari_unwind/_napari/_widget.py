@@ -368,6 +368,7 @@ class UnwindWidget(QWidget):
             for b in cancel_buttons:
                 b.setEnabled(False)
             self._update_needs()
+            _gc.soon()  # what the job left behind in reference cycles: collected once the docks are idle
 
         self._say(f"{label}...")
         callbacks = dict(label=label, on_returned=returned, on_error=self._fail, on_finished=finished)

@@ -58,3 +58,30 @@ def test_a_removed_layer_is_freed_once_the_dock_is_idle(make_napari_viewer, qtbo
     qtbot.waitUntil(lambda: not _gc.pending(), timeout=10_000)
     assert data() is None, "the removed layer's voxels were never freed (its cycles frozen)"
     assert gc.get_freeze_count() > 100_000  # the survivors frozen again
+
+
+def test_each_job_of_the_dock_is_followed_by_one_collection_when_idle(make_napari_viewer, qtbot, monkeypatch, tmp_path):
+    """What a step left in reference cycles is freed: after each job the heap is collected once the dock is idle."""
+    from napari_unwind.datasets import fish_phantom
+    from napari_unwind.io import write_volume
+
+    monkeypatch.setattr(_gc, "RELEASE_AFTER_MS", 300)
+    viewer, w = _dock(make_napari_viewer, qtbot)
+    fish = fish_phantom(length=80, body_radius=5, tube=False, seed=1)
+    write_volume(fish.volume, tmp_path / "fish.nrrd", spacing=fish.spacing)
+    passes = []
+
+    def count(phase, info):
+        if phase == "stop" and info["generation"] == 2:
+            passes.append(gc.get_freeze_count())
+
+    gc.callbacks.append(count)
+    try:
+        job = w.open_scan(tmp_path / "fish.nrrd")
+        qtbot.waitUntil(lambda: job.done and w.idle, timeout=60_000)
+        assert _gc.pending()  # the job's end asked for one
+        qtbot.waitUntil(lambda: not _gc.pending(), timeout=10_000)
+    finally:
+        gc.callbacks.remove(count)
+    assert passes, "no full collection after the job"
+    assert gc.get_freeze_count() > 100_000  # and the survivors frozen again
