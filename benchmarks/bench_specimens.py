@@ -5,7 +5,6 @@ Usage: .venv/bin/python benchmarks/bench_specimens.py [--touching] SEED [SEED ..
 --touching: hard_tank_phantom(seed, touching=True), every tank packed to gap 0 (fish against each other and
 against the wall's arcs).
 """
-import sys
 import time
 
 import numpy as np
@@ -53,8 +52,13 @@ def run(seed, verbose=False, touching=False):
     return found, h.n_fish, dices
 
 if __name__ == "__main__":
-    touching = "--touching" in sys.argv[1:]
-    seeds = [int(a) for a in sys.argv[1:] if a != "--touching"] or list(range(8))
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("seeds", nargs="*", type=int, default=list(range(8)), help="hard_tank_phantom seeds (0..7)")
+    parser.add_argument("--touching", action="store_true", help="every tank packed to gap 0")
+    args = parser.parse_args()
+    touching, seeds = args.touching, args.seeds
     tot = n = 0
     alld = []
     for s in seeds:
