@@ -35,13 +35,13 @@ def fish_of(deformation: dict, labels: np.ndarray) -> tuple[int, float]:
     return (int(vals[np.argmax(cnt)]), float(cnt.max() / len(lab))) if len(vals) else (0, 0.0)
 
 
-def one(seed: int) -> dict:
+def one(seed: int, touching: bool = False) -> dict:
     from napari_unwind.datasets import hard_tank_phantom
     from napari_unwind.io import write_volume
     from napari_unwind.pipeline import run_all_iter
     from napari_unwind.progress import run
 
-    tank = hard_tank_phantom(seed)
+    tank = hard_tank_phantom(seed, touching=True) if touching else hard_tank_phantom(seed)
     with tempfile.TemporaryDirectory() as tmp:
         scan = write_volume(tank.volume, Path(tmp) / "tank.nrrd", spacing=tank.spacing, unit=tank.unit)
         t0 = time.perf_counter()
@@ -64,10 +64,12 @@ def one(seed: int) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("seeds", nargs="+", type=int)
+    ap.add_argument("--touching", action="store_true", help="every tank packed to gap 0 (hard_tank_phantom(seed, "
+                    "touching=True): fish against each other and against the wall's arcs)")
     args = ap.parse_args()
     total = found = 0
     for seed in args.seeds:
-        r = one(seed)
+        r = one(seed, touching=args.touching)
         t = r["tank"]
         counts = {s: r["statuses"].count(s) for s in ("ok", "partial", "failed", "rejected")}
         print(f"seed {seed}: {t.n_fish} fish (touching {list(t.touching)}, cut by a face {len(t.cut_fish)}, wall cut "
