@@ -206,9 +206,12 @@ def test_no_long_stall_opening_segmenting_selecting_and_suggesting(make_napari_v
     mask = viewer.add_labels(fish.mask.astype(np.uint8), name="mask", scale=fish.spacing)
     qtbot.wait(300)
     measure("choose a mask", at_once(lambda: w.use_labels(mask)))
-    assert w.mask_choice == (mask, None) and "selection" not in [ly.name for ly in viewer.layers]
+    assert w.mask_choice == (mask, None)
+    selection = viewer.layers["selection"]  # kept hidden and empty: the click after a mask shows it again
+    assert not selection.visible and not np.any(selection.data)
     measure("select a feature after a mask", at_once(lambda: w.select_features([fid])))
-    assert w.mask_choice is None and viewer.layers["selection"].visible
+    assert w.mask_choice is None and viewer.layers["selection"] is selection and selection.visible
+    assert np.array_equal(np.unique(selection.data), [0, fid])
     assert viewer.layers.selection.active is viewer.layers["features"]
     print("\nlongest UI stall from the click until settled (until the result / showing it): " + ", ".join(
         f"{name} {1000 * during:.0f} / {1000 * shown:.0f} ms" for name, (during, shown, _, _) in figures.items()))

@@ -321,8 +321,10 @@ class SegmentStep(Step):
         ids, f = list(selection.ids), selection.features
         if f is not None:
             labels = np.where(np.isin(f.labels, ids), f.labels, 0).astype(f.labels.dtype)
-            dock._put_layer("_selection_layer", self._labels_tuple(labels, "selection", opacity=0.8,
-                                                                   blending="additive"))
+            layer = dock._put_layer("_selection_layer", self._labels_tuple(labels, "selection", opacity=0.8,
+                                                                           blending="additive"))
+            if not layer.visible and layer in self.viewer.layers:
+                layer.visible = True  # hidden while a mask was the selection
         self._syncing = True
         self.table.clearSelection()
         self.table.setSelectionMode(QAbstractItemView.SelectionMode.MultiSelection)
@@ -501,13 +503,17 @@ class SegmentStep(Step):
         dock.mask_choice = (layer, label or None)
         from .. import _reveal
 
-        if dock._selection_layer is not None:
-            _reveal.cancel(dock._selection_layer)  # a new selection layer on its way in stays out
-        if dock._selection_layer is not None and dock._selection_layer in self.viewer.layers:
-            from .. import _private
-
-            _private.remove_layer_uncollected(self.viewer, dock._selection_layer)  # napari's collection: 0.3 s
-        dock._selection_layer = None
+        own = dock._selection_layer
+        if own is not None:
+            _reveal.cancel(own)  # its steps still waiting (put in, shown) are dropped
+            if own in self.viewer.layers:
+                # kept, hidden and emptied: a click on a feature later shows it again instead of napari inserting a
+                # new Labels layer (its controls and overlays: about 110 ms of one turn, issue 21)
+                own.visible = False
+                if not getattr(own, "multiscale", False):
+                    own.data = np.zeros(own.data.shape, dtype=own.data.dtype)
+            else:
+                dock._selection_layer = None
         if self._mask_click not in layer.mouse_drag_callbacks:
             layer.mouse_drag_callbacks.append(self._mask_click)
         share = 100 * count / max(1, int(np.prod(volume.shape)))
