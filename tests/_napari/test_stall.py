@@ -213,6 +213,10 @@ def test_no_long_stall_opening_segmenting_selecting_and_suggesting(make_napari_v
     assert w.mask_choice is None and viewer.layers["selection"] is selection and selection.visible
     assert np.array_equal(np.unique(selection.data), [0, fid])
     assert viewer.layers.selection.active is viewer.layers["features"]
+    write_volume(fish.mask.astype(np.uint8), tmp_path / "mask.nrrd", spacing=fish.spacing, unit=fish.unit)
+    measure("open a mask file", lambda: w.open_mask(tmp_path / "mask.nrrd"))
+    opened = viewer.layers[-1]
+    assert w.mask_choice == (opened, None) and opened.visible and not selection.visible
     print("\nlongest UI stall from the click until settled (until the result / showing it): " + ", ".join(
         f"{name} {1000 * during:.0f} / {1000 * shown:.0f} ms" for name, (during, shown, _, _) in figures.items()))
     crowded = {name: c for name, (_, _, _, c) in figures.items() if c}

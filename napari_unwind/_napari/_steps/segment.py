@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Generator
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,7 @@ from qtpy.QtWidgets import (
 )
 
 from ...errors import InvalidInputError, UnwindError
+from ...progress import Progress
 from ...progress import run as run_progress
 from .._workers import Job, prewarm
 from ._base import SKELETON, Step, fmt, on_click
@@ -540,14 +542,20 @@ class SegmentStep(Step):
         except UnwindError as exc:
             self._fail(exc)
             return None
-        make = task.make
+        def make() -> Generator[Progress, None, Any]:
+            from napari.layers import Layer
 
-        def done(data: np.ndarray) -> None:
-            from .._layers import in_3d, labels_layer
+            from .._layers import labels_layer
 
-            layer = self.dock._add_layer(labels_layer(
+            data = yield from task.make()
+            return Layer.create(*labels_layer(  # made here, not on the UI thread
                 data, spacing=volume.spacing, unit=volume.unit, name=Path(path).name, translate=tuple(volume.origin),
                 metadata={"napari_unwind": {"source": str(Path(path).absolute())}}))
+
+        def done(layer: Any) -> None:
+            from .._layers import in_3d
+
+            self.dock._add_layer(layer, reveal=True)  # napari's insert, and its first paint on the next turn
             in_3d(self.viewer, layer)
             self.use_labels(layer, label=label)
 
