@@ -116,16 +116,24 @@ def no_idle_collection(monkeypatch):
     return lambda: monkeypatch.setattr(_gc, "RELEASE_AFTER_MS", 3_600_000)
 
 
-def test_no_long_stall_during_skeleton_and_export(make_napari_viewer, qtbot, tmp_path, no_idle_collection):
+def settled_dock(make_napari_viewer, qtbot, tmp_path, hold_collection):
+    """A phantom fish written as a scan file, and a viewer with the dock added as the Plugins menu does, once the dock
+    has settled as a user looking at it lets it: its imports ahead (``_warm_imports``), numba's cache filled by its
+    child (``_warm_kernels``), the heap collected and frozen (``_gc``); then ``hold_collection()``. Returns
+    ``(fish, scan path, viewer, dock)``."""
     fish = fish_phantom(length=80, body_radius=5, tube=False, seed=1)
     scan = tmp_path / "fish.nrrd"
     write_volume(fish.volume, scan, spacing=fish.spacing, unit=fish.unit)
     viewer = make_napari_viewer()
     w = UnwindWidget(viewer)
     viewer.window.add_dock_widget(w, name="Unwind")
-    # numba's cache filled (_warm_kernels), the heap collected and frozen once the dock is idle (_gc)
     qtbot.waitUntil(lambda: w.idle and not warming_kernels() and not _gc.pending(), timeout=300_000)
-    no_idle_collection()
+    hold_collection()
+    return fish, scan, viewer, w
+
+
+def test_no_long_stall_during_skeleton_and_export(make_napari_viewer, qtbot, tmp_path, no_idle_collection):
+    fish, scan, viewer, w = settled_dock(make_napari_viewer, qtbot, tmp_path, no_idle_collection)
     job = w.open_scan(scan)
     qtbot.waitUntil(lambda: job.done, timeout=60_000)
     job = w.segment()
@@ -173,23 +181,15 @@ def test_no_long_stall_opening_segmenting_selecting_and_suggesting(make_napari_v
                                                                    no_idle_collection):
     """Steps 1-3 each from the click until the dock has settled: opening a scan (its Image layer), segmenting (the
     "features" and "selection" Labels layers), a click selecting a feature (the selection layer's data), suggesting
-    head and tail (the "ends" layer), choosing a mask (the selection layer removed) and a click after it (the
-    selection layer back)."""
-    fish = fish_phantom(length=80, body_radius=5, tube=False, seed=1)
-    scan = tmp_path / "fish.nrrd"
-    write_volume(fish.volume, scan, spacing=fish.spacing, unit=fish.unit)
-    viewer = make_napari_viewer()
-    w = UnwindWidget(viewer)
-    viewer.window.add_dock_widget(w, name="Unwind")
+    head and tail (the "ends" layer), choosing a mask (the selection layer hidden), a click after it (the selection
+    layer shown again) and opening a mask file (its Labels layer)."""
+    fish, scan, viewer, w = settled_dock(make_napari_viewer, qtbot, tmp_path, no_idle_collection)
     p = np.round(fish.centerline[len(fish.centerline) // 2]).astype(int)
     figures = {}
 
     def measure(name, start):
         figures[name] = longest_stall(qtbot, start, settled=lambda: w.idle, viewer=viewer)
 
-    # the dock's imports ahead (_warm_imports) and numba's cache filled by its child (_warm_kernels), as a user looks
-    qtbot.waitUntil(lambda: w.idle and not warming_kernels() and not _gc.pending(), timeout=300_000)
-    no_idle_collection()
     measure("open scan", lambda: w.open_scan(scan))
     assert [ly.name for ly in viewer.layers] == ["fish.nrrd"] and w.scan_layer.visible
     assert viewer.layers.selection.active is w.scan_layer
