@@ -9,8 +9,6 @@ The private names used:
 
 - ``viewer.window._qt_viewer.canvas.layer_to_visual[layer]`` -> napari's vispy layer;
 - ``viewer.window._qt_window`` -> the main window (its Close event: :func:`main_window`, ``_gc.py``);
-- the canvas's ``_pause_scene_graph``, ``_update_scenegraph`` and ``_scene_canvas.context.finish()`` (a layer
-  removed without napari's ``gc.collect()``: :func:`remove_layer_uncollected`);
 - ``vispy_layer._layer_node._volume_node`` -> the 3D node (a vispy ``VolumeVisual``);
 - vispy's ``gloo.Program._parse_variables_from_code``, ``_shaders``, ``_code_variables`` and
   ``_process_pending_variables`` (memoised: :func:`memoise_program_parse`);
@@ -335,30 +333,6 @@ def add_layer_unselected(viewer: Any, layer: Any) -> None:
         viewer.add_layer(layer)
     finally:
         layers._activate_on_insert = before
-
-
-def remove_layer_uncollected(viewer: Any, layer: Any) -> None:
-    """``viewer.layers.remove(layer)`` without the full garbage collection napari's canvas runs after a layer's
-    removal (``_clean_and_update_scenegraph``: ``gc.collect()``, 0.25-0.35 s of UI stall on a dock's heap, there for
-    a Windows OpenGL driver's race with the GPU objects' deletion): the canvas's scene graph update is paused during
-    the removal, then the GL queue finished and the scene graph updated as napari does, without the collection.
-    On Windows, or while napari has the scene graph paused itself (a batch of layer changes), napari's own way."""
-    import contextlib
-    import sys
-
-    canvas = getattr(getattr(getattr(viewer, "window", None), "_qt_viewer", None), "canvas", None)
-    if (sys.platform == "win32" or canvas is None or getattr(canvas, "_pause_scene_graph", True)
-            or not hasattr(canvas, "_update_scenegraph")):
-        viewer.layers.remove(layer)
-        return
-    canvas._pause_scene_graph = True
-    try:
-        viewer.layers.remove(layer)
-    finally:
-        canvas._pause_scene_graph = False
-    with contextlib.suppress(Exception):  # napari suppresses vispy's AttributeError and GLError here
-        canvas._scene_canvas.context.finish()
-    canvas._update_scenegraph()
 
 
 def main_window(viewer: Any) -> Any:

@@ -42,27 +42,3 @@ def test_the_memoised_parse_finds_what_vispys_own_parser_finds():
     p = Program(VERT, FRAG)
     p["u_scale"] = 2.0  # pending variables are processed as before
     assert "u_scale" in p._user_variables
-
-
-def test_a_layer_removed_without_naparis_collection(make_napari_viewer, qtbot, monkeypatch):
-    """``remove_layer_uncollected``: the layer and its vispy layer are gone, the others still drawn, and no
-    ``gc.collect()`` ran (napari's canvas runs one on each removal: 0.3 s of a dock's UI thread)."""
-    import gc
-
-    import numpy as np
-
-    viewer = make_napari_viewer()
-    keep = viewer.add_image(np.arange(64, dtype=np.float32).reshape(4, 4, 4), name="keep")
-    gone = viewer.add_labels(np.ones((4, 4, 4), dtype=np.uint8), name="gone")
-    canvas = viewer.window._qt_viewer.canvas
-    calls = []
-    collect = gc.collect
-    monkeypatch.setattr(gc, "collect", lambda *a: calls.append(a) or collect(*a))
-    _private.remove_layer_uncollected(viewer, gone)
-    assert calls == []
-    assert list(viewer.layers) == [keep] and set(canvas.layer_to_visual) == {keep}
-    assert not canvas._pause_scene_graph
-    node = canvas.layer_to_visual[keep].node
-    assert node.parent is canvas.view.scene and node.visible
-    viewer.layers.remove(keep)  # napari's own way: the collection the helper leaves out
-    assert len(calls) == 1
