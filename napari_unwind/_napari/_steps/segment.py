@@ -30,7 +30,7 @@ from ...errors import InvalidInputError, UnwindError
 from ...progress import Progress
 from ...progress import run as run_progress
 from .._workers import Job, prewarm
-from ._base import SKELETON, Step, fmt, on_click
+from ._base import SKELETON, Step, fmt, labels_layers, on_click
 
 #: Positions of the threshold slider over the scan's intensity range.
 ISO_STEPS = 1000
@@ -435,11 +435,7 @@ class SegmentStep(Step):
 
     # ---- or a mask --------------------------------------------------------------------------------------------------
     def refresh_mask_combo(self) -> None:
-        from napari.layers import Labels
-
-        own = {id(self.dock._features_layer), id(self.dock._selection_layer)}
-        layers = [lyr for lyr in self.viewer.layers
-                  if isinstance(lyr, Labels) and lyr.ndim == 3 and id(lyr) not in own]
+        layers = labels_layers(self.dock)  # the viewer's 3D Labels layers but the dock's own
         current = self.mask_combo.currentData()
         self.mask_combo.blockSignals(True)
         self.mask_combo.clear()
