@@ -7,7 +7,7 @@ follows it.
 
 A straightened specimen is matched to the fish whose true label holds most of 50 points along its centreline
 (the session's deformation); a fish is straightened when such a specimen is ``ok``. Prints one line per tank and
-the totals.
+the totals, and every "ok" specimen with more than 1.4x its fish's voxels (two fish reported as one).
 """
 
 from __future__ import annotations
@@ -21,6 +21,9 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+
+
+MERGED = 1.4  # an "ok" specimen with more voxels than this times its fish's: two fish reported as one
 
 
 def fish_of(deformation: dict, labels: np.ndarray) -> tuple[int, float]:
@@ -51,13 +54,17 @@ def one(seed: int, touching: bool = False) -> dict:
         seconds = time.perf_counter() - t0
         rows = list(csv.DictReader(open(Path(tmp) / "out" / "specimens.csv", encoding="utf-8")))
         straightened: dict[int, list[str]] = {}
+        merged = []
+        true_size = np.bincount(tank.labels.ravel(), minlength=tank.n_fish + 1)
         for r in rows:
             if r["session"]:
                 deformation = json.loads((Path(tmp) / "out" / r["session"]).read_text())["deformation"]
                 fish, _ = fish_of(deformation, tank.labels)
                 straightened.setdefault(fish, []).append(r["status"])
+                if r["status"] == "ok" and int(r["voxels"]) > MERGED * true_size[fish]:
+                    merged.append((r["specimen"], fish, int(r["voxels"]), int(true_size[fish])))
     ok = [f for f in range(1, tank.n_fish + 1) if "ok" in straightened.get(f, [])]
-    return dict(seed=seed, tank=tank, ok=ok, statuses=[r["status"] for r in rows], seconds=seconds,
+    return dict(seed=seed, tank=tank, ok=ok, statuses=[r["status"] for r in rows], seconds=seconds, merged=merged,
                 missed=[f for f in range(1, tank.n_fish + 1) if f not in ok], by_fish=straightened)
 
 
@@ -67,17 +74,20 @@ def main() -> None:
     ap.add_argument("--touching", action="store_true", help="every tank packed to gap 0 (hard_tank_phantom(seed, "
                     "touching=True): fish against each other and against the wall's arcs)")
     args = ap.parse_args()
-    total = found = 0
+    total = found = merges = 0
     for seed in args.seeds:
         r = one(seed, touching=args.touching)
         t = r["tank"]
         counts = {s: r["statuses"].count(s) for s in ("ok", "partial", "failed", "rejected")}
         print(f"seed {seed}: {t.n_fish} fish (touching {list(t.touching)}, cut by a face {len(t.cut_fish)}, wall cut "
               f"{t.wall_cut}): {len(r['ok'])}/{t.n_fish} straightened ok; rows {counts}; {r['seconds']:.0f} s"
-              + (f"; missed fish {r['missed']} ({[r['by_fish'].get(f) for f in r['missed']]})" if r["missed"] else ""))
+              + (f"; missed fish {r['missed']} ({[r['by_fish'].get(f) for f in r['missed']]})" if r["missed"] else "")
+            + "".join(f"; MERGED: specimen {n} ok with {v} voxels, its fish {f} has {tv}" for n, f, v, tv in r["merged"]))
         total += t.n_fish
         found += len(r["ok"])
-    print(f"\n{found}/{total} fish straightened ok over {len(args.seeds)} tanks")
+        merges += len(r["merged"])
+    print(f"\n{found}/{total} fish straightened ok over {len(args.seeds)} tanks; {merges} ok specimens that hold "
+          f"more than {MERGED}x their fish's voxels (two fish as one)")
 
 
 if __name__ == "__main__":

@@ -525,12 +525,16 @@ def _split(body: np.ndarray, spacing: np.ndarray, *, saddle: float, min_share: f
 
 
 def _split_by_features(parts: np.ndarray, n: int, labels: np.ndarray, stats: dict[int, FeatureStats],
-                       spacing: np.ndarray, min_elongation: float) -> tuple[np.ndarray, int]:
+                       spacing: np.ndarray, min_elongation: float,
+                       basins: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """Parts that hold two or more bodies of their own, apart: a part in which several features are each elongated,
     mostly inside it and at least half as large as the largest of them (two fish lying side by side along their
     length, which the distance transform's saddle does not part) is split by a watershed of its distance
     transform seeded by those features' labels. A spine and a head bone of one fish (a small second feature) stay
-    one part. Returns the new part labels and their number."""
+    one part. A feature's size is the part's tissue in its basin (``basins``: the feature owning each voxel's
+    join-tree branch) where given, else its labels in the part: the join tree may keep only a fish's bright core
+    as its feature's labels (a fifth of the fish) while its basin holds the whole fish. Returns the new part
+    labels and their number."""
     from skimage.segmentation import watershed
 
     out = np.zeros_like(parts)
@@ -540,6 +544,9 @@ def _split_by_features(parts: np.ndarray, n: int, labels: np.ndarray, stats: dic
         ids, counts = np.unique(labels[part], return_counts=True)
         own = {int(f): int(c) for f, c in zip(ids, counts) if f > 0 and c >= 0.5 * stats[int(f)].voxel_count
                and stats[int(f)].elongation >= min_elongation}
+        if basins is not None and len(own) > 1:
+            tissue = np.bincount(basins[part].ravel(), minlength=max(own) + 1)
+            own = {f: int(tissue[f]) if f < len(tissue) else 0 for f in own}
         big = [f for f, c in own.items() if c >= 0.5 * max(own.values())] if own else []
         if len(big) < 2:
             m += 1
@@ -620,7 +627,8 @@ def candidates(
     4. **Split**: a group is split by a watershed of its distance transform seeded by its maxima; regions whose
        saddle is shallow (``>= split_saddle`` x the lower peak) or that are small (under a fifth of a
        neighbour) merge back. A part that still holds several features that are each elongated, mostly inside it
-       and at least half as large as the largest of them (two fish side by side along their length) is split
+       and at least half as large as the largest of them by the part's tissue in their basins (two fish side by
+       side along their length, even where the join tree kept only one fish's bright core as its feature) is split
        again by a watershed of its distance transform seeded by those features' labels. Each part is a candidate
        (``part`` 1..``n_parts``), with the features it holds as ``ids`` -- ``"touching specimens: split into 2 at
        the distance transform's saddle"``.
@@ -768,7 +776,8 @@ def candidates(
         g = groups[sl] == gi
         if split_saddle > 0:
             parts, n = _split(g, spacing, saddle=split_saddle, min_share=0.2)
-            parts, n = _split_by_features(parts, n, labels[sl], stats, spacing, min_elongation)
+            parts, n = _split_by_features(parts, n, labels[sl], stats, spacing, min_elongation,
+                                          None if basin_id is None else basin_id[sl])
         else:
             parts, n = g.astype(np.int32), 1
         base = len(part_info)
