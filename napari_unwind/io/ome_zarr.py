@@ -1143,7 +1143,10 @@ def _replace_group_attrs(path: Path, attrs: dict) -> None:
     import shutil
     import tempfile
 
-    scratch = Path(tempfile.mkdtemp(prefix=".group-", dir=path.parent))
+    from ._atomic import TMP_MARK
+
+    # (named as a temporary output: one a killed process left is removed like theirs)
+    scratch = Path(tempfile.mkdtemp(prefix=f".{path.name}.group-", suffix=TMP_MARK, dir=path.parent))
     try:
         group = zarr.open_group(store=str(scratch), mode="w", zarr_format=3)
         for key, value in attrs.items():
