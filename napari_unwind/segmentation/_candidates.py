@@ -212,7 +212,14 @@ def specimen_isovalue(features: Features, ids: Any, *, volume: Any = None) -> fl
     if volume is not None:
         if features.tree is not None and features.feature_of_branch is not None:
             basin_id = features.feature_of_branch[features.tree.branch]
-            body = _own_body(features, ids, lab, basin_id, _levels_around(features, ids, lab, basin_id))
+            around = _levels_around(features, ids, lab, basin_id)
+            body = _own_body(features, ids, lab, basin_id, around)
+            if body is None and around is not None:
+                # labels that are a thin core of a body whose surroundings still show the medium (two fish
+                # pressed together, each kept as its spine): the scan around the core is mostly flesh, so read
+                # it around the body the working levels give (the candidate's body) instead
+                grown = _working_body(features, ids, lab, basin_id, float(0.5 * (around[0] + around[1])))
+                body = grown if np.count_nonzero(grown) >= 2 * np.count_nonzero(lab) else None
             lab = lab if body is None else body
         levels = _scan_levels(features, ids, lab, volume)
         return fallback if levels is None else float(0.5 * (levels[0] + levels[1]))
@@ -254,6 +261,20 @@ def _scan_levels(features: Features, ids: list[int], lab: np.ndarray, volume: An
     origin = [b.start for b in box]
     near = wnear[np.ix_(*[i.ravel() - o for i, o in zip(idx, origin)])]
     return _medium_and_body(vals, near, own=own)
+
+
+def _working_body(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray, iso: float
+                  ) -> np.ndarray:
+    """The features' body at the working level: their basins' voxels ``>= iso`` connected to their labels, and the
+    labels (working shape; rule 3 of :func:`candidates`)."""
+    basin = np.isin(basin_id, ids)
+    box = _box(basin, 0)
+    m = basin[box] & (features.tree.values[box] >= iso)
+    comp, _ = ndimage.label(m)
+    keep = np.unique(comp[lab[box]])
+    body = lab.copy()
+    body[box] |= np.isin(comp, keep[keep > 0])
+    return body
 
 
 def _isovalue(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray, fallback: float) -> float:
@@ -753,11 +774,7 @@ def candidates(
             iso = stats[f].threshold if lv is None else float(0.5 * (lv[0] + lv[1]))
             iso_of[f] = iso
             box = _box(basin_id == f, 0)
-            m = (basin_id[box] == f) & (features.tree.values[box] >= iso)
-            comp, _ = ndimage.label(m)
-            keep = np.unique(comp[lab[box]])
-            m = np.isin(comp, keep[keep > 0])
-            m |= lab[box]
+            m = _working_body(features, [f], lab, basin_id, iso)[box]
         else:
             iso_of[f] = None
             box = _box(lab, 0)
