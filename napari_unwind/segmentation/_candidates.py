@@ -170,7 +170,9 @@ def specimen_isovalue(features: Features, ids: Any, *, volume: Any = None) -> fl
     body when at least half of it lies in their basins, and the medium is then the most common value on the
     outer shell of the basins (the rule is ``_own_body``'s; it needs the tree, so features loaded from a label
     file read the levels around their labels only). The soft tissue around a CT's bone spreads over many
-    features' basins and stays the medium.
+    features' basins and stays the medium. When the working values around such a core still show the medium (two
+    fish pressed together, each kept as its spine), the scan is read around the body they give (the basins above
+    their halfway level, connected to the labels) where it is at least twice the labels.
 
     With ``volume`` (the scan the features were computed on) the levels are read from the scan itself at full
     resolution, inside the box of the features' labels grown by three body thicknesses (strided when it holds
