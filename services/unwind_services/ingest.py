@@ -10,6 +10,11 @@ ever holds the whole scan. The store is written atomically: when the stream ends
 disagree with the header) the worker sees the pipe close short, the core removes its temporary output, and no volume
 appears.
 
+An upload of format "chunks" (the store's own chunks, encoded by the client) is stored differently: the import process
+checks each chunk and stores it as it came, level 0 alone (:func:`_store_chunks`), and the upload returns once level 0
+is in place; the pyramid's other levels are built afterwards by another task of the import pool
+(:class:`PyramidBuilds`, :func:`build_pyramid`), resumed at the next start if the server stopped meanwhile.
+
 Chunk messages (``UploadRequest.chunk`` and ``DownloadResponse.chunk``, field 2 of both) are encoded and decoded
 here by hand, on both sides: a chunk is its tag, its length and its bytes, so encoding is one copy and decoding
 is a memoryview of the received bytes, where protobuf would copy each 2 MiB chunk two or three times. Every
@@ -419,11 +424,14 @@ def import_stream(fifo: str, shape: tuple, dtype: str, spacing: tuple | None, un
 
             from napari_unwind.io import as_volume
             from napari_unwind.io._atomic import atomic_output, check_writable
+            from napari_unwind.io._files import check_room
             from napari_unwind.io.ome_zarr import Level0Writer
 
             placeholder = as_volume(da.empty(shape, dtype=np.dtype(dtype), chunks=shape), spacing=spacing, unit=unit,
                                     origin=origin)
-            with atomic_output(check_writable(dst, overwrite=False), overwrite=False) as tmp:
+            target = check_writable(dst, overwrite=False)
+            check_room(target, placeholder.nbytes, compressed=True)  # as import_slabs_iter
+            with atomic_output(target, overwrite=False) as tmp:
                 writer = Level0Writer(placeholder, tmp, labels=labels)
                 _store_chunks(fd, shape, np.dtype(dtype), writer)
                 writer.finish()
