@@ -57,7 +57,7 @@ if TYPE_CHECKING:
     import dask.array as da
 
 __all__ = ["read_ome_zarr", "write_ome_zarr", "pyramid_shapes", "ChunkCodec", "EncodedSlab", "DEFAULT_CHUNKS",
-           "DEFAULT_MAX_SIDE", "Level0Writer", "complete_pyramid", "pyramid_pending", "PYRAMID_PENDING"]
+           "DEFAULT_MAX_SIDE"]
 
 DEFAULT_CHUNKS = (128, 128, 128)
 DEFAULT_MAX_SIDE = 256
@@ -1042,7 +1042,9 @@ def write_ome_zarr(
     dtype = volume.dtype
     chunk_shape = _normalise_chunks(chunks, shape)
     shapes = pyramid_shapes(shape, max_side) if pyramid else [shape]
-    spacings = _level_spacings(volume.spacing, shapes)
+    spacings = [tuple(volume.spacing)]
+    for lvl in range(1, len(shapes)):  # a halved axis doubles its spacing; an axis of length 1 stops halving
+        spacings.append(tuple(sp * (2 if n > 1 else 1) for sp, n in zip(spacings[-1], shapes[lvl - 1], strict=True)))
     try:
         json.dumps(attributes or {})
     except TypeError as exc:
@@ -1050,7 +1052,14 @@ def write_ome_zarr(
 
     codecs = _codecs(compression, compression_level, shuffle, dtype)
     root = zarr.open_group(store=str(path), mode="w", zarr_format=3)
-    arrays = [_create_level(root, lvl, shp, chunk_shape, dtype, codecs) for lvl, shp in enumerate(shapes)]
+    arrays = []
+    for lvl, shp in enumerate(shapes):
+        c = _normalise_chunks(chunk_shape, shp)
+        # every chunk is written, even one that is all fill: a chunk missing later is damage, not zeros
+        arrays.append(root.create_array(
+            str(lvl), shape=shp, chunks=c, dtype=dtype, compressors=codecs, fill_value=0,
+            dimension_names=list(AXES), config={"write_empty_chunks": True},
+        ))
 
     # One pass over the source: every level is built from the slabs as they stream by (no level is read back).
     depth = chunk_shape[0]
@@ -1101,26 +1110,6 @@ def write_ome_zarr(
 
     root.attrs["ome"] = _ngff_attrs(name or (Path(volume.source).name if volume.source else final_name(path)),
                                     volume.unit, spacings, volume.origin, labels)
-    root.attrs["unwind"] = _unwind_attrs(volume, labels, attributes)
-
-
-def _create_level(root: Any, lvl: int, shape: tuple[int, ...], chunk_shape: tuple[int, ...], dtype: np.dtype,
-                  codecs: list) -> zarr.Array:
-    """Array ``lvl`` of a new pyramid (the same metadata whichever writer makes it)."""
-    # every chunk is written, even one that is all fill: a chunk missing later is damage, not zeros
-    return root.create_array(str(lvl), shape=shape, chunks=_normalise_chunks(chunk_shape, shape), dtype=dtype,
-                             compressors=codecs, fill_value=0, dimension_names=list(AXES),
-                             config={"write_empty_chunks": True})
-
-
-def _level_spacings(spacing: Any, shapes: list[tuple[int, ...]]) -> list[tuple[float, ...]]:
-    spacings = [tuple(spacing)]
-    for lvl in range(1, len(shapes)):  # a halved axis doubles its spacing; an axis of length 1 stops halving
-        spacings.append(tuple(sp * (2 if n > 1 else 1) for sp, n in zip(spacings[-1], shapes[lvl - 1], strict=True)))
-    return spacings
-
-
-def _unwind_attrs(volume: Volume, labels: bool, attributes: dict | None) -> dict:
     # all_chunks_written: every chunk of every level is on disk, so the reader treats a missing one as damage
     unwind_attrs = {"spacing": list(volume.spacing), "unit": volume.unit, "labels": bool(labels),
                     "all_chunks_written": True}
@@ -1130,134 +1119,5 @@ def _unwind_attrs(volume: Volume, labels: bool, attributes: dict | None) -> dict
     if record is not None:  # a straight volume written (or converted) here; export gives the whole map instead
         unwind_attrs["straightening"] = record
     unwind_attrs.update(attributes or {})
-    return unwind_attrs
-
-
-#: The ``unwind`` attribute of a store whose levels beyond 0 are still to be built (:class:`Level0Writer`).
-PYRAMID_PENDING = "pyramid_pending"
-
-
-def _replace_group_attrs(path: Path, attrs: dict) -> None:
-    """Replace the group metadata of the store ``path`` by one holding ``attrs``, atomically (a reader sees the old
-    file or the new one, whole); the bytes are those zarr writes (made in a scratch group beside it)."""
-    import shutil
-    import tempfile
-
-    from ._atomic import TMP_MARK
-
-    # (named as a temporary output: one a killed process left is removed like theirs)
-    scratch = Path(tempfile.mkdtemp(prefix=f".{path.name}.group-", suffix=TMP_MARK, dir=path.parent))
-    try:
-        group = zarr.open_group(store=str(scratch), mode="w", zarr_format=3)
-        for key, value in attrs.items():
-            group.attrs[key] = value
-        os.replace(scratch / "zarr.json", path / "zarr.json")
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
-
-
-class _NoWrite:
-    """A level already on disk: the cascade averages it into the next levels without writing it."""
-
-    def write(self, *_: Any) -> None:
-        return None
-
-
-class Level0Writer:
-    """Level 0 of a new store (:func:`write_ome_zarr`'s codecs and metadata), written chunk by chunk from chunks
-    already encoded and checked (an upload's: :meth:`put`, from several threads at once); :meth:`finish` writes the
-    metadata of a pyramid of level 0 alone, its ``unwind`` attributes marking the other levels pending
-    (:data:`PYRAMID_PENDING`). The store is then a valid one-level volume; :func:`complete_pyramid` adds the other
-    levels, after which it is byte for byte what :func:`write_ome_zarr` writes of the same voxels."""
-
-    def __init__(self, volume: Volume, path: Path, *, max_side: int = DEFAULT_MAX_SIDE, labels: bool = False,
-                 name: str | None = None):
-        self.volume, self.path, self.labels, self.max_side = volume, Path(path), bool(labels), int(max_side)
-        self.name = name or final_name(path)
-        codecs = _codecs(DEFAULT_COMPRESSION, None, "auto", volume.dtype)
-        root = zarr.open_group(store=str(path), mode="w", zarr_format=3)
-        array = _create_level(root, 0, volume.shape, _normalise_chunks(None, volume.shape), volume.dtype, codecs)
-        self._direct = _DirectWriter(array, str(path), None)
-        #: the ChunkCodec signature of the chunks this store holds (chunks of another are encoded again)
-        self.signature = self._direct.signature
-        self._made: set[str] = set()
-
-    def put(self, coords: tuple[int, ...], *parts: Any) -> None:
-        """Store chunk ``coords`` of level 0: ``parts`` (bytes-like), one after the other."""
-        self._direct._put(coords, *parts)
-
-    def finish(self) -> None:
-        shapes = pyramid_shapes(self.volume.shape, self.max_side)
-        spacings = _level_spacings(self.volume.spacing, shapes)
-        unwind = _unwind_attrs(self.volume, self.labels, None)
-        if len(shapes) > 1:
-            unwind[PYRAMID_PENDING] = {"max_side": self.max_side}
-        _replace_group_attrs(self.path, {"ome": _ngff_attrs(self.name, self.volume.unit, spacings[:1],
-                                                            self.volume.origin, self.labels), "unwind": unwind})
-
-
-def pyramid_pending(path: str | os.PathLike) -> bool:
-    """Whether the store ``path`` (an OME-Zarr group) still waits for :func:`complete_pyramid`."""
-    try:
-        with open(Path(path) / "zarr.json", "rb") as f:
-            attrs = json.load(f).get("attributes") or {}
-    except (OSError, ValueError):
-        return False
-    return PYRAMID_PENDING in (attrs.get("unwind") or {})
-
-
-def complete_pyramid(path: str | os.PathLike) -> Iterator[Progress]:
-    """Build the levels beyond 0 of a store written by :class:`Level0Writer` (from its level 0, read back slab by
-    slab, with :func:`write_ome_zarr`'s cascade), then publish them by replacing the group's metadata atomically:
-    until then readers see level 0 alone. Levels left by an earlier attempt that was stopped are made again. A
-    store already complete is left as it is. Afterwards the store is byte for byte what :func:`write_ome_zarr`
-    writes of the same voxels."""
-    import shutil
-
-    path = Path(path)
-    root = zarr.open_group(store=str(path), mode="r+", zarr_format=3)
-    attrs = dict(root.attrs)
-    unwind = dict(attrs.get("unwind") or {})
-    pending = unwind.pop(PYRAMID_PENDING, None)
-    if pending is None:
-        return
-    ms = attrs["ome"]["multiscales"][0]
-    labels = bool(unwind.get("labels"))
-    level0 = root["0"]
-    shape, dtype = tuple(int(n) for n in level0.shape), level0.dtype
-    shapes = pyramid_shapes(shape, int(pending["max_side"]))
-    spacing = tuple(float(v) for v in unwind["spacing"])
-    origin = tuple(float(v) for v in ms["datasets"][0]["coordinateTransformations"][1]["translation"])
-    codecs = _codecs(DEFAULT_COMPRESSION, None, "auto", dtype)  # Level0Writer's
-    for lvl in range(1, len(shapes) + 8):  # levels of a stopped attempt (none beyond the pyramid's, but be sure)
-        shutil.rmtree(path / str(lvl), ignore_errors=True)
-    arrays = [level0] + [_create_level(root, lvl, shp, tuple(level0.chunks), dtype, codecs)
-                         for lvl, shp in enumerate(shapes) if lvl]
-    reader = _ZarrChunks(level0, str(path), complete=True)
-    grid = reader.grid
-    starts = list(range(0, shape[0], grid[0]))
-    with ThreadPoolExecutor(max_workers=len(arrays)) as writer, \
-            ThreadPoolExecutor(max_workers=_ENCODE_THREADS) as encoders:
-        direct = [_NoWrite()] + [_DirectWriter(a, str(path), encoders) if _DirectWriter.usable(a) else None
-                                 for a in arrays[1:]]
-        pyr = _Cascade(arrays, labels=labels, writer=writer, direct=direct)
-
-        def read(z0: int) -> np.ndarray:
-            z1 = min(shape[0], z0 + grid[0])
-            slab = np.empty((z1 - z0, *shape[1:]), dtype=dtype)
-
-            def one(yx: tuple[int, int]) -> None:
-                y, x = yx
-                slab[:, y:y + grid[1], x:x + grid[2]] = reader[z0:z1, y:y + grid[1], x:x + grid[2]]
-
-            list(encoders.map(one, itertools.product(range(0, shape[1], grid[1]), range(0, shape[2], grid[2]))))
-            return slab
-
-        for i, z0 in enumerate(starts):
-            checkpoint()
-            pyr.push(0, read(z0), last=i + 1 == len(starts))
-            yield Progress("pyramid", i + 1, len(starts), f"planes {z0}-{min(shape[0], z0 + grid[0]) - 1} of "
-                           f"{shape[0]}")
-    _replace_group_attrs(path, {"ome": _ngff_attrs(ms["name"], unwind.get("unit"), _level_spacings(spacing, shapes),
-                                                   origin, labels), "unwind": unwind})
+    root.attrs["unwind"] = unwind_attrs
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,15 +15,12 @@ from napari_unwind.errors import InvalidInputError
 from napari_unwind.io import Volume, open_volume
 from napari_unwind.io._files import confined_reads
 
-from .errors import LimitError, NotReadyError
+from .errors import LimitError
 from .paths import DataRoot
 from .store import ObjectRow, Store
 
 __all__ = ["Catalog", "Limits"]
 
-
-#: Seconds a job waits for the pyramid of a volume just uploaded (built in the background) before it fails.
-PYRAMID_WAIT = 600.0
 
 #: Seconds a user's stored bytes are remembered before the user's folder is measured again.
 STORED_BYTES_TTL = 10.0
@@ -80,11 +76,8 @@ def _open(path: Path) -> Volume:
 class Catalog:
     """Look-ups by owner (another user's id is not found) and registration of new objects."""
 
-    def __init__(self, store: Store, root: DataRoot, limits: Limits, *, pending_ok: bool = True):
+    def __init__(self, store: Store, root: DataRoot, limits: Limits):
         self.store, self.root, self.limits = store, root, limits
-        #: whether :meth:`volume` gives an upload whose pyramid is still being built (level 0 alone) as it is
-        #: (the server's calls: listing, info, downloads of level 0) or waits for its pyramid (a job worker's)
-        self.pending_ok = pending_ok
         self._locks: dict[str, threading.Lock] = {}
         self._locks_guard = threading.Lock()
         self._stored: dict[str, tuple[float, int]] = {}  # owner -> (when measured, bytes)
@@ -96,38 +89,12 @@ class Catalog:
     def path(self, row: ObjectRow) -> Path:
         return self.root.absolute(row.path)
 
-    def volume(self, owner: str, volume_id: str, *, pending_ok: bool | None = None) -> tuple[ObjectRow, Volume]:
-        """A user's volume, opened. An upload whose pyramid is still being built (level 0 alone so far) is waited
-        for (:meth:`wait_for_pyramid`) unless ``pending_ok`` (default: :attr:`pending_ok`): a job never sees a
-        volume without its pyramid levels, which segmentation picks its working level from."""
+    def volume(self, owner: str, volume_id: str) -> tuple[ObjectRow, Volume]:
         row = self.store.get_object(owner, volume_id, "volume")
-        if row.meta.get("pyramid") and not (self.pending_ok if pending_ok is None else pending_ok):
-            row = self.wait_for_pyramid(owner, volume_id, PYRAMID_WAIT)
         path = self.path(row)
         self.check(owner, row, path)
         with confined_reads(self.confinement(owner, row.meta.get("origin"))):  # every chunk read checked again
             return row, _open(path)
-
-    def wait_for_pyramid(self, owner: str, volume_id: str, seconds: float,
-                         alive: Callable[[], bool] = lambda: True) -> ObjectRow:
-        """The volume's row once its pyramid is built (``"pyramid"`` gone from its metadata), looked at every
-        0.1 s for at most ``seconds`` (and while ``alive()``); a job's cancellation is checked meanwhile. A build
-        that failed, or one still running after that, is a :class:`NotReadyError` (UNAVAILABLE)."""
-        from napari_unwind.progress import checkpoint
-
-        deadline = time.monotonic() + max(0.0, seconds)
-        while True:
-            row = self.store.get_object(owner, volume_id, "volume")
-            state = row.meta.get("pyramid")
-            if not state:
-                return row
-            if state != "pending":
-                raise NotReadyError("the volume's pyramid could not be built; the server builds it again at its "
-                                    "next start")
-            if time.monotonic() >= deadline or not alive():
-                raise NotReadyError("the volume's pyramid is still being built; retry")
-            checkpoint()
-            time.sleep(0.1)
 
     def confinement(self, owner: str, origin: str | None):
         """Where the files of a volume may lie: a registered scan in the data root outside ``.unwind/``, what the
@@ -148,14 +115,13 @@ class Catalog:
             self.root.check_path(path, within=own)
 
     def add_volume(self, owner: str, path: Path, name: str, origin: str, job_id: str = "",
-                   object_id: str | None = None, meta: dict | None = None) -> tuple[ObjectRow, Volume]:
+                   object_id: str | None = None) -> tuple[ObjectRow, Volume]:
         if origin != "register":  # the server wrote it, in the owner's folder (Register checks before this)
             self.root.check_scan(path, within=self.root.user_dir(owner))
         with confined_reads(self.confinement(owner, origin)):
             volume = _open(path)
         self.limits.check_voxels(volume.shape, f"the volume {name!r}")
-        row = self.store.add_object(owner, "volume", name, self.root.relative(path), {"origin": origin, **(meta or {})},
-                                    job_id,
+        row = self.store.add_object(owner, "volume", name, self.root.relative(path), {"origin": origin}, job_id,
                                     object_id=object_id)
         return row, volume
 

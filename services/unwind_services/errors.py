@@ -21,7 +21,6 @@ __all__ = [
     "DeadlineError",
     "LimitError",
     "NotFoundError",
-    "NotReadyError",
     "PermissionDeniedError",
     "ShuttingDownError",
     "StateError",
@@ -61,10 +60,6 @@ class DeadlineError(UnwindError, TimeoutError):
 
 class ShuttingDownError(UnwindError):
     """The server is shutting down and accepts no new work."""
-
-
-class NotReadyError(UnwindError):
-    """What was asked for is still being made (e.g. a pyramid level of a volume just uploaded): retry shortly."""
 
 
 class AuthError(UnwindError):
@@ -109,8 +104,7 @@ def status_for(exc: BaseException) -> tuple[grpc.StatusCode, str | None]:
         ((LimitError, MemoryError), grpc.StatusCode.RESOURCE_EXHAUSTED),
         (CancelledError, grpc.StatusCode.CANCELLED),
         ((DeadlineError, TimeoutError), grpc.StatusCode.DEADLINE_EXCEEDED),
-        # SchedulerError: the cluster lost it
-        ((ShuttingDownError, NotReadyError, SchedulerError), grpc.StatusCode.UNAVAILABLE),
+        ((ShuttingDownError, SchedulerError), grpc.StatusCode.UNAVAILABLE),  # SchedulerError: the cluster lost it
         (InvalidInputError, grpc.StatusCode.INVALID_ARGUMENT),  # UnknownFormatError and SeriesSelectionError too
         ((OutputError, StateError, UnwindError), grpc.StatusCode.FAILED_PRECONDITION),
     )

@@ -10,11 +10,6 @@ ever holds the whole scan. The store is written atomically: when the stream ends
 disagree with the header) the worker sees the pipe close short, the core removes its temporary output, and no volume
 appears.
 
-An upload of format "chunks" (the store's own chunks, encoded by the client) is stored differently: the import process
-checks each chunk and stores it as it came, level 0 alone (:func:`_store_chunks`), and the upload returns once level 0
-is in place; the pyramid's other levels are built afterwards by another task of the import pool
-(:class:`PyramidBuilds`, :func:`build_pyramid`), resumed at the next start if the server stopped meanwhile.
-
 Chunk messages (``UploadRequest.chunk`` and ``DownloadResponse.chunk``, field 2 of both) are encoded and decoded
 here by hand, on both sides: a chunk is its tag, its length and its bytes, so encoding is one copy and decoding
 is a memoryview of the received bytes, where protobuf would copy each 2 MiB chunk two or three times. Every
@@ -31,11 +26,9 @@ import contextlib
 import errno
 import fcntl
 import itertools
-import logging
 import os
 import select
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -46,11 +39,8 @@ import numpy as np
 
 from napari_unwind.errors import InvalidInputError
 
-__all__ = ["UploadPipe", "import_stream", "build_pyramid", "PyramidBuilds", "upload_framing",
-           "encode_chunk", "chunk_payload", "encoder", "decoder",
+__all__ = ["UploadPipe", "import_stream", "upload_framing", "encode_chunk", "chunk_payload", "encoder", "decoder",
            "level_slabs"]
-
-log = logging.getLogger("unwind_services")
 
 CHUNK_TAG = b"\x12"  # field 2, wire type 2 (length-delimited): ``chunk`` of UploadRequest and DownloadResponse
 
@@ -156,11 +146,10 @@ class UploadPipe:
             return False
         return True
 
-    def finish(self) -> Any:
-        """The last byte is sent: close the pipe and wait for the import (its error, if any, is raised); its
-        result."""
+    def finish(self) -> None:
+        """The last byte is sent: close the pipe and wait for the import (its error, if any, is raised)."""
         self._close()
-        return self.future.result()
+        self.future.result()
 
     def abandon(self) -> None:
         """Stop early: the worker sees the stream end short and removes its partial output; wait for that."""
@@ -341,43 +330,22 @@ def _planes(fd: int, shape: tuple[int, int, int], dtype: np.dtype) -> Iterator[n
             yield slab
 
 
-def _store_chunks(fd: int, shape: tuple[int, int, int], dtype: np.dtype, writer: Any) -> None:
-    """Level 0 of an upload of format "chunks", from the pipe (each chunk after its length), into ``writer`` (a
-    :class:`~napari_unwind.io.ome_zarr.Level0Writer`) chunk by chunk, without assembling slabs: each chunk is checked
-    and decoded (:meth:`ChunkCodec.decode`: its crc32c, a blosc stream of the store's codec holding the chunk's size,
-    zeros beyond the volume's edge; float voxels also for NaN and infinities) on two threads while the next ones
-    arrive, then stored as it came. The pyramid's other levels are built afterwards (:func:`build_pyramid`)."""
-    from napari_unwind.io._api import _reject_nonfinite
-    from napari_unwind.io.ome_zarr import ChunkCodec
+def _chunk_slabs(fd: int, shape: tuple[int, int, int], dtype: np.dtype) -> Iterator[Any]:
+    """The stored chunks from the pipe (format "chunks", each after its length), a row of the grid at a time: each
+    chunk checked and decoded (:meth:`ChunkCodec.decode`, on two threads while the next ones arrive) into the row's
+    slab; yields the slabs with their chunks' bytes (:class:`EncodedSlab`), which the writer stores as they are."""
+    from napari_unwind.io.ome_zarr import ChunkCodec, EncodedSlab
 
     codec = ChunkCodec(shape, dtype)
     total, got = int(np.prod(codec.counts)), 0
-    floating = np.issubdtype(codec.dtype, np.floating)
     # The bytes are stored as the client made them only when this server's codec makes the same bytes of the same
     # voxels (a client's other blosc build or settings may encode a valid stream differently, and the store would
     # then depend on who uploaded it): every chunk is encoded again here and compared until one that is not
-    # constant matched; after a mismatch the server encodes every chunk itself (the store is then import_volume's).
-    state = {"trusted": False, "own": writer.signature != codec.signature}
-
-    def store(c: tuple[int, ...], blob: bytearray) -> None:
-        voxels = codec.decode(blob, c)
-        if floating and not np.isfinite(voxels).all():
-            _reject_nonfinite(voxels, {None: {"array-location": [(b.start, b.stop) for b in codec.bounds(c)]}})
-        if state["own"]:
-            writer.put(c, *codec.encode(codec.chunk(voxels)))
-            return
-        if not state["trusted"]:
-            mine = codec.encode(codec.chunk(voxels))
-            if b"".join(mine) != bytes(blob):
-                state["own"] = True
-                writer.put(c, *mine)
-                return
-            if voxels.min() != voxels.max():
-                state["trusted"] = True
-        writer.put(c, blob)
+    # constant matched; a mismatch makes the server encode the rest itself (the store is then import_volume's).
+    trusted, own = False, False
 
     with open(fd, "rb", buffering=0, closefd=False) as f, \
-            ThreadPoolExecutor(max_workers=2, thread_name_prefix="unwind-upload-check") as pool:
+            ThreadPoolExecutor(max_workers=2, thread_name_prefix="unwind-upload-decode") as pool:
 
         def exact(n: int) -> bytearray:
             buf = bytearray(n)
@@ -389,133 +357,52 @@ def _store_chunks(fd: int, shape: tuple[int, int, int], dtype: np.dtype, writer:
                 pos += k
             return buf
 
-        inflight: list[Future] = []
-        for c in codec.coords():
-            n = int.from_bytes(exact(4), "little")
-            if n > codec.max_bytes:
-                raise InvalidInputError(f"chunk {got} is {n} bytes, more than a stored chunk")
-            blob = exact(n)
-            got += 1
-            inflight.append(pool.submit(store, c, blob))
-            while len(inflight) > 8 or (inflight and inflight[0].done()):  # at most a few chunks held at once
-                inflight.pop(0).result()
-        for d in inflight:
-            d.result()
+        for cz in range(codec.counts[0]):
+            z0 = cz * codec.grid[0]
+            slab = np.empty((min(codec.grid[0], shape[0] - z0), *shape[1:]), dtype=codec.dtype)
+            chunks: dict = {}
+            decoding = []
+
+            def place(c: tuple[int, ...], blob: bytearray, slab: np.ndarray = slab) -> None:
+                where = codec.bounds(c)
+                slab[(slice(None), *where[1:])] = codec.decode(blob, c)
+
+            for c in itertools.product([cz], *[range(n) for n in codec.counts[1:]]):
+                n = int.from_bytes(exact(4), "little")
+                if n > codec.max_bytes:
+                    raise InvalidInputError(f"chunk {got} is {n} bytes, more than a stored chunk")
+                blob = exact(n)
+                got += 1
+                chunks[c] = blob
+                decoding.append(pool.submit(place, c, blob))
+            for d in decoding:
+                d.result()
+            if not trusted and not own:
+                for c, blob in chunks.items():
+                    whole = codec.chunk(slab[(slice(None), *codec.bounds(c)[1:])])
+                    if b"".join(codec.encode(whole)) != bytes(blob):
+                        own = True
+                        break
+                    if whole.min() != whole.max():
+                        trusted = True
+                        break
+            yield slab if own else EncodedSlab(slab, chunks, codec)
         if f.read(1):
             raise InvalidInputError(f"more than the {total} chunks of the volume arrived")
 
 
 def import_stream(fifo: str, shape: tuple, dtype: str, spacing: tuple | None, unit: str | None,
-                  origin: tuple | None, labels: bool, dst: str, fmt: str = "raw") -> bool:
+                  origin: tuple | None, labels: bool, dst: str, fmt: str = "raw") -> None:
     """Import the voxels arriving through ``fifo`` into the OME-Zarr pyramid ``dst`` (runs in a worker process);
-    ``fmt``: the upload's format ("raw" voxels or the store's "chunks", see :func:`upload_framing`).
-
-    Format "raw" writes the whole pyramid. Format "chunks" stores level 0 alone (checked chunk by chunk, each stored
-    as it came), its other levels marked pending: the store appears (renamed into place) as soon as level 0 is
-    written, and :func:`build_pyramid` adds the other levels later. Returns whether levels are pending."""
+    ``fmt``: the upload's format ("raw" voxels or the store's "chunks", see :func:`upload_framing`)."""
     from napari_unwind.io import import_slabs_iter
     from napari_unwind.progress import run
 
     shape = tuple(int(n) for n in shape)
     fd = _open_reader(fifo)
     try:
-        if fmt == "chunks":
-            import dask.array as da
-
-            from napari_unwind.io import as_volume
-            from napari_unwind.io._atomic import atomic_output, check_writable
-            from napari_unwind.io._files import check_room
-            from napari_unwind.io.ome_zarr import Level0Writer
-
-            placeholder = as_volume(da.empty(shape, dtype=np.dtype(dtype), chunks=shape), spacing=spacing, unit=unit,
-                                    origin=origin)
-            target = check_writable(dst, overwrite=False)
-            check_room(target, placeholder.nbytes, compressed=True)  # as import_slabs_iter
-            with atomic_output(target, overwrite=False) as tmp:
-                writer = Level0Writer(placeholder, tmp, labels=labels)
-                _store_chunks(fd, shape, np.dtype(dtype), writer)
-                writer.finish()
-            return True
-        blocks = _planes(fd, shape, np.dtype(dtype))
+        blocks = _chunk_slabs(fd, shape, np.dtype(dtype)) if fmt == "chunks" else _planes(fd, shape, np.dtype(dtype))
         run(import_slabs_iter(blocks, dst, shape=shape, dtype=dtype, spacing=spacing, unit=unit, origin=origin,
                               labels=labels))
-        return False
     finally:
         os.close(fd)
-
-
-#: Tests only: while this environment variable names a file that does not exist, :func:`build_pyramid` waits
-#: before it starts (so that a test sees a volume whose pyramid is pending, and kills the server meanwhile).
-PYRAMID_GATE = "UNWIND_TEST_PYRAMID_GATE"
-
-
-def build_pyramid(dst: str) -> None:
-    """Build the pending levels of the store ``dst`` (runs in a process of the import pool; see
-    :func:`napari_unwind.io.ome_zarr.complete_pyramid`). A store gone meanwhile (deleted) is no error."""
-    from napari_unwind.io.ome_zarr import complete_pyramid
-    from napari_unwind.progress import run
-
-    gate = os.environ.get(PYRAMID_GATE)
-    while gate and not os.path.exists(gate):
-        time.sleep(0.05)
-    if not os.path.exists(os.path.join(dst, "zarr.json")):
-        return
-    run(complete_pyramid(dst))
-
-
-class PyramidBuilds:
-    """The pyramids of uploads built after the upload returned, one task of the import pool each.
-
-    The catalog row of such a volume holds ``"pyramid": "pending"`` in its metadata until its build ended; a build
-    that did not end (the server stopped or was killed meanwhile, the build failed) is started again by
-    :meth:`resume` at the next start. Until then readers see level 0 alone (the store's metadata lists it only)."""
-
-    def __init__(self, catalog: Any, jobs: Any):
-        self.catalog, self.jobs = catalog, jobs
-        self._lock = threading.Lock()
-        self._building: dict[str, Future] = {}
-
-    def start(self, owner: str, volume_id: str, path: Path) -> None:
-        with self._lock:
-            if volume_id in self._building:
-                return
-            fut = self.jobs.start_import(build_pyramid, str(path))
-            self._building[volume_id] = fut
-        fut.add_done_callback(lambda f: self._done(owner, volume_id, f))
-
-    def _done(self, owner: str, volume_id: str, fut: Future) -> None:
-        with self._lock:
-            self._building.pop(volume_id, None)
-        error = None if fut.cancelled() else fut.exception()
-        failed = fut.cancelled() or error is not None
-        if failed and not self.jobs.closing:
-            log.error("the pyramid of volume %s was not built (%s); it is built again at the next start",
-                      volume_id, "cancelled" if error is None else _one_line(error))
-        if failed and self.jobs.closing:
-            return  # stopped by the shutdown: still pending, built at the next start
-        try:
-            row = self.catalog.store.get_object(owner, volume_id, "volume")
-            meta = dict(row.meta)
-            if failed:
-                meta["pyramid"] = "failed"  # jobs waiting for it fail now, not after their wait; resumed at start
-            else:
-                meta.pop("pyramid", None)
-            self.catalog.store.update_meta(owner, volume_id, meta)
-            self.catalog.forget_stored_bytes(owner)
-        except Exception as exc:  # noqa: BLE001 - deleted meanwhile, or the store closed at shutdown
-            log.warning("volume %s: its record not updated after its pyramid's build (%s)", volume_id,
-                        _one_line(exc))
-
-    def resume(self) -> None:
-        """At start: build the pyramids that a stopped server left pending."""
-        for row in self.catalog.store.pending_pyramids():
-            path = self.catalog.path(row)
-            log.warning("volume %s: building its pyramid, left %s when the server stopped", row.id,
-                        row.meta["pyramid"])
-            if row.meta["pyramid"] != "pending":
-                self.catalog.store.update_meta(row.owner, row.id, {**row.meta, "pyramid": "pending"})
-            self.start(row.owner, row.id, path)
-
-
-def _one_line(exc: BaseException) -> str:
-    return (str(exc).splitlines() or [type(exc).__name__])[0][:300]

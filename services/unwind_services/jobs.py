@@ -333,7 +333,7 @@ def _worker_init(root: str, limits: Limits, scheduler: str | None) -> None:
     warnings.filterwarnings("ignore", category=UserWarning, module="napari_unwind.warp")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     data_root = DataRoot(root)
-    _WORKER["catalog"] = Catalog(Store(data_root.database), data_root, limits, pending_ok=False)  # jobs wait
+    _WORKER["catalog"] = Catalog(Store(data_root.database), data_root, limits)
     _WORKER["scheduler"] = scheduler
     import napari_unwind.segmentation  # noqa: F401 - numba kernels and the mesher load now, not in the first job
     import napari_unwind.skeleton  # noqa: F401

@@ -213,12 +213,9 @@ class UnwindServer:
             self.health = health.HealthServicer(experimental_non_blocking=True)
             health_pb2_grpc.add_HealthServicer_to_server(self.health, self.server)
             full_names = []
-            self.pyramids = None  # the uploads' pyramids built in the background (the volume service's)
             for name in names:
                 full, factory, add = SERVICES[name]
-                servicer = factory(self.catalog, self.jobs)
-                add(servicer, self.server)
-                self.pyramids = getattr(servicer, "pyramids", self.pyramids)
+                add(factory(self.catalog, self.jobs), self.server)
                 full_names.append(full)
             self.service_names = full_names
             _enable_reflection(self.server, full_names + [health_pb2.DESCRIPTOR.services_by_name["Health"].full_name])
@@ -266,8 +263,6 @@ class UnwindServer:
         self._start_scheduler()
         try:
             self.jobs.start()
-            if self.pyramids is not None:
-                self.pyramids.resume()  # pyramids a stopped server left pending
         except BaseException:
             self._close_scheduler()
             self.lock.release()

@@ -31,11 +31,10 @@ from ._proto.unwind.v1 import (
     volume_pb2_grpc,
     warp_pb2_grpc,
 )
-from .catalog import PYRAMID_WAIT, Catalog
+from .catalog import Catalog
 from .errors import CancelledError, DeadlineError, LimitError
 from .fairness import UserSlots, idle_limited, idle_sends
 from .ingest import (
-    PyramidBuilds,
     UploadPipe,
     decoder,
     encode_chunk,
@@ -85,7 +84,6 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
         self.catalog, self.jobs = catalog, jobs
         self.uploads = UserSlots(catalog.limits.max_uploads_per_user, "uploads",
                                  "wait for it to end before starting another")
-        self.pyramids = PyramidBuilds(catalog, jobs)  # the levels beyond 0 of uploads, built after they returned
 
     def Upload(self, request_iterator, context):
         owner, idle = current_user(), self.catalog.limits.upload_idle_seconds
@@ -145,16 +143,13 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             t1 = time.perf_counter()
             if not stopped:
                 framing.check_complete()
-            pending = pipe.finish()  # level 0 stored and checked; with format "chunks" the other levels are to come
+            pipe.finish()
             log.info("upload %s of %s: %.1f MiB received in %.2f s, imported %.2f s after the last byte", vid,
                      owner, expected / 2**20, t1 - t0, time.perf_counter() - t1)
         except BaseException:
             abandoned.append(pipe)
             raise
-        row, vol = self.catalog.add_volume(owner, dst, name, "upload", object_id=vid,
-                                           meta={"pyramid": "pending"} if pending else None)
-        if pending:
-            self.pyramids.start(owner, vid, dst)  # in the import pool; Download of those levels waits for it
+        row, vol = self.catalog.add_volume(owner, dst, name, "upload", object_id=vid)
         return convert.volume_info(row, vol)
 
     def Register(self, request, context):
@@ -192,11 +187,6 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
         from napari_unwind.io import write_volume
 
         row, vol = self.catalog.volume(current_user(), request.volume_id)
-        if request.level > 0 and row.meta.get("pyramid"):  # an upload's level being built: wait for it
-            remaining = context.time_remaining()  # UNAVAILABLE a second before the client's deadline, if it comes
-            wait = PYRAMID_WAIT if remaining is None else min(PYRAMID_WAIT, remaining - 1.0)
-            self.catalog.wait_for_pyramid(current_user(), request.volume_id, wait, context.is_active)
-            row, vol = self.catalog.volume(current_user(), request.volume_id)
         if not 0 <= request.level < len(vol.levels):
             raise InvalidInputError(f"level must be 0..{len(vol.levels) - 1} for this volume, got {request.level}")
         level = vol.levels[request.level]

@@ -119,12 +119,6 @@ class Store:
                            (owner, kind, int(limit)))
         return [self._object(r) for r in rows]
 
-    def pending_pyramids(self) -> list[ObjectRow]:
-        """Every volume whose pyramid is still to be built (``"pyramid"`` in its metadata: ``"pending"``, or
-        ``"failed"`` when its build failed), oldest first."""
-        rows = self._query("SELECT * FROM objects WHERE kind='volume' AND meta LIKE '%\"pyramid\"%' ORDER BY created")
-        return [row for row in map(self._object, rows) if row.meta.get("pyramid") in ("pending", "failed")]
-
     def has_objects(self, job_id: str) -> bool:
         return bool(self._query("SELECT 1 FROM objects WHERE job_id=? LIMIT 1", (job_id,)))
 

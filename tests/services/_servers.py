@@ -115,32 +115,11 @@ def wait_for(predicate, timeout: float = 60.0, interval: float = 0.05):
     raise TimeoutError("condition not met in time")
 
 
-def stored_volume(srv: ServerProcess, volume_id: str, *, complete: bool = True, wait: float = 120.0) -> Path:
-    """The OME-Zarr store of an uploaded volume under the server's own folder; ``complete``: once its pyramid,
-    built after the upload returned, is done (waiting up to ``wait`` seconds)."""
+def stored_volume(srv: ServerProcess, volume_id: str) -> Path:
+    """The OME-Zarr store of an uploaded volume under the server's own folder."""
     found = list((srv.data_root / ".unwind").rglob(f"{volume_id}.zarr"))
     assert len(found) == 1, found
-    if complete:
-        wait_for_pyramid(found[0], wait)
     return found[0]
-
-
-def pyramid_pending(store: Path) -> bool:
-    import json
-
-    try:
-        attrs = json.loads((store / "zarr.json").read_bytes())["attributes"]
-    except (OSError, ValueError, KeyError):
-        return True
-    return "pyramid_pending" in attrs.get("unwind", {})
-
-
-def wait_for_pyramid(store: Path, wait: float = 120.0) -> None:
-    """Until the store's pyramid is complete (a bound, not a speed requirement: the test fails if it never is)."""
-    deadline = time.monotonic() + wait
-    while pyramid_pending(store):
-        assert time.monotonic() < deadline, f"the pyramid of {store.name} was not built within {wait} s"
-        time.sleep(0.05)
 
 
 def store_files(store: Path) -> dict[str, bytes]:
