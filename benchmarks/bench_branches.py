@@ -1,6 +1,6 @@
 """Branched specimens (issue 23 item 2): what the cage holds of the chosen path and of the other leg.
 
-    .venv/bin/python -m benchmarks.bench_branches [--before]
+    .venv/bin/python -m benchmarks.bench_branches [--before] [--seeds FIRST N]
 
 The Y phantoms (seeds 0-7) and graft-like ones (seeds 100-103) of tests/skeleton/test_branches.py, ends at the trunk
 and at leg A; held fractions by tests/cage_reference.py's inverse (the path; leg B from where the legs part).
@@ -28,10 +28,16 @@ import napari_unwind.skeleton._api as api  # noqa: E402
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--before", action="store_true", help="switch the branch cut off")
+    ap.add_argument("--seeds", type=int, nargs=2, metavar=("FIRST", "N"), default=None,
+                    help="N Y phantoms and N graft-like ones from seed FIRST on (default: the tests' seeds)")
     args = ap.parse_args()
     if args.before:
         api._cut_branches = lambda wm, head, tail: (wm, [])
-    for stent, seeds in ((False, range(8)), (True, range(100, 104))):
+    sets = ((False, range(8)), (True, range(100, 104))) if args.seeds is None else (
+        (False, range(args.seeds[0], args.seeds[0] + args.seeds[1])),
+        (True, range(args.seeds[0], args.seeds[0] + args.seeds[1])))
+    paths, others = [], []
+    for stent, seeds in sets:
         for seed in seeds:
             mask, head, a_end, _, pa, pb, r, (j, apart) = y_phantom(seed, stent=stent)
             res = _solve(mask, (head, a_end))
@@ -41,8 +47,13 @@ def main() -> None:
             beyond = (cKDTree(pb).query(g)[0] <= r) & ~on & (np.linalg.norm(g - j, axis=1) > max(3 * r, apart))
             note = [w for w in res.warnings if "branches" in w]
             share = note[0].split("long, ")[1].split(" %")[0] if note else "-"
-            print(f"{'graft-like' if stent else 'Y'} {seed}: r {r:.1f}, path held {held(d, g[on]).mean():.3f}, "
-                  f"other leg held {held(d, g[beyond]).mean():.3f}, branch cut {share} % of the mask", flush=True)
+            paths.append(held(d, g[on]).mean())
+            others.append(held(d, g[beyond]).mean())
+            print(f"{'graft-like' if stent else 'Y'} {seed}: r {r:.1f}, path held {paths[-1]:.3f}, "
+                  f"other leg held {others[-1]:.3f}, branch cut {share} % of the mask", flush=True)
+    q = [0, 10, 50, 90, 100]
+    print(f"\npath held, min / p10 / median / p90 / max: {' / '.join(f'{v:.3f}' for v in np.percentile(paths, q))}")
+    print(f"other leg held: {' / '.join(f'{v:.3f}' for v in np.percentile(others, q))}")
 
 
 if __name__ == "__main__":
