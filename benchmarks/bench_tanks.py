@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 
-
 MERGED = 1.4  # an "ok" specimen with more voxels than this times its fish's: two fish reported as one
 
 
@@ -82,7 +81,8 @@ def main() -> None:
         print(f"seed {seed}: {t.n_fish} fish (touching {list(t.touching)}, cut by a face {len(t.cut_fish)}, wall cut "
               f"{t.wall_cut}): {len(r['ok'])}/{t.n_fish} straightened ok; rows {counts}; {r['seconds']:.0f} s"
               + (f"; missed fish {r['missed']} ({[r['by_fish'].get(f) for f in r['missed']]})" if r["missed"] else "")
-            + "".join(f"; MERGED: specimen {n} ok with {v} voxels, its fish {f} has {tv}" for n, f, v, tv in r["merged"]))
+              + "".join(f"; MERGED: specimen {n} ok with {v} voxels, its fish {f} has {tv}"
+                        for n, f, v, tv in r["merged"]))
         total += t.n_fish
         found += len(r["ok"])
         merges += len(r["merged"])
