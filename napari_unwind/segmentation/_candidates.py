@@ -220,8 +220,11 @@ def specimen_isovalue(features: Features, ids: Any, *, volume: Any = None) -> fl
                 # labels that are a thin core of a body whose surroundings still show the medium (two fish
                 # pressed together, each kept as its spine): the scan around the core is mostly flesh, so read
                 # it around the body the working levels give (the candidate's body) instead
-                grown = _working_body(features, ids, lab, basin_id, float(0.5 * (around[0] + around[1])))
-                body = grown if np.count_nonzero(grown) >= 2 * np.count_nonzero(lab) else None
+                box, grown = _working_body(features, ids, lab, basin_id, float(0.5 * (around[0] + around[1])))
+                n_lab = np.count_nonzero(lab)
+                if n_lab - np.count_nonzero(lab[box]) + np.count_nonzero(grown) >= 2 * n_lab:
+                    body = lab.copy()
+                    body[box] |= grown
             lab = lab if body is None else body
         levels = _scan_levels(features, ids, lab, volume)
         return fallback if levels is None else float(0.5 * (levels[0] + levels[1]))
@@ -266,17 +269,16 @@ def _scan_levels(features: Features, ids: list[int], lab: np.ndarray, volume: An
 
 
 def _working_body(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray, iso: float
-                  ) -> np.ndarray:
-    """The features' body at the working level: their basins' voxels ``>= iso`` connected to their labels, and the
-    labels (working shape; rule 3 of :func:`candidates`)."""
-    basin = np.isin(basin_id, ids)
+                  ) -> tuple[tuple[slice, ...], np.ndarray]:
+    """The features' body at the working level within the box of their basins: the basins' voxels ``>= iso``
+    connected to their labels, and the labels (rule 3 of :func:`candidates`). Returns the box and the body in it."""
+    basin = basin_id == ids[0] if len(ids) == 1 else np.isin(basin_id, ids)
     box = _box(basin, 0)
     m = basin[box] & (features.tree.values[box] >= iso)
     comp, _ = ndimage.label(m)
-    keep = np.unique(comp[lab[box]])
-    body = lab.copy()
-    body[box] |= np.isin(comp, keep[keep > 0])
-    return body
+    inside = lab[box]
+    keep = np.unique(comp[inside])
+    return box, np.isin(comp, keep[keep > 0]) | inside
 
 
 def _isovalue(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray, fallback: float) -> float:
@@ -775,8 +777,7 @@ def candidates(
             levels_of[f] = lv
             iso = stats[f].threshold if lv is None else float(0.5 * (lv[0] + lv[1]))
             iso_of[f] = iso
-            box = _box(basin_id == f, 0)
-            m = _working_body(features, [f], lab, basin_id, iso)[box]
+            box, m = _working_body(features, [f], lab, basin_id, iso)
         else:
             iso_of[f] = None
             box = _box(lab, 0)
