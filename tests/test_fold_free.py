@@ -207,7 +207,7 @@ def test_the_tilt_holds_more_of_a_tight_helix_than_the_untilted_cages(monkeypatc
 
     tilted = held()
     tilt = ff.tilted_frames
-    monkeypatch.setattr(ff, "tilted_frames", lambda f, a, k, sigma: tilt(f, a, k, np.zeros_like(sigma)))
+    monkeypatch.setattr(ff, "tilted_frames", lambda f, a, k, sigma, **kw: tilt(f, a, k, np.zeros_like(sigma), **kw))
     untilted = held()
     # the figures do not vary run to run
     assert tilted >= 0.995 and tilted > untilted, (tilted, untilted)

@@ -50,19 +50,19 @@ def aorta(tmp_path_factory):
 
 def _roll_against_rotation_minimising(d, step=0.5):
     """The roll (degrees, unwrapped) of the deformation's ``u`` about its normal against the rotation-minimising
-    frames of the same centres and normals, by double reflection (Wang, Juttler, Zheng, Liu 2008), started on the
-    first frame; and the arclengths. Written here, independent of napari_unwind's own frames."""
+    frames of the same normals, and the arclengths. The reference is carried from one normal to the next by the
+    double reflection of Wang, Juttler, Zheng and Liu (2008) with the first reflection about the normal itself (not
+    the chord between centres: a tilted section's normal is not the centres' direction, and the chord version then
+    adds a roll of its own), which is exactly the minimal rotation between consecutive normals; started on the
+    first frame. Written here, independent of napari_unwind's own frames."""
     s = np.arange(0.0, d.length, step)
-    x, f = d.sample(s)
+    _, f = d.sample(s)
     u, t = f[:, 0], f[:, 2]
     r = np.empty_like(u)
     r[0] = u[0]
     for i in range(len(s) - 1):
-        v1 = x[i + 1] - x[i]
-        c1 = v1 @ v1
-        rl = r[i] - (2 / c1) * (v1 @ r[i]) * v1
-        tl = t[i] - (2 / c1) * (v1 @ t[i]) * v1
-        v2 = t[i + 1] - tl
+        rl = r[i] - 2.0 * (t[i] @ r[i]) * t[i]  # reflect about the plane normal to t[i]: t[i] -> -t[i]
+        v2 = t[i + 1] + t[i]  # then about the bisector plane taking -t[i] to t[i + 1]
         c2 = v2 @ v2
         r[i + 1] = rl - (2 / c2) * (v2 @ rl) * v2 if c2 > 1e-18 else rl
     angle = np.arctan2(np.einsum("ij,ij->i", np.cross(r, u), t), np.einsum("ij,ij->i", r, u))

@@ -476,7 +476,9 @@ _TISSUE_JACOBIAN = 0.25  # of min_jacobian: the tissue's own sides are shrunk on
 
 
 def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx: np.ndarray, eps: float,
-                     margin: float, context: float = 0.0) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+                     margin: float, context: float = 0.0, *, twist: np.ndarray | None = None,
+                     confidence: np.ndarray | None = None
+                     ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
     """Keyframe frames and cage sides ``(m, 4)``: cages fitted per side to the sections, their margins given up
     where a bend would fold them, and the keyframes' normals tilted where that is not enough (docs/design.md section
     3, ways 1 and 2; the caller shrinks what still folds, way 3).
@@ -490,6 +492,8 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
     Returns ``(frames, sides, tissue)`` (the keyframe frames, the cage sides and the tissue's own sides per
     keyframe) for the tilt chosen, and the same for no tilt (the caller keeps whichever holds more of the mask
     once the last fold is shrunk away: on a helix whose curvature never eases the tilt can cost coverage).
+    ``twist`` and ``confidence`` (dense): the keyframes' ``u`` are carried along their own normals (see
+    :func:`~._foldfree.tilted_frames`).
     """
     from ._cage import fit_cages
     from ._foldfree import tilted_frames, unfold
@@ -500,7 +504,7 @@ def _fold_free_cages(wm: WorkingMask, curve: np.ndarray, frames: np.ndarray, idx
     a = sc[idx]
 
     def build(sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        kf = tilted_frames(frames, sc, idx, sigma)
+        kf = tilted_frames(frames, sc, idx, sigma, twist=twist, confidence=confidence)
         d = Deformation.from_keyframes(curve[idx], kf, 1.0)
         # the sections as the deformation cuts them: its own centres and SLERP frames at the dense arclengths
         s_dense = np.union1d(np.clip(sc, 0, d.length), d.knots)
@@ -887,11 +891,14 @@ def estimate_deformation_iter(
     yield Progress("keyframes", 0, 1, "prism subdivision")
     idx = select_keyframes(curve, frames, radius=cage_radius * vox, tolerance=tolerance * vox)
     offsets = 0.0
-    key_frames = frames[idx]
+    from ._foldfree import tilted_frames
+
+    # the keyframes' u carried along their own normals where the twist is not read (tilted_frames)
+    key_frames = tilted_frames(frames, arclength(curve), idx, np.zeros(len(idx)), twist=theta, confidence=theta_conf)
     if fold_free and half_extent is None:
         yield Progress("keyframes", 0, 1, "per-side cages, tilting the sections where a bend would fold them")
         tilted, untilted = _fold_free_cages(wm, curve_w, frames, idx, float(min_jacobian), float(cage_margin),
-                                            float(context))
+                                            float(context), twist=theta, confidence=theta_conf)
         candidates = [tilted] if tilted is untilted else [tilted, untilted]
     else:
         candidates = [(key_frames, None, None)]
