@@ -330,3 +330,40 @@ def test_unfold_finds_the_inner_side_of_a_cage_beside_the_curve(theta, side):
     expect[side] = (base - eps) / k
     np.testing.assert_allclose(u.bounds, np.tile(expect, (len(u), 1)), rtol=1e-9, atol=1e-12)
     assert not u.folds(threshold=eps - 1e-6)
+
+
+def _helix(n=400):
+    t = np.linspace(0, 3 * np.pi, n)
+    return np.stack([8 * np.cos(t), 8 * np.sin(t), 3 * t], axis=1)
+
+
+def test_tilted_keyframes_carry_u_along_their_own_normals_where_the_twist_is_not_read():
+    # a helix tilted hard: with confidence 0 each keyframe's u is the previous one's turned by the minimal rotation
+    # between the two normals (written here by Rodrigues), plus the twist's increment about the new normal
+    pts = _helix()
+    frames = parallel_transport_frames(pts, up=(0, 0, 1))
+    sc = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    keys = np.arange(0, 400, 25)
+    sigma = np.full(len(keys), 6.0)
+    theta = 0.002 * sc  # a slow twist
+    absolute = tilted_frames(frames, sc, keys, sigma)
+    out = tilted_frames(frames, sc, keys, sigma, twist=theta, confidence=np.zeros(len(sc)))
+    np.testing.assert_allclose(out[:, 2], absolute[:, 2], atol=1e-12)  # the same planes
+    np.testing.assert_allclose(out[0], absolute[0], atol=1e-12)
+    for i in range(1, len(keys)):
+        a, b = out[i - 1, 2], out[i, 2]
+        axis = np.cross(a, b)
+        sn, cs = np.linalg.norm(axis), a @ b
+        k = axis / sn
+        u = out[i - 1, 0]
+        u = u * cs + np.cross(k, u) * sn + k * (k @ u) * (1 - cs)
+        d = theta[keys[i]] - theta[keys[i - 1]]
+        u = np.cos(d) * u + np.sin(d) * np.cross(b, u)
+        np.testing.assert_allclose(out[i, 0], u, atol=1e-9)
+        np.testing.assert_allclose(out[i] @ out[i].T, np.eye(3), atol=1e-12)
+    # the tilted sections spin against that by tens of degrees when u is turned from the dense frames instead
+    spin = [np.degrees(np.arccos(np.clip(out[i, 0] @ absolute[i, 0], -1, 1))) for i in range(len(keys))]
+    assert max(spin) > 5.0
+    # with confidence 1 the turned dense u (v as near the dorsal direction as the plane allows) is kept
+    np.testing.assert_allclose(tilted_frames(frames, sc, keys, sigma, twist=theta, confidence=np.ones(len(sc))),
+                               absolute, atol=1e-9)
