@@ -936,15 +936,18 @@ def _unclaimed_rows(features: Features, out: list[Candidate], rows: list[tuple],
     for i, sl in enumerate(ndimage.find_objects(comp), start=1):
         if sl is None or sizes[i] < floor:
             continue
-        piece = np.zeros(comp.shape, bool)
-        piece[sl] = comp[sl] == i
-        if np.median(values[piece]) - m0 > 1.5 * (m1 - m0):
+        # in the piece's box, three voxels wider than the two it may grow by (a noisy scan has hundreds of
+        # pieces: the whole volume for each took 10 minutes on a 110^3 scan)
+        big = tuple(slice(max(a.start - 3, 0), min(a.stop + 3, n)) for a, n in zip(sl, comp.shape))
+        piece = comp[big] == i
+        if np.median(values[big][piece]) - m0 > 1.5 * (m1 - m0):
             continue  # the unlabelled rest of a brighter structure (a dense wall), not a body
-        piece = ndimage.binary_dilation(piece, iterations=2, mask=core) | piece
+        piece = ndimage.binary_dilation(piece, iterations=2, mask=core[big]) | piece
         parts, k = _split(piece, spacing, saddle=split_saddle, min_share=0.2) if split_saddle > 0 else (
             piece.astype(np.int32), 1)
         for q in range(1, k + 1):
-            mask = parts == q
+            mask = np.zeros(comp.shape, bool)
+            mask[big] = parts == q
             owners, counts = np.unique(basin_id[mask], return_counts=True)
             counts[owners == 0] = 0
             if not counts.any():
