@@ -825,8 +825,8 @@ def _run_all(args: argparse.Namespace) -> int:
     _say_results(result.specimens, say)
     if not found:
         print(f"unwind: error: nothing specimen-like found in {args.input}: every one of the {len(result.specimens)} "
-              f"features was rejected (reasons in {result.table}); try more features (--features N) or straighten "
-              "a mask (unwind run --mask)", file=sys.stderr)
+              f"features was rejected (reasons in {result.table}); try more features (--features N), select the "
+              "specimen (unwind run --select A0,A1,A2) or straighten a mask (unwind run --mask)", file=sys.stderr)
         return 1
     counts = {s: sum(r.status == s for r in result.specimens) for s in ("ok", "partial", "failed", "rejected")}
     say(f"summary -> {result.table} ({counts['ok']} straightened, {counts['partial']} partial, {counts['failed']} "

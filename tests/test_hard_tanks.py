@@ -248,3 +248,20 @@ def test_unclaimed_pieces_are_split_in_their_own_boxes(monkeypatch):
     assert max(np.prod(s) for s in shapes) < 0.5 * vol.size, "a piece was split on the whole volume"
     bar = [c for c in found if c.is_specimen]
     assert len(bar) == 1 and bar[0].stats.voxel_count >= 0.8 * 52 * 8 * 8 / np.prod(features.scale)
+
+
+def test_a_coiled_body_is_rejected_with_its_length_along_itself_and_what_to_do():
+    # a tube coiled through three quarters of a circle: by its principal axes about as wide as long (rejected, as
+    # before), along itself 2 pi 25 * 3/4 / (sqrt(3) 4) = 17 (written analytically; the message says so)
+    zz, yy, xx = np.mgrid[:40, :80, :80].astype(float)
+    rho = np.hypot(yy - 40, xx - 40)
+    ang = np.arctan2(yy - 40, xx - 40)
+    tube = (np.hypot(rho - 25.0, zz - 20) <= 4.0) & (ang > -np.pi * 0.75)
+    vol = np.where(tube, 1000.0, 100.0).astype(np.float32)
+    features = _features(type("Tank", (), {"volume": vol})())
+    found = [c for c in candidates(features) if c.stats is not None and c.stats.voxel_count > 0.5 * tube.sum()]
+    assert len(found) == 1 and found[0].status == "rejected", found
+    reason = found[0].reason
+    assert reason.startswith("not elongated") and "along itself" in reason and "--select" in reason, reason
+    along = float(reason.split("but ")[1].split(" along")[0])
+    assert 0.8 * 17 <= along <= 1.2 * 17, reason

@@ -118,6 +118,42 @@ def _box(mask: np.ndarray, pad: int) -> tuple[slice, ...]:
     return tuple(slice(max(int(ix[0]) - pad, 0), min(int(ix[-1]) + 1 + pad, n)) for ix, n in zip(idx, mask.shape))
 
 
+_CURVED_MIN_VOXELS = 200  # working voxels: below, no hint is computed
+_CURVED_MAX_CHECKS = 3  # rows whose geodesic is computed, the largest first
+_CURVED_MIN_SHARE = 0.2  # of the largest row's voxels: smaller rows get no hint
+_CURVED_FACTOR = 2.0  # x min_elongation along itself: a clearly curved body, not a lumpy one
+
+
+def _geodesic_elongation(crop: np.ndarray, spacing: np.ndarray) -> float:
+    """A body's length along itself over its thickness, on the scale of :attr:`FeatureStats.elongation`: the
+    longest geodesic (two sweeps of Dijkstra on the 26-neighbour graph, physical steps) over ``sqrt(3)`` times the
+    largest inscribed radius (a straight cylinder's principal-axes elongation is ``L / (sqrt(3) r)``). A curved or
+    coiled body (a vessel, an eel) is far more elongated along itself than by its principal axes."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    sp = np.asarray(spacing, dtype=float)
+    r = float(ndimage.distance_transform_edt(np.pad(crop, 1), sampling=sp).max())
+    idx = np.full(crop.shape, -1, np.int64)
+    n = int(np.count_nonzero(crop))
+    if n < 2 or r <= 0:
+        return 0.0
+    idx[crop] = np.arange(n)
+    rows, cols, w = [], [], []
+    for off in [(a, b, c) for a in (0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) > (0, 0, 0)]:
+        src = tuple(slice(max(0, -o), crop.shape[d] - max(0, o)) for d, o in enumerate(off))
+        dst = tuple(slice(max(0, o), crop.shape[d] - max(0, -o)) for d, o in enumerate(off))
+        both = crop[src] & crop[dst]
+        rows.append(idx[src][both])
+        cols.append(idx[dst][both])
+        w.append(np.full(int(both.sum()), float(np.linalg.norm(np.asarray(off) * sp))))
+    g = coo_matrix((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+    d = dijkstra(g, directed=False, indices=0)
+    a = int(np.argmax(np.where(np.isfinite(d), d, -1)))
+    d = dijkstra(g, directed=False, indices=a)
+    return float(np.where(np.isfinite(d), d, 0).max()) / (np.sqrt(3.0) * r)
+
+
 def _principal(mask: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centre, eigenvalues (descending) and eigenvectors (columns) of a mask's covariance, physical units,
     the voxel's own extent included (as :attr:`FeatureStats.elongation`)."""
@@ -846,6 +882,13 @@ def candidates(
     largest = max([r[7].voxel_count for r in rows if r[7].elongation >= min_elongation], default=0)
     out_names = {i: "+".join(map(str, r[3])) for r in rows for i in r[3]}  # a feature's body, for the reason
     size_floor = max(min_voxels, int(np.ceil(min_size_fraction * largest)))
+    # the geodesic of the largest few features' bodies that are not elongated by their principal axes (bounded,
+    # not exhaustive; not the unclaimed pieces: in a noisy scan those are mostly specks of the medium)
+    biggest = max([r[7].voxel_count for r in rows], default=0)
+    curved_check = {r[0] for r in sorted((r for r in rows if r[7].elongation < min_elongation and r[1] >= 0
+                                          and r[7].voxel_count >= max(size_floor, _CURVED_MIN_VOXELS,
+                                                                      _CURVED_MIN_SHARE * biggest)),
+                                         key=lambda r: -r[7].voxel_count)[:_CURVED_MAX_CHECKS]}
     for _p, gi, idx, ids, box, crop, iso, st, length in rows:
         n = n_parts_of[gi] if gi > 0 else 1
         if st.voxel_count < size_floor:
@@ -854,6 +897,12 @@ def candidates(
                 why += f" ({100 * min_size_fraction:g} % of the largest elongated candidate, {largest})"
         elif st.elongation < min_elongation:
             why = f"not elongated: {st.elongation:.2g} < {min_elongation:g}"
+            if _p in curved_check:
+                geo = _geodesic_elongation(crop, spacing)
+                if geo >= _CURVED_FACTOR * min_elongation:
+                    why += (f" by its principal axes, but {geo:.2g} along itself: a curved or coiled body (a vessel, "
+                            "an eel) or touching bodies; to straighten it, select it (--select A0,A1,A2) or give "
+                            "its mask")
         elif length < min_length_fraction * scan_side:
             why = (f"too short: length {length:.3g} < {100 * min_length_fraction:g} % of the scan's largest side "
                    f"({scan_side:.3g})")
