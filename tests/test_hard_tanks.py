@@ -241,7 +241,8 @@ def test_unclaimed_pieces_are_split_in_their_own_boxes(monkeypatch):
     features = _features(type("Tank", (), {"volume": vol.astype(np.float32)})())
     shapes = []
     split = _candidates._split
-    monkeypatch.setattr(_candidates, "_split", lambda body, *a, **k: (shapes.append(body.shape), split(body, *a, **k))[1])
+    monkeypatch.setattr(_candidates, "_split",
+                        lambda body, *a, **k: (shapes.append(body.shape), split(body, *a, **k))[1])
     found = candidates(features)
     unclaimed = [c for c in found if "outside every feature" in c.reason]
     assert len(unclaimed) >= 5, len(unclaimed)  # the case has specks

@@ -44,5 +44,6 @@ def test_a_round_tube_through_a_tight_bend_does_not_spin(name):
     # before: 62 and 35 degrees in all, 40 and 30 within 10 voxels (the tilted keyframes' u turned from the dense
     # frames', which follow the curve's tangents, not the sections' normals)
     assert np.ptp(roll) <= 2.0 and jump.max() <= 2.0, \
-        f"the sections spin {np.ptp(roll):.1f} deg in all, {jump.max():.1f} within 10 voxels at s = {s[np.argmax(jump)]:.0f}"
+        f"the sections spin {np.ptp(roll):.1f} deg in all, {jump.max():.1f} within 10 voxels at s = " \
+        f"{s[np.argmax(jump)]:.0f}"
     assert res.coverage >= 0.99 and not res.deformation.folds()
