@@ -45,6 +45,9 @@ _ADVICE: tuple[tuple[str, str], ...] = (
      r"specimen's own mask", "select the specimen's own body (Select), or a mask of it"),
     # skeleton/_twist.py: a round specimen
     (r"give dorsal points or an up direction to set the roll", "turn the keyframes (Refine: twist) to set the roll"),
+    # segmentation/_candidates.py: a curved body rejected as not elongated by its principal axes
+    (r"; to straighten it, select it \(--select A0,A1,A2\) or give its mask",
+     "; to straighten it, click it among the features (step 2, Segment), or choose a mask layer of it"),
     # warp: the output size limit
     (r"the limit max_output=(\S+) bytes", r"the size limit of \1 bytes"),
     (r", or pass max_output=\.\.\. \(CLI: --max-output\) to raise the limit \(max_output=None: no limit\)",
