@@ -639,7 +639,7 @@ def _part_stats(features: Features, template: FeatureStats, mask: np.ndarray, is
         mx = tuple(int(v) for v in np.add(np.unravel_index(flat, mask[box].shape), lo))
     else:
         mx = template.max_position
-    _, ev, _ = _principal(mask, spacing)
+    _, ev, _ = _principal(mask[box], spacing)  # in its box: the same covariance
     return replace(
         template,
         voxel_count=int(np.count_nonzero(mask)),
@@ -872,7 +872,7 @@ def candidates(
         isos = [iso_of[f] for f in ids if iso_of[f] is not None]
         iso = float(min(isos)) if isos else None
         st = _part_stats(features, stats[ids[0]], mask, iso, spacing)
-        _, ev, _ = _principal(mask, spacing)
+        _, ev, _ = _principal(mask[box], spacing)
         rows.append((p, gi, idx, ids, box, mask[box], iso, st, 4.0 * float(np.sqrt(ev[0]))))
     floor = max(min_voxels, min_size_fraction * max([r[7].voxel_count for r in rows
                                                      if r[7].elongation >= min_elongation], default=0))
@@ -1005,7 +1005,7 @@ def _unclaimed_rows(features: Features, out: list[Candidate], rows: list[tuple],
             used[owner] = used.get(owner, 0) + 1
             box = _box(mask, 0)
             st = _part_stats(features, features.stat(owner), mask, iso, spacing)
-            _, ev, _ = _principal(mask, spacing)
+            _, ev, _ = _principal(mask[box], spacing)
             extra.append((n_parts + len(extra) + 1, -1, used[owner], (owner,), box, mask[box], iso, st,
                           4.0 * float(np.sqrt(ev[0]))))
     return extra, levels

@@ -891,17 +891,17 @@ def estimate_deformation_iter(
     yield Progress("keyframes", 0, 1, "prism subdivision")
     idx = select_keyframes(curve, frames, radius=cage_radius * vox, tolerance=tolerance * vox)
     offsets = 0.0
-    from ._foldfree import tilted_frames
-
-    # the keyframes' u carried along their own normals where the twist is not read (tilted_frames)
-    key_frames = tilted_frames(frames, arclength(curve), idx, np.zeros(len(idx)), twist=theta, confidence=theta_conf)
     if fold_free and half_extent is None:
         yield Progress("keyframes", 0, 1, "per-side cages, tilting the sections where a bend would fold them")
         tilted, untilted = _fold_free_cages(wm, curve_w, frames, idx, float(min_jacobian), float(cage_margin),
                                             float(context), twist=theta, confidence=theta_conf)
         candidates = [tilted] if tilted is untilted else [tilted, untilted]
     else:
-        candidates = [(key_frames, None, None)]
+        from ._foldfree import tilted_frames
+
+        # untilted; u carried along the keyframes' normals where the twist is not read (tilted_frames)
+        candidates = [(tilted_frames(frames, arclength(curve), idx, np.zeros(len(idx)), twist=theta,
+                                     confidence=theta_conf), None, None)]
     mask_pts = wm.from_working(np.argwhere(wm.binary)) * sp + org
     best = None
     for key_frames, b, tissue_c in candidates:
