@@ -129,25 +129,15 @@ def _geodesic_elongation(crop: np.ndarray, spacing: np.ndarray) -> float:
     longest geodesic (two sweeps of Dijkstra on the 26-neighbour graph, physical steps) over ``sqrt(3)`` times the
     largest inscribed radius (a straight cylinder's principal-axes elongation is ``L / (sqrt(3) r)``). A curved or
     coiled body (a vessel, an eel) is far more elongated along itself than by its principal axes."""
-    from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
+
+    from ..skeleton._endpoints import _graph  # the 26-neighbour graph with physical edge lengths
 
     sp = np.asarray(spacing, dtype=float)
     r = float(ndimage.distance_transform_edt(np.pad(crop, 1), sampling=sp).max())
-    idx = np.full(crop.shape, -1, np.int64)
-    n = int(np.count_nonzero(crop))
-    if n < 2 or r <= 0:
+    if np.count_nonzero(crop) < 2 or r <= 0:
         return 0.0
-    idx[crop] = np.arange(n)
-    rows, cols, w = [], [], []
-    for off in [(a, b, c) for a in (0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) > (0, 0, 0)]:
-        src = tuple(slice(max(0, -o), crop.shape[d] - max(0, o)) for d, o in enumerate(off))
-        dst = tuple(slice(max(0, o), crop.shape[d] - max(0, -o)) for d, o in enumerate(off))
-        both = crop[src] & crop[dst]
-        rows.append(idx[src][both])
-        cols.append(idx[dst][both])
-        w.append(np.full(int(both.sum()), float(np.linalg.norm(np.asarray(off) * sp))))
-    g = coo_matrix((np.concatenate(w), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+    g, _ = _graph(crop, sp)
     d = dijkstra(g, directed=False, indices=0)
     a = int(np.argmax(np.where(np.isfinite(d), d, -1)))
     d = dijkstra(g, directed=False, indices=a)
