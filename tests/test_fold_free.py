@@ -186,16 +186,16 @@ def _held_at_own_place(d, ph):
     return float(np.mean(inside & own & (det > 0)))
 
 
-def test_the_tilt_holds_more_of_a_tight_helix_than_the_untilted_cages(monkeypatch):
-    """Helix 1002 (radius of curvature 1.5 body half-heights, spacing (1.5, 1, 1)), one of the 30 of
-    tests/test_hard_phantoms.py: with the keyframes' normals tilted the cages hold 0.999 of the mask at its own
-    place; the same construction with every window 0 (no tilt) holds 0.9985 (measured, lattice mesher:
-    deterministic; 0.998 and 0.991 before the shrink kept the tissue down to a quarter of min_jacobian, issue 23:
-    the untilted cages now hold the tissue by a lower det J, see tests/skeleton/test_fold_free_ways.py). Issue 19:
-    the tilt was never applied and every test stayed green."""
+def test_the_tilt_holds_more_of_a_tight_s_bend_than_the_untilted_cages(monkeypatch):
+    """S-bend 1009 (hard_fish_phantom): with the keyframes' normals tilted the cages hold 0.9992 of the mask at its
+    own place; the same construction with every window 0 (no tilt) holds 0.9959 (measured, lattice mesher:
+    deterministic). Until the twist read its sections up to the working mask's crop faces this test used helix
+    1002 (0.999 against 0.9985); on it, and on every helix and coil of seeds 1000-1029, the untilted cages now hold
+    as much and are kept, while on s-bends the tilt holds more on 10 of 30 (by up to 0.0034). Issue 19: the tilt
+    was never applied and every test stayed green."""
     import napari_unwind.skeleton._foldfree as ff
 
-    ph = hard_fish_phantom(1002, kind="helix")
+    ph = hard_fish_phantom(1009, kind="s-bend")
     ends = (ph.centerline[0], ph.centerline[-1])
 
     def held():
@@ -210,7 +210,7 @@ def test_the_tilt_holds_more_of_a_tight_helix_than_the_untilted_cages(monkeypatc
     monkeypatch.setattr(ff, "tilted_frames", lambda f, a, k, sigma, **kw: tilt(f, a, k, np.zeros_like(sigma), **kw))
     untilted = held()
     # the figures do not vary run to run
-    assert tilted >= 0.995 and tilted > untilted, (tilted, untilted)
+    assert tilted >= 0.995 and tilted > untilted + 0.002, (tilted, untilted)
 
 
 def test_format_lost_keeps_the_largest_in_order_of_s_and_counts_the_rest():

@@ -9,6 +9,7 @@ solution, cut tet by tet ("marching tets", numpy).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -197,8 +198,15 @@ def lattice_tet_mesh(
     grids = np.meshgrid(*(lo[a] + cell * np.arange(n[a]) for a in range(3)), indexing="ij")
     coords = np.stack([g.ravel() for g in grids])  # (3, nodes), voxel coordinates
     if cell > 1:  # a step sharper than the lattice would put the cut anywhere within a cell: widen it to one
-        occ = ndi.gaussian_filter(occ, sigma=0.4 * cell, mode="constant", cval=0.0)
-    phi = ndi.map_coordinates(occ, coords, order=1, mode="constant", cval=0.0).astype(np.float64) - 0.5
+        # (on a margin of zeros first: the working mask is cropped to the body, whose blur spills past the crop)
+        margin = int(math.ceil(4.0 * 0.4 * cell)) + 1
+        occ = ndi.gaussian_filter(np.pad(occ, margin), sigma=0.4 * cell, mode="constant", cval=0.0)
+        at = coords + margin
+    else:
+        at = coords
+    # outside the array is 0, interpolated up to its faces ("grid-constant"; "constant" reads 0 from the last
+    # voxel's centre outward, moving the surface of a body cropped to its voxels half a voxel in)
+    phi = ndi.map_coordinates(occ, at, order=1, mode="grid-constant", cval=0.0).astype(np.float64) - 0.5
     phi = np.where(phi >= 0, np.maximum(phi, snap), np.minimum(phi, -snap))
     inside = phi > 0
     strides = np.array([n[1] * n[2], n[2], 1], dtype=np.int64)

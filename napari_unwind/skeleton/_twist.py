@@ -600,7 +600,9 @@ def _sample_sections(
     if box is not None:
         slices, lo = box
         block = _as_uint8(mask[slices])
-        w = ndimage.map_coordinates(block, (flat - lo).T, order=1, mode="constant", cval=0.0, output=np.float32)
+        # grid-constant: the mask is 0 beyond its array and interpolated up to it (a tight crop keeps its edge rims)
+        w = ndimage.map_coordinates(block, (flat - lo).T, order=1, mode="grid-constant", cval=0.0,
+                                    output=np.float32)
         w = w.astype(float).reshape(n_sec, n_smp)
     # A sample belongs to this section only when this section's curve point is (about) its nearest: within the
     # radius of curvature every point of the plane is, while a part of the body that curls back through the plane

@@ -177,6 +177,22 @@ def test_lattice_mesh_spacing_and_offset_are_physical():
     np.testing.assert_allclose(b.vertices, a.vertices * (2.0, 0.5, 1.5) + (10.0, -3.0, 7.0), atol=1e-9)
 
 
+@pytest.mark.parametrize("cell", [1.7, 2.3])
+def test_lattice_mesh_of_a_tight_crop_is_the_mesh_of_the_whole(cell):
+    # the working mask is cropped to the specimen's voxels, so its first and last voxels touch the array's faces;
+    # outside the array counts as 0 and is interpolated up to the face (a node half a voxel out reads half the face
+    # voxel), as in the uncropped array: the surface there must not move inward
+    occ = _ball_occupancy()
+    nz = np.argwhere(occ > 0)
+    lo, hi = nz.min(axis=0), nz.max(axis=0) + 1
+    tight = np.ascontiguousarray(occ[tuple(slice(a, b) for a, b in zip(lo, hi))])
+    whole = lattice_tet_mesh(occ, spacing=(1.0, 1.0, 1.0), cell=cell)
+    crop = lattice_tet_mesh(tight, spacing=(1.0, 1.0, 1.0), offset=tuple(float(a) for a in lo), cell=cell)
+    assert crop.volume == pytest.approx(whole.volume, rel=1e-3)
+    for axis in range(3):
+        assert crop.surface[0][:, axis].min() == pytest.approx(whole.surface[0][:, axis].min(), abs=1e-6)
+
+
 @pytest.mark.parametrize("cell", [1.0, 1.7])
 def test_lattice_mesh_passes_the_patch_test(cell):
     # on a conforming P1 mesh the cotangent Laplacian of a linear function vanishes at every interior vertex

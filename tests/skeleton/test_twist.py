@@ -68,6 +68,24 @@ def test_v_points_dorsal_on_fish_phantoms(case, curve, twist, roll):
         assert abs(info["scores"]["shape"]) >= 0.05 and abs(info["scores"]["density"]) >= 0.1
 
 
+@pytest.mark.parametrize("roll", [0.0, np.pi])
+def test_a_mask_cropped_to_the_specimen_reads_the_sections_up_to_its_faces(roll):
+    """The pipeline orients a working mask cropped to the specimen's voxels: the rims of sections at the crop's
+    faces must be read as in the whole scan (outside the array is 0, interpolated up to the face). Read as 0 from
+    the face voxels' centres out, this thin twisted tail's sections lost a half-voxel rim on the faces it touches
+    and v erred up to 6.9 degrees (2.3 on the uncropped mask)."""
+    ph = fish_phantom(curve="c-bend", twist=np.radians(-175), roll=roll, body_radius=6.5, length=195.0, seed=0)
+    pts, frames, v_true, s = _truth(ph)
+    nz = np.argwhere(ph.mask)
+    lo, hi = nz.min(axis=0), nz.max(axis=0) + 1
+    crop = np.ascontiguousarray(ph.mask[tuple(slice(a, b) for a, b in zip(lo, hi))])
+    assert min(crop.shape) < min(ph.mask.shape) - 20  # really cropped, on every side
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        angles = estimate_twist(pts - lo * np.asarray(ph.spacing), frames, mask=crop, spacing=ph.spacing)
+    _check(ph, _angle_errors(apply_twist(frames, angles), v_true), s, max_deg=4.0, median_deg=1.0)
+
+
 @pytest.mark.parametrize("spacing", [(2.0, 1.0, 1.0), (1.5, 0.7, 1.0)])
 def test_anisotropic_spacing(spacing):
     ph = _fish("s-bend", -3 * np.pi / 4, 1.0, spacing)
