@@ -124,24 +124,40 @@ _CURVED_MIN_SHARE = 0.2  # of the largest row's voxels: smaller rows get no hint
 _CURVED_FACTOR = 2.0  # x min_elongation along itself: a clearly curved body, not a lumpy one
 
 
-def _geodesic_elongation(crop: np.ndarray, spacing: np.ndarray) -> float:
-    """A body's length along itself over its thickness, on the scale of :attr:`FeatureStats.elongation`: the
-    longest geodesic (two sweeps of Dijkstra on the 26-neighbour graph, physical steps) over ``sqrt(3)`` times the
-    largest inscribed radius (a straight cylinder's principal-axes elongation is ``L / (sqrt(3) r)``). A curved or
-    coiled body (a vessel, an eel) is far more elongated along itself than by its principal axes."""
+# mean cross-section over the largest inscribed disc of a body taken as curved: a tube or a curled fish 1-1.6 (48
+# hard phantoms); a curved plate more; a thick body the geodesic wanders through (a chest CT's torso: 0.38) less
+_CURVED_SECTION = (0.6, 3.0)
+
+
+def _along_itself(crop: np.ndarray, spacing: np.ndarray) -> tuple[float, float, float]:
+    """A body's length along itself (the longest geodesic: two sweeps of Dijkstra on the 26-neighbour graph,
+    physical steps), its elongation along itself on the scale of :attr:`FeatureStats.elongation` (that length over
+    ``sqrt(3)`` times the largest inscribed radius: a straight cylinder's principal-axes elongation is
+    ``L / (sqrt(3) r)``), and its mean cross-section (volume over length) over the largest inscribed disc's area: 1
+    for a round tube, 1.7 for a fish's 0.6 ellipse, ``4 w / (pi t)`` for a curved plate ``w`` wide, ``t`` thick.
+    A curved or coiled body (a vessel, an eel) is far more elongated along itself than by its principal axes."""
     from scipy.sparse.csgraph import dijkstra
 
     from ..skeleton._endpoints import _graph  # the 26-neighbour graph with physical edge lengths
 
     sp = np.asarray(spacing, dtype=float)
     r = float(ndimage.distance_transform_edt(np.pad(crop, 1), sampling=sp).max())
-    if np.count_nonzero(crop) < 2 or r <= 0:
-        return 0.0
+    n = int(np.count_nonzero(crop))
+    if n < 2 or r <= 0:
+        return 0.0, 0.0, np.inf
     g, _ = _graph(crop, sp)
     d = dijkstra(g, directed=False, indices=0)
     a = int(np.argmax(np.where(np.isfinite(d), d, -1)))
     d = dijkstra(g, directed=False, indices=a)
-    return float(np.where(np.isfinite(d), d, 0).max()) / (np.sqrt(3.0) * r)
+    length = float(np.where(np.isfinite(d), d, 0).max())
+    if length <= 0:
+        return 0.0, 0.0, np.inf
+    return length / (np.sqrt(3.0) * r), length, n * float(np.prod(sp)) / length / (np.pi * r * r)
+
+
+def _geodesic_elongation(crop: np.ndarray, spacing: np.ndarray) -> float:
+    """The elongation along itself of :func:`_along_itself`."""
+    return _along_itself(crop, spacing)[0]
 
 
 def _principal(mask: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -686,7 +702,14 @@ def candidates(
     5. **Size and shape** of each part: ``"too small: 40 voxels < 200"`` (under ``min_voxels`` or
        ``min_size_fraction`` of the largest elongated part), ``"not elongated: 1.6 < 3"``, ``"too short: ..."`` (its
        length, 4 standard deviations along its principal axis, under ``min_length_fraction`` of the scan's
-       largest side).
+       largest side). A part not elongated by its principal axes but at least twice ``min_elongation`` along
+       itself (its longest geodesic over ``sqrt(3)`` times its largest inscribed radius; computed for the three
+       largest such parts) is a curved or coiled body (a vessel, an eel, a curled fish): it is a specimen --
+       ``"curved or coiled: 1.3 by its principal axes, 15 along itself"`` -- when it is tube-like (its mean
+       section, volume over that length, 0.6-3 times its largest inscribed disc), the scan's faces do not cut it
+       and nothing else of a fifth of its size is elongated by its principal axes; otherwise its ``"not
+       elongated"`` reason says which and what to do (select it, or give its mask). Its length is then the
+       geodesic's.
     6. **Embedded** (a part that passed 1-5): ``"part of a larger body: embedded in feature 1's tissue; ..."``
        when its medium (the most common value around it, as :func:`specimen_isovalue` measures) is itself the
        tissue of a larger body: the scan holds a background darker than that medium by more than the candidate's
@@ -881,19 +904,35 @@ def candidates(
                                          key=lambda r: -r[7].voxel_count)[:_CURVED_MAX_CHECKS]}
     for _p, gi, idx, ids, box, crop, iso, st, length in rows:
         n = n_parts_of[gi] if gi > 0 else 1
+        # a curved or coiled body (a vessel, an eel, a curled fish): not elongated by its principal axes, but along
+        # itself; a specimen when it is tube-like (not a curved plate, nor a thick body the geodesic wanders through),
+        # the scan's faces do not cut it (a torso cut by a CT's field of view is as long along itself) and nothing
+        # else in the scan of a fifth of its size is elongated by its principal axes (alone in its scan: among other
+        # specimens it could be two touching at an angle)
+        geo, curve_len, section = (_along_itself(crop, spacing) if _p in curved_check and st.voxel_count >= size_floor
+                                   and st.elongation < min_elongation else (0.0, 0.0, np.inf))
+        curved = geo >= _CURVED_FACTOR * min_elongation
+        tube_like = _CURVED_SECTION[0] <= section <= _CURVED_SECTION[1]
+        cut = any(b.start == 0 or b.stop == m for b, m in zip(box, labels.shape))  # by the field of view
+        taken = curved and tube_like and not cut and largest < _CURVED_MIN_SHARE * st.voxel_count
         if st.voxel_count < size_floor:
             why = f"too small: {st.voxel_count} voxels < {size_floor}"
             if size_floor > min_voxels:
                 why += f" ({100 * min_size_fraction:g} % of the largest elongated candidate, {largest})"
-        elif st.elongation < min_elongation:
+        elif st.elongation < min_elongation and not taken:
             why = f"not elongated: {st.elongation:.2g} < {min_elongation:g}"
-            if _p in curved_check:
-                geo = _geodesic_elongation(crop, spacing)
-                if geo >= _CURVED_FACTOR * min_elongation:
-                    why += (f" by its principal axes, but {geo:.2g} along itself: a curved or coiled body (a vessel, "
-                            "an eel) or touching bodies; to straighten it, select it (--select A0,A1,A2) or give "
-                            "its mask")
-        elif length < min_length_fraction * scan_side:
+            if curved:
+                what = ("a curved or coiled body (a vessel, an eel) or touching bodies, taken only when nothing else "
+                        "in the scan of a fifth of its size is elongated and the scan's faces do not cut it"
+                        if tube_like else
+                        f"a curved plate (its mean section {section:.2g} x its largest inscribed disc)"
+                        if section > _CURVED_SECTION[1] else
+                        f"a thick body with thin parts, not a tube (its mean section {section:.2g} x its largest "
+                        "inscribed disc)")
+                why += (f" by its principal axes, but {geo:.2g} along itself: {what}; to straighten it, select it "
+                        "(--select A0,A1,A2) or give its mask")
+        elif (curve_len if taken else length) < min_length_fraction * scan_side:
+            length = curve_len if taken else length
             why = (f"too short: length {length:.3g} < {100 * min_length_fraction:g} % of the scan's largest side "
                    f"({scan_side:.3g})")
         elif embedded and use_body and gi < 0:
@@ -911,6 +950,9 @@ def candidates(
             note = f"features {', '.join(map(str, ids))} make one body"
         else:
             note = ""
+        if taken:
+            note = (f"curved or coiled: {st.elongation:.2g} by its principal axes, {geo:.2g} along itself"
+                    + (f"; {note}" if note else ""))
         reason = f"{why}; {note}" if why and note else (why or note)
         corners = tuple(int(v) for v in (*[b.start for b in box], *[b.stop for b in box]))
         out.append(Candidate(ids, REJECTED if why else SPECIMEN, reason, st, part=idx if n > 1 or gi < 0 else 0,

@@ -1,0 +1,80 @@
+"""Curled specimens with no click and no mask (issue 23): hard phantoms written as scans, through ``unwind run --all``.
+
+    .venv/bin/python -m benchmarks.bench_curled [--seed 1000] [--n 6]
+
+Phantoms ``hard_fish_phantom(seed + i, kind=k)`` for i < n and every kind (tight S-bends, coils, helices; noise,
+a tube wall cut by the scan's faces), each written as an NRRD scan (the volume only, no mask) and run through
+``pipeline.run_all_iter`` with the defaults. For each scan: the rows' statuses, and for each specimen straightened
+``ok`` the figures of tests/test_hard_phantoms.py against the phantom's truth: the fraction of the phantom's voxels
+held at their own place (``coverage``), the centreline's RMS distance from the true one (voxels) and the length
+error. A specimen is *right* when it holds >= 0.95 of the phantom at its own place with an RMS under 2 voxels.
+Prints one row per scan and the totals.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from napari_unwind import pipeline
+from napari_unwind.datasets import HARD_KINDS, hard_fish_phantom
+from napari_unwind.io import write_volume
+from napari_unwind.progress import run
+from napari_unwind.session import load_session
+from tests.skeleton.test_skeleton import centreline_errors
+from tests.test_hard_phantoms import coverage
+
+
+def one(ph, tmp: Path) -> tuple[dict, list[dict]]:
+    scan = tmp / "scan.nrrd"
+    write_volume(np.asarray(ph.volume), scan, spacing=ph.spacing)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = run(pipeline.run_all_iter(scan, tmp / "out"))
+    rows = res.rows() if callable(getattr(res, "rows", None)) else res.rows
+    counts: dict = {}
+    for r in rows:
+        counts[r["status"]] = counts.get(r["status"], 0) + 1
+    figs = []
+    for r in rows:
+        if r["status"] != "ok":
+            continue
+        dfm = load_session(tmp / "out" / r["session"]).deformation
+        rms, length_err = centreline_errors(ph, dfm)
+        figs.append({"coverage": coverage(ph, dfm), "rms_vox": rms, "length_err_pct": 100 * abs(length_err),
+                     "reason": r.get("reason") or ""})
+    return counts, figs
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seed", type=int, default=1000)
+    ap.add_argument("--n", type=int, default=6)
+    args = ap.parse_args()
+    total = {k: [0, 0, 0] for k in HARD_KINDS}  # scans, one right ok specimen, a wrong ok specimen
+    for i in range(args.n):
+        for kind in HARD_KINDS:
+            ph = hard_fish_phantom(args.seed + i, kind=kind)
+            t = time.perf_counter()
+            with tempfile.TemporaryDirectory() as d:
+                counts, figs = one(ph, Path(d))
+            right = [f for f in figs if f["coverage"] >= 0.95 and f["rms_vox"] <= 2.0]
+            total[kind][0] += 1
+            total[kind][1] += bool(right)
+            total[kind][2] += len(figs) - len(right)
+            shown = "; ".join(f"coverage {f['coverage']:.3f}, RMS {f['rms_vox']:.2f}, "
+                              f"length {f['length_err_pct']:.2f} % ({f['reason'][:60]})" for f in figs)
+            print(f"{kind}-{args.seed + i}: rows {counts}; ok: {shown or 'none'}; {time.perf_counter() - t:.0f} s",
+                  flush=True)
+    print()
+    for kind, (n, ok, wrong) in total.items():
+        print(f"{kind}: {ok} of {n} straightened right with no click; {wrong} ok specimen(s) not the phantom")
+
+
+if __name__ == "__main__":
+    main()
