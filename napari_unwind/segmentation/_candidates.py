@@ -155,11 +155,6 @@ def _along_itself(crop: np.ndarray, spacing: np.ndarray) -> tuple[float, float, 
     return length / (np.sqrt(3.0) * r), length, n * float(np.prod(sp)) / length / (np.pi * r * r)
 
 
-def _geodesic_elongation(crop: np.ndarray, spacing: np.ndarray) -> float:
-    """The elongation along itself of :func:`_along_itself`."""
-    return _along_itself(crop, spacing)[0]
-
-
 def _principal(mask: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centre, eigenvalues (descending) and eigenvectors (columns) of a mask's covariance, physical units,
     the voxel's own extent included (as :attr:`FeatureStats.elongation`)."""
