@@ -136,20 +136,15 @@ def _along_itself(crop: np.ndarray, spacing: np.ndarray) -> tuple[float, float, 
     ``L / (sqrt(3) r)``), and its mean cross-section (volume over length) over the largest inscribed disc's area: 1
     for a round tube, 1.7 for a fish's 0.6 ellipse, ``4 w / (pi t)`` for a curved plate ``w`` wide, ``t`` thick.
     A curved or coiled body (a vessel, an eel) is far more elongated along itself than by its principal axes."""
-    from scipy.sparse.csgraph import dijkstra
-
-    from ..skeleton._endpoints import _graph  # the 26-neighbour graph with physical edge lengths
+    from ..skeleton._endpoints import _graph, _longest_geodesic  # the 26-neighbour graph, physical edge lengths
 
     sp = np.asarray(spacing, dtype=float)
     r = float(ndimage.distance_transform_edt(np.pad(crop, 1), sampling=sp).max())
     n = int(np.count_nonzero(crop))
     if n < 2 or r <= 0:
         return 0.0, 0.0, np.inf
-    g, _ = _graph(crop, sp)
-    d = dijkstra(g, directed=False, indices=0)
-    a = int(np.argmax(np.where(np.isfinite(d), d, -1)))
-    d = dijkstra(g, directed=False, indices=a)
-    length = float(np.where(np.isfinite(d), d, 0).max())
+    _, b, da = _longest_geodesic(_graph(crop, sp)[0])
+    length = float(da[b])
     if length <= 0:
         return 0.0, 0.0, np.inf
     return length / (np.sqrt(3.0) * r), length, n * float(np.prod(sp)) / length / (np.pi * r * r)

@@ -113,6 +113,16 @@ def _graph(coarse: np.ndarray, csp: np.ndarray) -> tuple[sparse.csr_matrix, np.n
     return g, np.stack(coords, axis=1)
 
 
+def _longest_geodesic(graph: sparse.csr_matrix) -> tuple[int, int, np.ndarray]:
+    """The ends ``a``, ``b`` of a graph's longest geodesic by a double sweep of Dijkstra (the node farthest from node
+    0, then the node farthest from it), and the distances from ``a`` (``inf`` off its component): ``da[b]`` is the
+    length."""
+    d0 = csgraph.dijkstra(graph, directed=False, indices=0)
+    a = int(np.argmax(np.where(np.isfinite(d0), d0, -1)))
+    da = csgraph.dijkstra(graph, directed=False, indices=a)
+    return a, int(np.argmax(np.where(np.isfinite(da), da, -1))), da
+
+
 def suggest_endpoints(
     mask: Any,
     *,
@@ -198,10 +208,7 @@ def suggest_endpoints(
             "the specimen is a single voxel at this resolution: there is no head-tail axis to suggest; click the "
             "head and the tail"
         )
-    d0 = csgraph.dijkstra(graph, directed=False, indices=0)
-    a = int(np.argmax(np.where(np.isfinite(d0), d0, -1)))
-    da = csgraph.dijkstra(graph, directed=False, indices=a)
-    b = int(np.argmax(np.where(np.isfinite(da), da, -1)))
+    a, b, da = _longest_geodesic(graph)
     db = csgraph.dijkstra(graph, directed=False, indices=b)
     length = float(da[b])
 
