@@ -905,6 +905,8 @@ def candidates(
         tube_like = _CURVED_SECTION[0] <= section <= _CURVED_SECTION[1]
         cut = any(b.start == 0 or b.stop == m for b, m in zip(box, labels.shape))  # by the field of view
         taken = curved and tube_like and not cut and largest < _CURVED_MIN_SHARE * st.voxel_count
+        if taken:
+            length = curve_len  # its length along itself, not its principal axis's extent
         if st.voxel_count < size_floor:
             why = f"too small: {st.voxel_count} voxels < {size_floor}"
             if size_floor > min_voxels:
@@ -921,8 +923,7 @@ def candidates(
                         "inscribed disc)")
                 why += (f" by its principal axes, but {geo:.2g} along itself: {what}; to straighten it, select it "
                         "(--select A0,A1,A2) or give its mask")
-        elif (curve_len if taken else length) < min_length_fraction * scan_side:
-            length = curve_len if taken else length
+        elif length < min_length_fraction * scan_side:
             why = (f"too short: length {length:.3g} < {100 * min_length_fraction:g} % of the scan's largest side "
                    f"({scan_side:.3g})")
         elif embedded and use_body and gi < 0:
