@@ -13,8 +13,8 @@ Output folder
     Its session (scan, segmentation, ends, deformation), for ``unwind straighten --session`` or the plugin.
 ``specimens.csv``
     One row per candidate of the segmentation, rejected ones included: ``specimen`` (feature id), ``status``
-    (``ok``, ``partial``, ``failed`` or ``rejected``, see :mod:`napari_unwind.pipeline`), ``voxels`` (labelled
-    working-resolution voxels), ``length`` (centreline, physical units), ``unit``, ``keyframes``,
+    (``ok``, ``partial``, ``failed``, ``rejected`` or ``unresolved``, see :mod:`napari_unwind.pipeline`), ``voxels``
+    (labelled working-resolution voxels), ``length`` (centreline, physical units), ``unit``, ``keyframes``,
     ``min_jacobian``, ``max_tilt`` (degrees), ``coverage`` (fraction of the mask inside the cage), ``lost``
     (arclength intervals whose mask is left out of the cage), ``output``, ``session`` (file names in the folder)
     and ``reason`` (why it is not ok).

@@ -67,9 +67,10 @@ that is, contains or lies inside an input is refused."""
 
 RUN_EPILOG = """status of a specimen: ok (straightened to the goals: at least 99 % of the mask inside the cage, no
 lost interval, no fold over it), partial (written, but short of a goal: the reason is printed), failed, rejected
-(--all: a feature that is not a specimen, with its reason in specimens.csv). Exit status: 0 when every specimen is
-ok; 3 when one is partial (and none failed); 1 when one failed, on any error, or when --all finds nothing
-specimen-like; 130 interrupted (Ctrl-C); 143 terminated (SIGTERM); 129 hung up (SIGHUP)."""
+(--all: a feature that is not a specimen, with its reason in specimens.csv), unresolved (--all: a curved or coiled
+body among other elongated ones, which may be two touching at an angle: not written; select it). Exit status: 0
+when every specimen is ok; 3 when one is partial or unresolved (and none failed); 1 when one failed, on any error,
+or when --all finds nothing specimen-like; 130 interrupted (Ctrl-C); 143 terminated (SIGTERM); 129 hung up (SIGHUP)."""
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -790,19 +791,19 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
 
 
 def _say_results(results: Sequence[Any], say: Callable[..., Any]) -> None:
-    """One line per specimen or candidate: ok and rejected on stdout, partial and failed on stderr."""
+    """One line per specimen or candidate: ok and rejected on stdout, partial, unresolved and failed on stderr."""
     for r in results:
         if r.status == "failed":
             print(f"unwind: error: {r.name} failed: {_one_line(r.reason)}", file=sys.stderr)
-        elif r.status == "partial":
-            print(f"unwind: partial: {_one_line(r.summary())}", file=sys.stderr)
+        elif r.status in ("partial", "unresolved"):
+            print(f"unwind: {r.status}: {_one_line(r.summary())}", file=sys.stderr)
         else:
             say(r.summary())
 
 
 def _run_all(args: argparse.Namespace) -> int:
     """``unwind run SCAN --all -o OUTDIR``: every specimen, no click (:func:`napari_unwind.pipeline.run_all_iter`)."""
-    from .pipeline import exit_status, run_all_iter
+    from .pipeline import STATUSES, exit_status, run_all_iter
 
     clash = [name for name, given in (("--mask", args.mask), ("--select", args.select), ("--head", args.head),
                                       ("--tail", args.tail), ("--chain", args.chain), ("--session", args.session),
@@ -820,17 +821,20 @@ def _run_all(args: argparse.Namespace) -> int:
     )
     feats = result.features
     found = [r for r in result.specimens if r.status != "rejected"]
+    unresolved = sum(r.status == "unresolved" for r in found)
     say(f"segmented {args.input} at level {feats.level} ({_fmt_triple(feats.shape)}) into {feats.k} features; "
-        f"{len(found)} specimen(s), {len(result.specimens) - len(found)} rejected")
+        f"{len(found) - unresolved} specimen(s), " + (f"{unresolved} unresolved, " if unresolved else "")
+        + f"{len(result.specimens) - len(found)} rejected")
     _say_results(result.specimens, say)
     if not found:
         print(f"unwind: error: nothing specimen-like found in {args.input}: every one of the {len(result.specimens)} "
               f"features was rejected (reasons in {result.table}); try more features (--features N), select the "
               "specimen (unwind run --select A0,A1,A2) or straighten a mask (unwind run --mask)", file=sys.stderr)
         return 1
-    counts = {s: sum(r.status == s for r in result.specimens) for s in ("ok", "partial", "failed", "rejected")}
+    counts = {s: sum(r.status == s for r in result.specimens) for s in STATUSES}
     say(f"summary -> {result.table} ({counts['ok']} straightened, {counts['partial']} partial, {counts['failed']} "
-        f"failed, {counts['rejected']} rejected) in {result.seconds:.1f} s")
+        f"failed, " + (f"{counts['unresolved']} unresolved (select them: --select A0,A1,A2), "
+                       if counts["unresolved"] else "") + f"{counts['rejected']} rejected) in {result.seconds:.1f} s")
     return exit_status(result.specimens)
 
 

@@ -19,6 +19,10 @@ Statuses of a specimen (:class:`SpecimenResult`)
     An error stopped it (the reason says which); for a batch the other specimens go on.
 ``rejected``
     A candidate of the segmentation that is not a specimen (a container, not elongated, empty), with the reason.
+``unresolved``
+    A candidate that may be a specimen but is not taken without a click (a curved or coiled body among other
+    elongated bodies: it may be two touching at an angle), with the reason and what to do. Nothing is written
+    for it, and it is not passed over in silence: like ``partial``, the command line exits :data:`EXIT_PARTIAL`.
 
 The fold rule (:func:`fold_rule`): a fold over no voxel of the specimen's mask (only empty cage corners) is a
 warning and the export goes on; a fold over the specimen (or where that is unknown) is refused unless
@@ -66,11 +70,12 @@ __all__ = [
     "skeleton_step",
 ]
 
-#: The four statuses of a specimen.
-STATUSES = ("ok", "partial", "failed", "rejected")
+#: The statuses of a specimen (or candidate) of a run.
+STATUSES = ("ok", "partial", "failed", "rejected", "unresolved")
 #: Smallest fraction of the mask inside the cage for a specimen to be ``ok``.
 MIN_COVERAGE = 0.99
-#: Exit status of the command line when a specimen is only ``partial`` (``failed``: 1; ``ok``: 0).
+#: Exit status of the command line when a specimen is only ``partial`` or a candidate ``unresolved`` (``failed``:
+#: 1; ``ok``: 0).
 EXIT_PARTIAL = 3
 #: Features a segmentation keeps when the specimen is picked (by points or ids) and none were asked for.
 PICK_FEATURES = 5
@@ -473,7 +478,7 @@ class SpecimenResult:
     Attributes
     ----------
     status : str
-        ``"ok"``, ``"partial"``, ``"failed"`` or ``"rejected"`` (see the module docstring).
+        ``"ok"``, ``"partial"``, ``"failed"``, ``"rejected"`` or ``"unresolved"`` (see the module docstring).
     reason : str
         One line; empty for ``ok``.
     ids : tuple of int
@@ -598,7 +603,8 @@ class BatchResult:
     Attributes
     ----------
     specimens : list of SpecimenResult
-        Every candidate, in the segmentation's order: the specimens (ok, partial, failed) and the rejected.
+        Every candidate, in the segmentation's order: the specimens (ok, partial, failed), the unresolved and the
+        rejected.
     table : Path or None
         The summary CSV.
     features : Features
@@ -614,12 +620,12 @@ class BatchResult:
 
     @property
     def rows(self) -> list[dict[str, Any]]:
-        """The rows of the specimens (not the rejected candidates), as in ``specimens.csv``."""
+        """The rows of the specimens and unresolved candidates (not the rejected), as in ``specimens.csv``."""
         return [r.row() for r in self.specimens if r.status != "rejected"]
 
     @property
     def failed(self) -> list[dict[str, Any]]:
-        """The rows of the specimens that were not straightened to the goals (partial or failed)."""
+        """The rows of the specimens that were not straightened to the goals (partial, failed or unresolved)."""
         return [r for r in self.rows if r["status"] != "ok"]
 
     @property
@@ -629,11 +635,11 @@ class BatchResult:
 
 def exit_status(results: Sequence[SpecimenResult]) -> int:
     """The command line's exit status for these results: 1 when one failed or there is no specimen at all,
-    else :data:`EXIT_PARTIAL` when one is partial, else 0 (rejected candidates alone do not count)."""
+    else :data:`EXIT_PARTIAL` when one is partial or unresolved, else 0 (rejected candidates alone do not count)."""
     found = [r for r in results if r.status != "rejected"]
     if not found or any(r.status == "failed" for r in found):
         return 1
-    return EXIT_PARTIAL if any(r.status == "partial" for r in found) else 0
+    return EXIT_PARTIAL if any(r.status in ("partial", "unresolved") for r in found) else 0
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -978,7 +984,8 @@ def run_all_iter(
     every feature is a :class:`Candidate` (:func:`candidates`); a specimen is straightened with suggested ends
     into ``outdir/specimen-<id>.zarr`` and ``specimen-<id>.unwind.json``; ``outdir/specimens.csv`` gets a row per
     candidate (rejected ones too) with its status and reason (see :mod:`napari_unwind.batch`). A specimen's
-    failure is its row (``failed``) and the others go on.
+    failure is its row (``failed``) and the others go on; a candidate that only a click can take is its row
+    (``unresolved``), nothing is written for it, and the run is not a success (:func:`exit_status`).
 
     Parameters
     ----------
@@ -1025,8 +1032,8 @@ def run_all_iter(
         todo = [c for c in found if c.status == "specimen"]
         for c in found:
             voxels = None if c.stats is None else int(c.stats.voxel_count)
-            if c.status != "specimen":
-                result.specimens.append(SpecimenResult("rejected", c.reason, ids=tuple(c.ids), voxels=voxels,
+            if c.status != "specimen":  # rejected, or unresolved (a click must say)
+                result.specimens.append(SpecimenResult(c.status, c.reason, ids=tuple(c.ids), voxels=voxels,
                                                        label=getattr(c, "name", "")))
                 continue
             i = todo.index(c)

@@ -164,6 +164,10 @@ def test_exit_status():
     assert exit_status([ok, part, rejected]) == EXIT_PARTIAL == 3
     assert exit_status([ok, part, failed]) == 1
     assert exit_status([rejected]) == 1 and exit_status([]) == 1
+    # a candidate only a click can take is not passed over in silence: the run is not a success
+    unresolved = SpecimenResult("unresolved", "a curved body among elongated ones")
+    assert exit_status([ok, unresolved, rejected]) == EXIT_PARTIAL
+    assert exit_status([ok, unresolved, failed]) == 1
     with pytest.raises(InvalidInputError, match="status must be one of"):
         SpecimenResult("fine")
 

@@ -1,7 +1,8 @@
 """Candidate specimens: one definition of a specimen, with a reason for every feature that is not one.
 
 :func:`candidates` reads a segmentation (:class:`~._features.Features`) and returns one :class:`Candidate` per
-feature (or per part of a feature), each ``"specimen"`` or ``"rejected"`` with a one-line reason. Everything that
+feature (or per part of a feature), each ``"specimen"``, ``"rejected"`` or ``"unresolved"`` (it may be a specimen
+but cannot be taken without a click) with a one-line reason. Everything that
 decides what a specimen is lives here; :func:`~._features.specimens` (``unwind segment --specimens``) and the
 pipeline's ``run --all`` both read it.
 """
@@ -21,6 +22,10 @@ __all__ = ["Candidate", "candidates", "specimen_isovalue", "specimens"]
 
 SPECIMEN = "specimen"
 REJECTED = "rejected"
+#: A candidate that may be a specimen but is not taken without a click: a curved or coiled tube-like body among
+#: other elongated bodies (it may also be two touching at an angle). Not a specimen, and not to be passed over in
+#: silence: a run of every specimen that finds one is not a success.
+UNRESOLVED = "unresolved"
 
 
 @dataclass(frozen=True, eq=False)
@@ -32,9 +37,10 @@ class Candidate:
     ids : tuple of int
         The features it is made of (1..k), sorted.
     status : str
-        ``"specimen"`` or ``"rejected"``.
+        ``"specimen"``, ``"rejected"`` or ``"unresolved"`` (:data:`UNRESOLVED`: it may be a specimen, but only a
+        click can say).
     reason : str
-        One line: why it was rejected, or how a specimen was made ("" for a plain feature).
+        One line: why it was rejected or left unresolved, or how a specimen was made ("" for a plain feature).
     stats : FeatureStats
         Its figures (the feature's own statistics, or those of its mask for a part or a union; ``id`` is
         ``ids[0]``).
@@ -697,9 +703,11 @@ def candidates(
        largest such parts) is a curved or coiled body (a vessel, an eel, a curled fish): it is a specimen --
        ``"curved or coiled: 1.3 by its principal axes, 15 along itself"`` -- when it is tube-like (its mean
        section, volume over that length, 0.6-3 times its largest inscribed disc), the scan's faces do not cut it
-       and nothing else of a fifth of its size is elongated by its principal axes; otherwise its ``"not
-       elongated"`` reason says which and what to do (select it, or give its mask). Its length is then the
-       geodesic's.
+       and nothing else of a fifth of its size is elongated by its principal axes. Its length is then the
+       geodesic's. A tube-like one that the faces do not cut but that lies among such elongated bodies (it may be
+       two of them touching at an angle) is ``"unresolved"``: not taken, and not passed over in silence (a run of
+       every specimen that meets one is not a success); its reason says what to do (select it, or give its
+       mask). Any other is rejected, its ``"not elongated"`` reason saying why.
     6. **Embedded** (a part that passed 1-5): ``"part of a larger body: embedded in feature 1's tissue; ..."``
        when its medium (the most common value around it, as :func:`specimen_isovalue` measures) is itself the
        tissue of a larger body: the scan holds a background darker than that medium by more than the candidate's
@@ -914,8 +922,11 @@ def candidates(
         elif st.elongation < min_elongation and not taken:
             why = f"not elongated: {st.elongation:.2g} < {min_elongation:g}"
             if curved:
-                what = ("a curved or coiled body (a vessel, an eel) or touching bodies, taken only when nothing else "
-                        "in the scan of a fifth of its size is elongated and the scan's faces do not cut it"
+                what = ("a curved or coiled body (a vessel, an eel) cut by the scan's faces, as a CT's view cuts a "
+                        "torso"
+                        if tube_like and cut else
+                        "a curved or coiled body (a vessel, an eel, a curled fish), or two bodies touching at an "
+                        "angle: among other elongated bodies it is not taken without a click"
                         if tube_like else
                         f"a curved plate (its mean section {section:.2g} x its largest inscribed disc)"
                         if section > _CURVED_SECTION[1] else
@@ -946,7 +957,15 @@ def candidates(
                     + (f"; {note}" if note else ""))
         reason = f"{why}; {note}" if why and note else (why or note)
         corners = tuple(int(v) for v in (*[b.start for b in box], *[b.stop for b in box]))
-        out.append(Candidate(ids, REJECTED if why else SPECIMEN, reason, st, part=idx if n > 1 or gi < 0 else 0,
+        status = SPECIMEN if not why else (UNRESOLVED if curved and tube_like and not cut and not taken
+                                           and why.startswith("not elongated") else REJECTED)
+        if status == UNRESOLVED:  # where to click: its deepest voxel, full-resolution index coordinates
+            deep = np.unravel_index(int(np.argmax(ndimage.distance_transform_edt(crop, sampling=spacing))),
+                                    crop.shape)
+            at = [min(int(np.floor((b.start + d + 0.5) * sc)), m - 1)
+                  for b, d, sc, m in zip(box, deep, features.scale, features.full_shape)]
+            reason += f" (a point inside it: {','.join(map(str, at))})"
+        out.append(Candidate(ids, status, reason, st, part=idx if n > 1 or gi < 0 else 0,
                              n_parts=n, isovalue=iso, unclaimed=gi < 0, _box=corners,
                              _crop=np.ascontiguousarray(crop)))
     # a feature whose labels lie in two bodies gives two whole candidates: number them, so that every name (and

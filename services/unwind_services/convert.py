@@ -497,7 +497,7 @@ def result_figures(r: Any) -> dict[str, Any]:
 # ------------------------------------------------------------------------------------------------------------------
 #: SpecimenStatus values and the pipeline's status names (napari_unwind.pipeline.STATUSES).
 STATUSES = {pb.SPECIMEN_STATUS_OK: "ok", pb.SPECIMEN_STATUS_PARTIAL: "partial", pb.SPECIMEN_STATUS_FAILED: "failed",
-            pb.SPECIMEN_STATUS_REJECTED: "rejected"}
+            pb.SPECIMEN_STATUS_REJECTED: "rejected", pb.SPECIMEN_STATUS_UNRESOLVED: "unresolved"}
 _STATUS_ENUMS = {v: k for k, v in STATUSES.items()}
 _OPTIONAL = ("length", "keyframes", "min_jacobian", "max_tilt", "coverage", "folded", "voxels")
 

@@ -48,6 +48,7 @@ class SpecimenStatus(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     SPECIMEN_STATUS_PARTIAL: _ClassVar[SpecimenStatus]
     SPECIMEN_STATUS_FAILED: _ClassVar[SpecimenStatus]
     SPECIMEN_STATUS_REJECTED: _ClassVar[SpecimenStatus]
+    SPECIMEN_STATUS_UNRESOLVED: _ClassVar[SpecimenStatus]
 DTYPE_UNSPECIFIED: DType
 DTYPE_UINT8: DType
 DTYPE_INT8: DType
@@ -77,6 +78,7 @@ SPECIMEN_STATUS_OK: SpecimenStatus
 SPECIMEN_STATUS_PARTIAL: SpecimenStatus
 SPECIMEN_STATUS_FAILED: SpecimenStatus
 SPECIMEN_STATUS_REJECTED: SpecimenStatus
+SPECIMEN_STATUS_UNRESOLVED: SpecimenStatus
 
 class Point(_message.Message):
     __slots__ = ("axis0", "axis1", "axis2")
