@@ -133,6 +133,10 @@ _CURVED_FACTOR = 2.0  # x min_elongation along itself: a clearly curved body, no
 # mean cross-section over the largest inscribed disc of a body taken as curved: a tube or a curled fish 1-1.6 (48
 # hard phantoms); a curved plate more; a thick body the geodesic wanders through (a chest CT's torso: 0.38) less
 _CURVED_SECTION = (0.6, 3.0)
+# largest share of a curved body's surface cut through tissue (the voxels just outside it still above its isovalue,
+# in another feature's basin) for it to be a specimen: a curled fish, an eel or a vessel is bounded by an intensity
+# edge nearly all round; a stretch of a torso's soft tissue, split from the rest at the basins' borders, is not
+_CURVED_OPEN = 0.2
 
 
 def _along_itself(crop: np.ndarray, spacing: np.ndarray) -> tuple[float, float, float]:
@@ -154,6 +158,20 @@ def _along_itself(crop: np.ndarray, spacing: np.ndarray) -> tuple[float, float, 
     if length <= 0:
         return 0.0, 0.0, np.inf
     return length / (np.sqrt(3.0) * r), length, n * float(np.prod(sp)) / length / (np.pi * r * r)
+
+
+def _open_surface(crop: np.ndarray, box: tuple[slice, ...], values: np.ndarray, iso: float) -> float:
+    """The share of a body's outer surface (its 6-neighbours outside it, within the scan) that is still above its
+    isovalue: where the body was cut from more tissue at a basin's border, not bounded by an intensity edge."""
+    lo = [max(b.start - 1, 0) for b in box]
+    hi = [min(b.stop + 1, n) for b, n in zip(box, values.shape)]
+    big = np.zeros([h - a for a, h in zip(lo, hi)], dtype=bool)
+    big[tuple(slice(b.start - a, b.stop - a) for b, a in zip(box, lo))] = crop
+    shell = ndimage.binary_dilation(big) & ~big
+    n = int(np.count_nonzero(shell))
+    if n == 0:
+        return 0.0
+    return int(np.count_nonzero(shell & (values[tuple(slice(a, h) for a, h in zip(lo, hi))] >= iso))) / n
 
 
 def _principal(mask: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -702,20 +720,22 @@ def candidates(
        itself (its longest geodesic over ``sqrt(3)`` times its largest inscribed radius; computed for the three
        largest such parts) is a curved or coiled body (a vessel, an eel, a curled fish): it is a specimen --
        ``"curved or coiled: 1.3 by its principal axes, 15 along itself"`` -- when it is tube-like (its mean
-       section, volume over that length, 0.6-3 times its largest inscribed disc), the scan's faces do not cut it
-       and nothing else of a fifth of its size is elongated by its principal axes. Its length is then the
+       section, volume over that length, 0.6-3 times its largest inscribed disc), the scan's faces do not cut it,
+       an intensity edge bounds it nearly all round (at most a fifth of the voxels just outside it are still above
+       its isovalue: a stretch of a torso's soft tissue, split from the rest where the basins meet, is not) and
+       nothing else of a fifth of its size is elongated by its principal axes. Its length is then the
        geodesic's. A tube-like one that the faces do not cut but that lies among such elongated bodies (it may be
        two of them touching at an angle) is ``"unresolved"``: not taken, and not passed over in silence (a run of
        every specimen that meets one is not a success); its reason says what to do (select it, or give its
        mask). Any other is rejected, its ``"not elongated"`` reason saying why.
-    6. **Embedded** (a part that passed 1-5): ``"part of a larger body: embedded in feature 1's tissue; ..."``
-       when its medium (the most common value around it, as :func:`specimen_isovalue` measures) is itself the
-       tissue of a larger body: the scan holds a background darker than that medium by more than the candidate's
-       own half-contrast (air, lungs), and the connected region above halfway between the two that holds the
-       candidate is bounded by that background, not by a bright container (under a quarter of its surface layer,
-       three voxels deep and away from the scan's faces, is as bright as the candidate's body). A rib or a
-       vertebra in a CT lies in soft tissue bounded by skin and lungs; a fish lies in a liquid that is either the
-       scan's background or held by a tube's wall.
+    6. **Embedded** (a part that passed 1-5, or a curved one that would be unresolved): ``"part of a larger body:
+       embedded in feature 1's tissue; ..."`` when its medium (the most common value around it, as
+       :func:`specimen_isovalue` measures) is itself the tissue of a larger body: the scan holds a background darker
+       than that medium by more than the candidate's own half-contrast (air, lungs), and the connected region above
+       halfway between the two that holds the candidate is bounded by that background, not by a bright container
+       (under a quarter of its surface layer, three voxels deep and away from the scan's faces, is as bright as the
+       candidate's body). A rib or a vertebra in a CT lies in soft tissue bounded by skin and lungs; a fish lies in
+       a liquid that is either the scan's background or held by a tube's wall.
     7. **Unclaimed tissue**: a body that no feature holds is still a candidate. The join tree can merge a specimen
        into a brighter neighbour when the specimen's flesh meets it at the flesh's own level (a fish pressed
        against a dense, noisy wall: its branch is then no higher above that saddle than the wall's noise, and it
@@ -904,15 +924,19 @@ def candidates(
         n = n_parts_of[gi] if gi > 0 else 1
         # a curved or coiled body (a vessel, an eel, a curled fish): not elongated by its principal axes, but along
         # itself; a specimen when it is tube-like (not a curved plate, nor a thick body the geodesic wanders through),
-        # the scan's faces do not cut it (a torso cut by a CT's field of view is as long along itself) and nothing
-        # else in the scan of a fifth of its size is elongated by its principal axes (alone in its scan: among other
-        # specimens it could be two touching at an angle)
+        # the scan's faces do not cut it (a torso cut by a CT's field of view is as long along itself), an intensity
+        # edge bounds it nearly all round (a stretch of a torso's soft tissue is split from the rest where basins
+        # meet) and nothing else in the scan of a fifth of its size is elongated by its principal axes (alone in
+        # its scan: among other specimens it could be two touching at an angle)
         geo, curve_len, section = (_along_itself(crop, spacing) if _p in curved_check and st.voxel_count >= size_floor
                                    and st.elongation < min_elongation else (0.0, 0.0, np.inf))
         curved = geo >= _CURVED_FACTOR * min_elongation
         tube_like = _CURVED_SECTION[0] <= section <= _CURVED_SECTION[1]
         cut = any(b.start == 0 or b.stop == m for b, m in zip(box, labels.shape))  # by the field of view
-        taken = curved and tube_like and not cut and largest < _CURVED_MIN_SHARE * st.voxel_count
+        opened = (_open_surface(crop, box, features.tree.values, iso)
+                  if curved and tube_like and features.tree is not None and iso is not None else 0.0)
+        bounded = opened <= _CURVED_OPEN  # by an intensity edge, not cut from more tissue
+        taken = curved and tube_like and not cut and bounded and largest < _CURVED_MIN_SHARE * st.voxel_count
         if taken:
             length = curve_len  # its length along itself, not its principal axis's extent
         if st.voxel_count < size_floor:
@@ -925,6 +949,9 @@ def candidates(
                 what = ("a curved or coiled body (a vessel, an eel) cut by the scan's faces, as a CT's view cuts a "
                         "torso"
                         if tube_like and cut else
+                        f"curved, but {100 * opened:.0f} % of its surface is cut from more tissue at least as bright "
+                        "(a stretch of a larger body's soft tissue), not bounded by an edge all round"
+                        if tube_like and not bounded else
                         "a curved or coiled body (a vessel, an eel, a curled fish), or two bodies touching at an "
                         "angle: among other elongated bodies it is not taken without a click"
                         if tube_like else
@@ -934,6 +961,11 @@ def candidates(
                         "inscribed disc)")
                 why += (f" by its principal axes, but {geo:.2g} along itself: {what}; to straighten it, select it "
                         "(--select A0,A1,A2) or give its mask")
+                if tube_like and not cut and bounded and embedded and use_body:  # rule 6 before "unresolved": a rib
+                    inside = (_embedded_reason(features, ids, box, crop, {ids[0]: iso}, {ids[0]: unclaimed_levels},
+                                               out_names) if gi < 0 else
+                              _embedded_reason(features, ids, box, crop, iso_of, levels_of, out_names))
+                    why = inside or why
         elif length < min_length_fraction * scan_side:
             why = (f"too short: length {length:.3g} < {100 * min_length_fraction:g} % of the scan's largest side "
                    f"({scan_side:.3g})")
@@ -957,7 +989,7 @@ def candidates(
                     + (f"; {note}" if note else ""))
         reason = f"{why}; {note}" if why and note else (why or note)
         corners = tuple(int(v) for v in (*[b.start for b in box], *[b.stop for b in box]))
-        status = SPECIMEN if not why else (UNRESOLVED if curved and tube_like and not cut and not taken
+        status = SPECIMEN if not why else (UNRESOLVED if curved and tube_like and not cut and bounded and not taken
                                            and why.startswith("not elongated") else REJECTED)
         if status == UNRESOLVED:  # where to click: its deepest voxel, full-resolution index coordinates
             deep = np.unravel_index(int(np.argmax(ndimage.distance_transform_edt(crop, sampling=spacing))),
