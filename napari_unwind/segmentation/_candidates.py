@@ -724,8 +724,8 @@ def candidates(
        an intensity edge bounds it nearly all round (at most a fifth of the voxels just outside it are still above
        its isovalue: a stretch of a torso's soft tissue, split from the rest where the basins meet, is not) and
        nothing else of a fifth of its size is elongated by its principal axes. Its length is then the
-       geodesic's. A tube-like one that the faces do not cut but that lies among such elongated bodies (it may be
-       two of them touching at an angle) is ``"unresolved"``: not taken, and not passed over in silence (a run of
+       geodesic's. A tube-like, bounded one that the faces do not cut but that lies among such elongated bodies (it
+       may be two of them touching at an angle) is ``"unresolved"``: not taken, and not passed over in silence (a run of
        every specimen that meets one is not a success); its reason says what to do (select it, or give its
        mask). Any other is rejected, its ``"not elongated"`` reason saying why.
     6. **Embedded** (a part that passed 1-5, or a curved one that would be unresolved): ``"part of a larger body:
@@ -936,7 +936,9 @@ def candidates(
         opened = (_open_surface(crop, box, features.tree.values, iso)
                   if curved and tube_like and features.tree is not None and iso is not None else 0.0)
         bounded = opened <= _CURVED_OPEN  # by an intensity edge, not cut from more tissue
-        taken = curved and tube_like and not cut and bounded and largest < _CURVED_MIN_SHARE * st.voxel_count
+        specimen_like = curved and tube_like and not cut and bounded
+        taken = specimen_like and largest < _CURVED_MIN_SHARE * st.voxel_count
+        unresolved = specimen_like and not taken  # among elongated bodies: a click must say (unless rule 6 rejects)
         if taken:
             length = curve_len  # its length along itself, not its principal axis's extent
         if st.voxel_count < size_floor:
@@ -961,7 +963,7 @@ def candidates(
                         "inscribed disc)")
                 why += (f" by its principal axes, but {geo:.2g} along itself: {what}; to straighten it, select it "
                         "(--select A0,A1,A2) or give its mask")
-                if tube_like and not cut and bounded and embedded and use_body:  # rule 6 before "unresolved": a rib
+                if unresolved and embedded and use_body:  # rule 6 before "unresolved": a rib
                     inside = (_embedded_reason(features, ids, box, crop, {ids[0]: iso}, {ids[0]: unclaimed_levels},
                                                out_names) if gi < 0 else
                               _embedded_reason(features, ids, box, crop, iso_of, levels_of, out_names))
@@ -989,8 +991,7 @@ def candidates(
                     + (f"; {note}" if note else ""))
         reason = f"{why}; {note}" if why and note else (why or note)
         corners = tuple(int(v) for v in (*[b.start for b in box], *[b.stop for b in box]))
-        status = SPECIMEN if not why else (UNRESOLVED if curved and tube_like and not cut and bounded and not taken
-                                           and why.startswith("not elongated") else REJECTED)
+        status = SPECIMEN if not why else (UNRESOLVED if unresolved and why.startswith("not elongated") else REJECTED)
         if status == UNRESOLVED:  # where to click: its deepest voxel, full-resolution index coordinates
             deep = np.unravel_index(int(np.argmax(ndimage.distance_transform_edt(crop, sampling=spacing))),
                                     crop.shape)
