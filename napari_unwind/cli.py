@@ -579,8 +579,11 @@ def cmd_segment(args: argparse.Namespace) -> int:
                              args.quiet)
     dt = time.perf_counter() - t0
     written = _run_with_bar(save_features_iter(features, args.output, overwrite=args.overwrite), args.quiet)
-    found = [c for c in candidates(features) if c.is_specimen]
+    every = candidates(features)
+    found = [c for c in every if c.is_specimen]
+    unresolved = [c for c in every if c.status == "unresolved"]  # a click must say (pipeline.STATUSES)
     specimen_ids = {i for c in found if not c.unclaimed for i in c.ids}
+    unresolved_ids = {i for c in unresolved if not c.unclaimed for i in c.ids}
     if args.specimens and args.quiet:  # for scripts: the specimens' names (a feature id, or "3.1" for a part)
         print(",".join(c.name for c in found))
     if not args.quiet:
@@ -589,7 +592,8 @@ def cmd_segment(args: argparse.Namespace) -> int:
         print(f"{'id':>4} {'voxels':>9} {'values':>17} {'bounding box (full-resolution voxels)':>40} "
               f"{'elongation':>10}  kind")
         rows = [(c.name, c.stats, "specimen") for c in found] if args.specimens else [
-            (str(st.id), st, "specimen" if st.id in specimen_ids else "container" if st.container else "-")
+            (str(st.id), st, "specimen" if st.id in specimen_ids else "unresolved" if st.id in unresolved_ids
+             else "container" if st.container else "-")
             for st in features.stats]
         for name, st, kind in rows:
             box = st.bbox_full
@@ -598,6 +602,8 @@ def cmd_segment(args: argparse.Namespace) -> int:
                   f"{st.elongation:>10.2f}  {kind}")
         print(f"{len(found)} specimen(s) (elongated, inside the scan, not containers): "
               f"{', '.join(c.name for c in found) or 'none'}")
+        for c in unresolved:
+            print(f"unresolved {c.name}: {c.reason}")
         for c in found:
             if c.reason:
                 print(f"  {c.name}: {c.reason}")

@@ -319,6 +319,21 @@ def test_run_all_with_an_unresolved_candidate_is_not_a_success(tmp_path):
     assert not list((tmp_path / "out").glob("specimen-*[!1].zarr")), sorted((tmp_path / "out").iterdir())
 
 
+def test_unwind_segment_lists_an_unresolved_candidate_as_such(tmp_path, capsys):
+    # the same rules on every face: `unwind segment` showed the coil as "-", as if nothing were there
+    from napari_unwind.cli import main
+    from napari_unwind.io import write_volume
+
+    tube, bar = _coil_and_bar()
+    vol = np.where(tube | bar, 1000.0, 100.0) + np.random.default_rng(0).normal(0, 20, tube.shape)
+    scan = write_volume(vol.astype(np.float32), tmp_path / "coil_and_bar.nrrd")
+    assert main(["segment", str(scan), "-o", str(tmp_path / "seg.zarr")]) == 0
+    out = capsys.readouterr().out
+    kinds = [line.split()[-1] for line in out.splitlines() if line.split() and line.split()[0].isdigit()]
+    assert kinds.count("unresolved") == 1 and kinds.count("specimen") == 1, out
+    assert "a point inside it: " in out, out
+
+
 def test_a_coiled_body_cut_by_the_scan_is_not_taken():
     # a chest CT's torso, cut by the field of view, is about as long along itself (6.9) as a curled specimen: a
     # body the scan's faces cut is left to a click or a mask
