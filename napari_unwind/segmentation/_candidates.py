@@ -941,6 +941,8 @@ def candidates(
         unresolved = specimen_like and not taken  # among elongated bodies: a click must say (unless rule 6 rejects)
         if taken:
             length = curve_len  # its length along itself, not its principal axis's extent
+        # rule 6 reads the features' isovalues and levels (unclaimed tissue: its own)
+        own_isos, own_levels = ({ids[0]: iso}, {ids[0]: unclaimed_levels}) if gi < 0 else (iso_of, levels_of)
         if st.voxel_count < size_floor:
             why = f"too small: {st.voxel_count} voxels < {size_floor}"
             if size_floor > min_voxels:
@@ -964,17 +966,14 @@ def candidates(
                 why += (f" by its principal axes, but {geo:.2g} along itself: {what}; to straighten it, select it "
                         "(--select A0,A1,A2) or give its mask")
                 if unresolved and embedded and use_body:  # rule 6 before "unresolved": a rib
-                    inside = (_embedded_reason(features, ids, box, crop, {ids[0]: iso}, {ids[0]: unclaimed_levels},
-                                               out_names) if gi < 0 else
-                              _embedded_reason(features, ids, box, crop, iso_of, levels_of, out_names))
-                    why = inside or why
+                    inside = _embedded_reason(features, ids, box, crop, own_isos, own_levels, out_names)
+                    if inside:
+                        why, unresolved = inside, False
         elif length < min_length_fraction * scan_side:
             why = (f"too short: length {length:.3g} < {100 * min_length_fraction:g} % of the scan's largest side "
                    f"({scan_side:.3g})")
-        elif embedded and use_body and gi < 0:
-            why = _embedded_reason(features, ids, box, crop, {ids[0]: iso}, {ids[0]: unclaimed_levels}, out_names)
         elif embedded and use_body:
-            why = _embedded_reason(features, ids, box, crop, iso_of, levels_of, out_names)
+            why = _embedded_reason(features, ids, box, crop, own_isos, own_levels, out_names)
         else:
             why = ""
         if gi < 0:
@@ -991,7 +990,7 @@ def candidates(
                     + (f"; {note}" if note else ""))
         reason = f"{why}; {note}" if why and note else (why or note)
         corners = tuple(int(v) for v in (*[b.start for b in box], *[b.stop for b in box]))
-        status = SPECIMEN if not why else (UNRESOLVED if unresolved and why.startswith("not elongated") else REJECTED)
+        status = SPECIMEN if not why else UNRESOLVED if unresolved else REJECTED
         if status == UNRESOLVED:  # where to click: its deepest voxel, full-resolution index coordinates
             deep = np.unravel_index(int(np.argmax(ndimage.distance_transform_edt(crop, sampling=spacing))),
                                     crop.shape)
