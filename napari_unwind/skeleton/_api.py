@@ -807,7 +807,9 @@ def estimate_deformation_iter(
             said = "; ".join(f"{length:.3g} {u} long, {100 * share:.2g} % of the mask, joining at "
                              f"{np.round(wm.from_working(at), 1).tolist()} (voxels)" for length, share, at in branches)
             note(f"the mask branches between the ends: {len(branches)} other branch(es) cut off at the junction and "
-                 f"left out of the cage ({said}); give the end of another branch as the tail to straighten along it")
+                 f"left out of the cage ({said}); give the end of another branch as the tail to straighten along it. "
+                 "A specimen without branches touches itself there (a bend whose two sides touch reads as a branch): "
+                 "separate the touching sides in the mask")
         t = _stage("branches", timings, t)
 
     # the ends of every part: a quadratic over about one body width instead of the kinks that the point-like

@@ -98,3 +98,24 @@ def test_a_fish_with_its_fins_is_not_taken_for_a_branch(seed):
         result = run(estimate_deformation_iter(ph.mask, (ph.head, ph.tail), spacing=ph.spacing))
     assert not any("branches" in w for w in result.warnings)
     assert result.coverage >= 0.99
+
+
+def test_a_hairpin_whose_sides_touch_is_named_as_such_where_it_is_cut_as_a_branch():
+    # a tube that goes up, turns back in a tight hairpin and comes down beside itself, its two sides touching (1.3
+    # radii between the centrelines) over most of the hairpin's length: by its topology a Y (the fused sides are
+    # the trunk), so the path between the ends cuts across the touching sides and the turn is cut off like a
+    # branch. The note says so: on a vessel it is a stretch of the specimen, not a branch (bench_tubes, seed 51).
+    r, gap = 5.0, 6.5
+    up = np.stack([np.full(200, 25.0), np.full(200, 30.0), np.linspace(10, 80, 200)], axis=1)
+    a = np.linspace(0, np.pi, 100)
+    turn = np.stack([25.0 + gap / 2 - gap / 2 * np.cos(a), np.full(100, 30.0), 80 + 10 * np.sin(a)], axis=1)
+    down = up[::-1] + np.array([gap, 0.0, 0.0])
+    legs = [np.stack([np.linspace(25, 5, 80), np.full(80, 30.0), np.full(80, 10.0)], axis=1),
+            np.stack([np.linspace(25 + gap, 45 + gap, 80), np.full(80, 30.0), np.full(80, 10.0)], axis=1)]
+    line = np.vstack([legs[0][::-1], up, turn, down, legs[1]])
+    shape = (70, 60, 100)
+    g = np.stack(np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij"), -1).reshape(-1, 3)
+    mask = (cKDTree(line).query(g)[0] <= r).reshape(shape)
+    result = _solve(mask, (legs[0][-1], legs[1][-1]))
+    notes = [w for w in result.warnings if "branches between the ends" in w]
+    assert len(notes) == 1 and "touches itself" in notes[0] and "separate the touching sides" in notes[0]
