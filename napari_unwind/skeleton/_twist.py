@@ -608,11 +608,13 @@ def _sample_sections(
     w = np.zeros((n_sec, n_smp))
     flat = idx.reshape(-1, 3)
     box = _bbox(flat, shape)
+    values = None  # the volume over the same box, read once
     if box is not None:
         slices, lo = box
         block = _as_uint8(mask[slices])
         if volume is not None:
-            block = _partial_volume(block, volume[slices])
+            values = _real_block(volume[slices])
+            block = _partial_volume(block, values)
         # grid-constant: the mask is 0 beyond its array and interpolated up to it (a tight crop keeps its edge rims)
         w = ndimage.map_coordinates(block, (flat - lo).T, order=1, mode="grid-constant", cval=0.0,
                                     output=np.float32)
@@ -630,24 +632,26 @@ def _sample_sections(
     w = _centre_part(w, gx, gy)
     inside = w >= 0.5
     dense = None
-    if volume is not None and inside.any():
+    if values is not None and inside.any():
         sel = flat[inside.reshape(-1)]
-        box = _bbox(sel, shape)
         dense = np.full(n_sec * n_smp, np.nan)
-        if box is not None:
-            slices, lo = box
-            block = np.asarray(volume[slices])
-            if block.dtype == bool:
-                block = block.view(np.uint8)
-            if not np.issubdtype(block.dtype, np.number) or np.iscomplexobj(block):
-                raise InvalidInputError(f"volume must hold real numbers, got dtype {block.dtype}")
-            vals = ndimage.map_coordinates(block, (sel - lo).T, order=1, mode="nearest", output=np.float64)
-            dense[np.flatnonzero(inside.reshape(-1))] = vals
+        dense[np.flatnonzero(inside.reshape(-1))] = ndimage.map_coordinates(
+            values, (sel - lo).T, order=1, mode="nearest", output=np.float64)
         dense = dense.reshape(n_sec, n_smp)
     return xs, ys, w, inside, dense, cell
 
 
-def _partial_volume(block: np.ndarray, values: Any) -> np.ndarray:
+def _real_block(block: Any) -> np.ndarray:
+    """A block of the volume as a numpy array of real numbers (a bool block viewed as uint8)."""
+    arr = np.asarray(block)
+    if arr.dtype == bool:
+        return arr.view(np.uint8)
+    if not np.issubdtype(arr.dtype, np.number) or np.iscomplexobj(arr):
+        raise InvalidInputError(f"volume must hold real numbers, got dtype {arr.dtype}")
+    return arr
+
+
+def _partial_volume(block: np.ndarray, values: np.ndarray) -> np.ndarray:
     """The mask's occupancy refined by the intensities in its one-voxel boundary band, shape of ``block``.
 
     A body a few voxels across is, as a binary mask, a staircase whose orientation is pulled toward the grid's
@@ -665,11 +669,7 @@ def _partial_volume(block: np.ndarray, values: Any) -> np.ndarray:
     shell = ndimage.binary_dilation(near) & ~near
     if shell.sum() < 8 or inside.sum() < 8:
         return block
-    vals = np.asarray(values)
-    if vals.dtype == bool:
-        vals = vals.view(np.uint8)
-    if not np.issubdtype(vals.dtype, np.number) or np.iscomplexobj(vals):
-        raise InvalidInputError(f"volume must hold real numbers, got dtype {vals.dtype}")
+    vals = values
     body = float(np.median(vals[core] if core.sum() >= 8 else vals[inside]))
     out = vals[shell].astype(np.float64)
     background = float(np.median(out))
