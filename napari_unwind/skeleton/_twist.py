@@ -37,7 +37,7 @@ Method
    confident stretches, smooth everywhere: never a jump.
    A specimen whose strength reaches 0.25 (about 1.3:1 sections agreeing along s) over less than
    ``min_oriented`` of its length is taken as round as a whole: a fish's trunk reaches 0.4-0.5 over 80-98 % of
-   its length, the shared aorta nowhere (at most 0.24, over 0 %).
+   its length, the shared aorta over 2 % (at most 0.28; the warning names the share).
 4. One global sign (``v`` or ``-v``) for the whole specimen, from its dorsoventral asymmetry:
 
    - ``"density"`` (needs ``volume``): in each section, the centroid of the densest material (the intensity
