@@ -351,8 +351,7 @@ def estimate_twist(
 
     # -- smooth along s (local linear fit of the doubled-angle vectors), evaluated at every point
     s_sec = s_all[sec]
-    zhat, conf_s = _local_linear(s_sec, z, conf, s_all, smoothing)
-    _, rel_s = _local_linear(s_sec, z, rel, s_all, smoothing)
+    zhat, (conf_s, rel_s) = _local_linear(s_sec, z, np.stack([conf, rel]), s_all, smoothing)
     # -- confidence: the smoothed doubled-angle vector's length is the anisotropy that survives averaging the
     # orientations along s; sections that disagree (a round vessel's noise, the flip of a near-round section's
     # major axis) cancel in it although each alone may look elongated
@@ -669,16 +668,15 @@ def _partial_volume(block: np.ndarray, values: np.ndarray) -> np.ndarray:
     shell = ndimage.binary_dilation(near) & ~near
     if shell.sum() < 8 or inside.sum() < 8:
         return block
-    vals = values
-    body = float(np.median(vals[core] if core.sum() >= 8 else vals[inside]))
-    out = vals[shell].astype(np.float64)
+    body = float(np.median(values[core] if core.sum() >= 8 else values[inside]))
+    out = values[shell].astype(np.float64)
     background = float(np.median(out))
     spread = 1.4826 * float(np.median(np.abs(out - background)))
     if not abs(body - background) > 2.0 * spread:
         return block
     band = near & ~core
     occ = block.astype(np.float32)
-    occ[band] = np.clip((vals[band].astype(np.float32) - background) / (body - background), 0.0, 1.0)
+    occ[band] = np.clip((values[band].astype(np.float32) - background) / (body - background), 0.0, 1.0)
     return occ
 
 
@@ -689,9 +687,11 @@ def _min_eig(cxx: np.ndarray, cyy: np.ndarray, cxy: np.ndarray) -> np.ndarray:
 def _local_linear(
     s_in: np.ndarray, z: np.ndarray, c: np.ndarray, s_out: np.ndarray, sigma: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Gaussian-weighted local linear fit of ``z(s_in)`` evaluated at ``s_out``, and the local mean of ``c``."""
+    """Gaussian-weighted local linear fit of ``z(s_in)`` evaluated at ``s_out``, and the local mean of ``c``
+    (shape (len(s_in),), or (m, len(s_in)) for m quantities averaged with the same weights)."""
+    c = np.asarray(c, dtype=float)
     out_z = np.empty(len(s_out), dtype=complex)
-    out_c = np.empty(len(s_out))
+    out_c = np.empty(c.shape[:-1] + (len(s_out),))
     block = max(1, 4_000_000 // max(1, len(s_in)))
     for b0 in range(0, len(s_out), block):
         so = s_out[b0:b0 + block]
@@ -706,7 +706,7 @@ def _local_linear(
         lin = det > 1e-9 * np.maximum(s0 * s2, 1e-300)
         a = np.where(lin, (s2 * t0 - s1 * t1) / np.where(lin, det, 1.0), t0 / np.maximum(s0, 1e-300))
         out_z[b0:b0 + block] = a
-        out_c[b0:b0 + block] = (g @ c) / np.maximum(s0, 1e-300)
+        out_c[..., b0:b0 + block] = (c @ g.T) / np.maximum(s0, 1e-300)
     return out_z, out_c
 
 
