@@ -6,7 +6,9 @@ and how far do its frames roll against the rotation-minimising frames?
 Tube i: a radius of 3-8 voxels around a cubic spline through 6 random-walk points scaled into a 110^3 scan (liquid
 100, tube 1000, Gaussian noise 40); ends at the curve's ends. Curves shorter than 8 radii are skipped; a curve that
 comes within 2 radii of itself (at least 4 radii away along it) makes a tube fused with itself, which is reported
-in a total of its own (its fused sections are not round). A spline may leave the scan and come back: the tube is
+in a total of its own (its fused sections are not round), with how many were found to touch themselves (a loop left
+out: partial) or had a part cut off as a branch (ok, with a note: a hairpin whose sides touch all along cannot be told
+from a branch by its mask). A spline may leave the scan and come back: the tube is
 then in two parts and the solve refuses it (a row "refused" with the reason's start). The skeleton is solved with
 the defaults and the volume; the roll is that of tests/test_real_scans_run.py (double reflection, independent of
 our frames).
@@ -72,16 +74,20 @@ def main() -> None:
         n10 = max(1, int(round(10 / (s[1] - s[0]))))
         jump = float(np.abs(roll[n10:] - roll[:-n10]).max()) if len(roll) > n10 else 0.0
         fused = approach < 2
-        rows[fused].append((float(np.ptp(roll)), jump, is_round))
+        rows[fused].append((float(np.ptp(roll)), jump, is_round, bool(res.touching),
+                            any("branches between the ends" in w for w in res.warnings)))
+        cut = "; loop left out (partial)" if res.touching else ""
+        cut += "; cut as a branch" if rows[fused][-1][4] else ""
         print(f"tube {i}: radius {r:.1f}, length {res.deformation.length:.0f}, closest self-approach {approach:.2f} "
               f"radii{' (fused)' if fused else ''}: taken as round {is_round}, roll range {np.ptp(roll):.1f} deg, "
-              f"largest change within 10 voxels {jump:.1f} deg, coverage {res.coverage:.3f}", flush=True)
+              f"largest change within 10 voxels {jump:.1f} deg, coverage {res.coverage:.3f}{cut}", flush=True)
     for fused, rs in rows.items():
         if rs:
             q = " / ".join(f"{v:.1f}" for v in np.percentile([x[0] for x in rs], [0, 10, 50, 90, 100]))
             print(f"\n{'fused' if fused else 'apart'}: {len(rs)} tubes, taken as round {sum(x[2] for x in rs)}; roll "
                   f"range min / p10 / median / p90 / max {q} deg; largest change within 10 voxels, max "
-                  f"{max(x[1] for x in rs):.1f} deg")
+                  f"{max(x[1] for x in rs):.1f} deg; a loop left out (partial) {sum(x[3] for x in rs)}, a part cut "
+                  f"off as a branch (ok, with a note) {sum(x[4] for x in rs)}")
 
 
 if __name__ == "__main__":

@@ -447,8 +447,9 @@ def judge(skeleton: Any) -> tuple[str, str]:
     """The status of a straightened specimen from its :class:`~napari_unwind.skeleton.SkeletonResult`:
     ``("ok", "")`` or ``("partial", reason)``.
 
-    ``ok`` needs coverage >= :data:`MIN_COVERAGE` and no fold over the specimen; the lost intervals of an ok
-    specimen (together under 1 % of its mask) stay in its figures.
+    ``ok`` needs coverage >= :data:`MIN_COVERAGE`, no fold over the specimen and a mask that does not touch itself
+    between the ends (a skipped loop of the body); the lost intervals of an ok specimen (together under 1 % of its
+    mask) stay in its figures.
     """
     from .io._volume import unit_label
     from .skeleton._foldfree import format_lost
@@ -464,7 +465,11 @@ def judge(skeleton: Any) -> tuple[str, str]:
     if folded and skeleton.deformation.folds():
         reasons.append(f"the deformation folds over {100 * folded:.2g} % of the specimen's mask")
     if reasons:
-        return "partial", "; ".join(reasons) + " (a larger or fitted cage: --cage RX,RY, --cage-margin M)"
+        reasons[-1] += " (a larger or fitted cage: --cage RX,RY, --cage-margin M)"
+    for where in tuple(getattr(skeleton, "touching", ()) or ()):
+        reasons.append(f"{where}: separate the touching sides in the mask")
+    if reasons:
+        return "partial", "; ".join(reasons)
     return "ok", ""
 
 

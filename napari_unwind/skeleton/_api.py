@@ -79,6 +79,9 @@ class SkeletonResult:
     folded : float
         Fraction of the mask's voxels (working resolution) where the map folds: 0 when every fold lies in empty
         corners of the cage.
+    touching : tuple of str
+        Where the mask touches itself between the ends (a hairpin or coil whose sides touch): the path crosses
+        there and the stretch of body it skips is left out. A result with any is partial.
     """
 
     deformation: Deformation
@@ -100,6 +103,7 @@ class SkeletonResult:
     twist_confidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
     twist_source: str = "none"
     context: float | None = None
+    touching: tuple[str, ...] = ()
 
     def twist_report(self) -> str:
         """One line: the twist's range, what set it and over how much of the length."""
@@ -550,10 +554,59 @@ _BRANCH_MIN_SHARE = 0.05  # of the mask: smaller side parts are kept
 _BRANCH_BACK = 1.0  # inscribed radii: a branch is cut where its detour exceeds this (back towards the junction)
 
 
+def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, voxel: float) -> bool:
+    """Whether ``region`` (a part hanging off the path) comes back on itself: a loop, not a branch.
+
+    The part is cut in shells of the geodesic distance from the head (``dist``), one inscribed radius thick; the
+    shells' pieces (26-connected, each at least a tenth of a shell of the tube) and their contacts from one shell to
+    the next make a graph (the part's Reeb graph). A branch, even one that forks again, is a tree; a stretch of
+    the body that leaves where its two sides touch and comes back there (a hairpin whose sides touch, the turns of
+    a coil that touch) splits into two legs that meet again at its far end: a cycle.
+    """
+    d = dist[region]
+    if not len(d) or radius <= 0:
+        return False
+    band = np.zeros(region.shape, dtype=np.int64)
+    band[region] = np.floor((d - d.min()) / radius).astype(np.int64) + 1
+    min_size = 0.1 * math.pi * radius**3 / voxel
+    labels = np.zeros(region.shape, dtype=np.int64)
+    count = 0
+    for b in range(1, int(band.max()) + 1):
+        lab, n = ndi.label(band == b, _STRUCT26)
+        if n == 0:
+            continue
+        sizes = np.bincount(lab.ravel())[1:]
+        big = np.flatnonzero(sizes >= min_size) + 1
+        keep = np.isin(lab, big)
+        remap = np.zeros(n + 1, dtype=np.int64)
+        remap[big] = count + 1 + np.arange(len(big))
+        labels[keep] = remap[lab[keep]]
+        count += len(big)
+    if count < 3:
+        return False
+    edges = set()
+    pad = np.pad(labels, 1)
+    core = tuple(slice(1, -1) for _ in range(3))
+    for off in [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1) if (a, b, c) > (0, 0, 0)]:
+        other = pad[tuple(slice(1 + o, pad.shape[i] - 1 + o) for i, o in enumerate(off))]
+        here = pad[core]
+        both = (here > 0) & (other > 0) & (here != other)
+        edges.update(zip(np.minimum(here[both], other[both]).tolist(), np.maximum(here[both], other[both]).tolist()))
+    if not edges:
+        return False
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    e = np.array(sorted(edges))
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0] - 1, e[:, 1] - 1)), shape=(count, count))
+    n_comp = connected_components(graph, directed=False)[0]
+    return len(e) - count + n_comp > 0  # independent cycles
+
+
 def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
-                  ) -> tuple[WorkingMask, list[tuple[float, float, np.ndarray]]]:
+                  ) -> tuple[WorkingMask, list[tuple[float, float, np.ndarray, bool, np.ndarray]]]:
     """The working mask without the branches off the path between the two ends, and each branch cut off as
-    ``(length, share of the mask, junction in working voxels)``.
+    ``(length, share of the mask, junction in working voxels, loop, its working voxels (M, 3))``.
 
     A voxel's detour is ``d_head + d_tail - L`` (geodesic distances on the 26-neighbour graph, physical): about
     0 along the path and at most a few radii across it, twice the distance along a side branch from where it
@@ -561,7 +614,10 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     branch when its length (half its largest detour, plus the slack) is at least :data:`_BRANCH_MIN_LENGTH` of L,
     it holds :data:`_BRANCH_MIN_SHARE` of the mask (so that fins and a forked tail stay) and it is a dead end
     (``d_head - d_tail`` nearly constant over it; a stretch of a coil that the geodesic skipped is not). A branch
-    is cut back to where its detour passes :data:`_BRANCH_BACK` radii, with whatever the cut leaves hanging.
+    is cut back to where its detour passes :data:`_BRANCH_BACK` radii, with whatever the cut leaves hanging; its
+    share and voxels are those of all it took (part of it near the junction may still lie in the path's cage).
+    ``loop`` is True when what was cut comes back on itself (:func:`_loops_back`): the body touches itself there
+    and the part left out is the body's own, not a branch.
     """
     from scipy.sparse import csgraph
     from scipy.spatial import cKDTree
@@ -592,7 +648,7 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     dq = np.zeros(binary.shape)
     dq[tuple(coords.T)] = np.where(np.isfinite(detour), d[0] - d[1], 0.0)
     cut = np.zeros(binary.shape, dtype=bool)
-    branches = []
+    found = []
     count = int(binary.sum())
     for k, box in enumerate(ndi.find_objects(lab), start=1):
         part = lab[box] == k
@@ -604,10 +660,10 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
         q = dq[box][part]
         dead_end = float(np.percentile(q, 95) - np.percentile(q, 5)) <= 2.0 * slack
         if length >= _BRANCH_MIN_LENGTH * total and share >= _BRANCH_MIN_SHARE and dead_end:
-            cut[box] |= part
+            cut[lab == k] = True
             where = np.argwhere(part)[np.argmin(det[box][part])] + np.array([b.start for b in box])
-            branches.append((length, share, where.astype(float)))
-    if not branches:
+            found.append((k, length, where.astype(float)))
+    if not found:
         return wm, []
     # back to the junction: the parts off the path by a smaller detour that touch a branch go with it (the stub
     # a branch leaves within the slack would pull the sections' centroids towards it)
@@ -619,6 +675,17 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     kept = binary & ~cut
     lab2, _ = ndi.label(kept, _STRUCT26)  # what the cut leaves hanging (beyond the branch) goes with it
     kept &= lab2 == lab2[tuple(coords[ends[0]])]
+    # each branch with all it took (its cut-back stub and what hangs beyond), as reported
+    gone, _ = ndi.label(binary & ~kept, _STRUCT26)
+    dist = np.zeros(binary.shape)
+    dist[tuple(coords.T)] = np.where(np.isfinite(d[0]), d[0], 0.0)
+    branches = []
+    for k, length, where in found:
+        ids = np.unique(gone[lab == k])
+        region = np.isin(gone, ids[ids > 0])
+        share = float(region.sum()) / count
+        branches.append((length, share, where, _loops_back(region, dist, radius, float(np.prod(wsp))),
+                         np.argwhere(region)))
     rim = ndi.binary_dilation(kept, _STRUCT26)  # the kept part's partial voxels stay with it
     return replace(wm, binary=kept, occupancy=np.where(rim, wm.occupancy, 0.0).astype(wm.occupancy.dtype)), branches
 
@@ -733,6 +800,10 @@ def estimate_deformation_iter(
     ends = _normalise_endpoints(endpoints)
     vox = float(sp.min())
     notes: list[str] = []
+    touching: list[str] = []
+    left_out = None  # the working voxels of the branches (and loops) cut off
+    cut_off: list = []
+    uncut_count = 0
 
     def note(msg: str) -> None:
         notes.append(msg)
@@ -800,16 +871,11 @@ def estimate_deformation_iter(
     if len(snapped) == 1:
         # a specimen that branches between its ends (a Y-shaped graft, a vessel's side branch): the path between
         # the ends is kept, the other branches are cut off at the junction and left out of the cage
-        wm, branches = _cut_branches(wm, wm.to_working(snapped[0][0]), wm.to_working(snapped[0][1]))
-        if branches:
-            labels, nlab = ndi.label(wm.binary, _STRUCT26)
-            u = unit_label(unit)
-            said = "; ".join(f"{length:.3g} {u} long, {100 * share:.2g} % of the mask, joining at "
-                             f"{np.round(wm.from_working(at), 1).tolist()} (voxels)" for length, share, at in branches)
-            note(f"the mask branches between the ends: {len(branches)} other branch(es) cut off at the junction and "
-                 f"left out of the cage ({said}); give the end of another branch as the tail to straighten along it. "
-                 "A specimen without branches touches itself there (a bend whose two sides touch reads as a branch): "
-                 "separate the touching sides in the mask")
+        uncut = wm.binary
+        wm, cut_off = _cut_branches(wm, wm.to_working(snapped[0][0]), wm.to_working(snapped[0][1]))
+        if cut_off:
+            left_out = uncut & ~wm.binary
+            uncut_count = int(uncut.sum())
         t = _stage("branches", timings, t)
 
     # the ends of every part: a quadratic over about one body width instead of the kinks that the point-like
@@ -861,10 +927,17 @@ def estimate_deformation_iter(
             tf = int(max(1, min(wm.factor, math.floor(min(rough_he) / (8.0 * vox)))))
             if tf < wm.factor:
                 tw = working_mask(mask, spacing=tuple(sp), volume=volume, factor=tf)
+        exclude = left_out
+        if left_out is not None and tw is not wm:  # the cut, read at the finer copy's voxel centres
+            at = np.indices(tw.binary.shape, dtype=float).reshape(3, -1).T * np.asarray(tw.working_spacing)
+            at = (at + tw.offset - wm.offset) / np.asarray(wm.working_spacing)
+            exclude = ndi.map_coordinates(left_out.astype(np.uint8), at.T, order=0, mode="constant",
+                                          cval=0).reshape(tw.binary.shape).astype(bool)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             theta, twist_info = twist_angles(curve - tw.offset, frames, mask=tw.binary,
-                                             spacing=tw.working_spacing, volume=tw.volume, return_info=True)
+                                             spacing=tw.working_spacing, volume=tw.volume, exclude=exclude,
+                                             return_info=True)
         theta = np.asarray(theta, dtype=float)
         theta_conf = np.zeros(len(curve)) if twist_info["round"] else np.asarray(twist_info["confidence"], float)
         twist_source = "none" if twist_info["round"] else "estimated"
@@ -945,6 +1018,26 @@ def estimate_deformation_iter(
         lost_at = format_lost(cov.lost, unit_label(unit))
         note(f"the cage leaves {100 * (1 - cov.fraction):.2g} % of the mask out ({lost_at}): give a larger cage "
              "(--cage RX,RY or --cage-margin), or edit the keyframes there in the session (Deformation.set_cage)")
+    if cut_off:  # what each cut-off part leaves outside the straight volume, as a share of the whole mask
+        u = unit_label(unit)
+        said = []
+        for length, _, at, loop, region in cut_off:
+            out = len(region) * (1.0 - coverage(deformation, wm.from_working(region) * sp + org).fraction)
+            where = np.round(wm.from_working(at), 1).tolist()
+            if loop:
+                touching.append(f"the mask touches itself at {where} (voxels): the path between the ends crosses "
+                                f"there and the loop it skips, {100 * out / uncut_count:.2g} % of the mask, is left "
+                                "out")
+                note(touching[-1] + "; separate the touching sides in the mask (or give the ends of each stretch "
+                     "with --chain)")
+            else:
+                said.append(f"{length:.3g} {u} long, {100 * out / uncut_count:.2g} % of the mask left out, joining at "
+                            f"{where} (voxels)")
+        if said:
+            note(f"the mask branches between the ends: {len(said)} other branch(es) cut off at the junction and "
+                 f"left out of the cage ({'; '.join(said)}); give the end of another branch as the tail to straighten "
+                 "along it. A specimen without branches touches itself there (a bend whose two sides touch reads as "
+                 "a branch): separate the touching sides in the mask")
     _stage("coverage", timings, t)
     yield Progress("coverage", 1, 1, f"{100 * cov.fraction:.2f} %")
     used = Endpoints(head=tuple(snapped[0][0]), tail=tuple(snapped[-1][1]),
@@ -954,7 +1047,7 @@ def estimate_deformation_iter(
         twist=theta, keyframe_indices=idx, factor=wm.factor,
         mesh={"parts": mesh_info}, timings=timings, warnings=tuple(notes), min_jacobian=jmin, max_tilt=tilt,
         coverage=cov.fraction, lost=cov.lost, folded=cov.folded, twist_confidence=theta_conf,
-        twist_source=twist_source, context=context_given)
+        twist_source=twist_source, context=context_given, touching=tuple(touching))
 
 
 def estimate_deformation(

@@ -82,6 +82,7 @@ __all__ = ["estimate_twist", "apply_twist", "landmark_twist"]
 _MAX_SECTIONS = 400  # cross-sections actually sampled (the angles are then evaluated at every point)
 _MAX_GRID = 49  # samples across the disc diameter
 _FULL_SECTION = 50.0  # voxels in a cross-section for its orientation to count fully
+_CUT_FULL, _CUT_NONE = 0.1, 0.3  # share of a section's outline along excluded voxels: counted fully / not at all
 _MIN_RELIABLE = 0.1  # reliability (a 5-voxel section) below which a section's agreement counts less
 _MAX_RADIUS_VOXELS = 50_000  # mask voxels used to estimate the default radius
 _CUES = ("auto", "density", "shape")
@@ -202,6 +203,7 @@ def estimate_twist(
     cue: str = "auto",
     min_anisotropy: float = 0.08,
     min_oriented: float = 0.25,
+    exclude: Any = None,
     return_info: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
     """Twist angles that turn the frames' ``v`` towards the specimen's dorsal side.
@@ -244,6 +246,10 @@ def estimate_twist(
         The fraction of the length whose orientation strength reaches 0.25 (sections about 1.3:1 whose major
         axes agree along the curve) below which the whole specimen is taken as round (a vessel, an eel-like
         body): all angles 0 and a warning.
+    exclude : ndarray of bool, shape (N0, N1, N2), optional
+        Voxels of the body that are not this specimen's (a branch cut off at its junction, a loop the path
+        skips): left out of the sections, and a section whose outline runs along them (cut rather than ending
+        at the specimen's boundary) counts less, fully from a tenth of its outline to nothing at 30 %.
     return_info : bool
         Also return a dict of diagnostics.
 
@@ -294,6 +300,12 @@ def estimate_twist(
         raise InvalidInputError(f"min_anisotropy must be a number in (0, 0.5), got {min_anisotropy!r}")
     if not (np.isscalar(min_oriented) and 0 <= float(min_oriented) <= 1):
         raise InvalidInputError(f"min_oriented must be a number in [0, 1], got {min_oriented!r}")
+    if exclude is not None:
+        exclude = _check_mask(exclude, "exclude")
+        if tuple(exclude.shape) != tuple(mask.shape):
+            raise InvalidInputError(
+                f"exclude must have the mask's shape {tuple(mask.shape)}, got {tuple(exclude.shape)}"
+            )
 
     s_all = _arclength(pts)
     length = float(s_all[-1])
@@ -309,7 +321,8 @@ def estimate_twist(
 
     # -- sections: a subset of the points about one (finest) voxel apart, at most _MAX_SECTIONS
     sec = _section_indices(s_all, max(vox, length / _MAX_SECTIONS))
-    xs, ys, w, inside, dense, cell = _sample_sections(pts, fr, sec, s_all, tree, mask, volume, sp, radius)
+    xs, ys, w, inside, dense, cell, cut = _sample_sections(pts, fr, sec, s_all, tree, mask, volume, sp, radius,
+                                                           exclude)
 
     # -- per-section moments
     m0 = w.sum(axis=1)
@@ -346,7 +359,10 @@ def estimate_twist(
     area = m0 * cell  # physical
     n_vox = area * (np.abs(fr[sec, 2]) @ sp) / float(np.prod(sp))
     rel = np.clip(n_vox / _FULL_SECTION, 0.0, 1.0)
-    conf = ecc * rel
+    # a section cut where a branch was taken off has a straight edge there that is not the specimen's: it counts
+    # less (in the estimate and in its agreement, unlike a small section)
+    whole = 1.0 - _smoothstep(cut, _CUT_FULL, _CUT_NONE)
+    conf = ecc * rel * whole
     z = conf * np.exp(1j * phi2)
 
     # -- smooth along s (local linear fit of the doubled-angle vectors), evaluated at every point
@@ -539,6 +555,27 @@ def _disc(radius: float, vox: float) -> tuple[np.ndarray, np.ndarray, float]:
     return gx[keep], gy[keep], float(g[1] - g[0]) ** 2
 
 
+def _cut_share(w: np.ndarray, ex: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """Per section (rows of ``w``), the share of the kept part's outline (4-neighbour edges of ``w >= 0.5``)
+    that borders excluded samples (``ex >= 0.5``) rather than the specimen's boundary."""
+    g = np.unique(gx)
+    ix = np.searchsorted(g, gx) + 1
+    iy = np.searchsorted(g, gy) + 1
+    n = len(g) + 2
+    kept = np.zeros((len(w), n, n), dtype=bool)
+    gone = np.zeros((len(w), n, n), dtype=bool)
+    kept[:, ix, iy] = w >= 0.5
+    gone[:, ix, iy] = ex >= 0.5
+    edge = np.zeros(len(w))
+    cut = np.zeros(len(w))
+    for axis in (1, 2):
+        for shift in (1, -1):
+            out = kept & ~np.roll(kept, shift, axis=axis)
+            edge += out.sum(axis=(1, 2))
+            cut += (out & np.roll(gone, shift, axis=axis)).sum(axis=(1, 2))
+    return cut / np.maximum(edge, 1.0)
+
+
 def _centre_part(w: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     """Keep, in each section, only the part of the mask connected to the centre (with its partial-volume rim).
 
@@ -589,12 +626,14 @@ def _sample_sections(
     volume: Any,
     sp: np.ndarray,
     radius: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, float]:
+    exclude: Any = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, float, np.ndarray]:
     """Sample the mask (and the volume) on a disc in each section plane.
 
     Returns ``xs, ys`` (S, P) in-plane coordinates, ``w`` (S, P) the mask occupancy in [0, 1] (0 for samples that
-    belong to another part of the curve), ``inside`` (S, P) bool ``w >= 0.5``, ``dense`` (S, P) the volume
-    intensities at the samples inside (NaN elsewhere) or None without a volume, and the area of one sample.
+    belong to another part of the curve or are excluded), ``inside`` (S, P) bool ``w >= 0.5``, ``dense`` (S, P)
+    the volume intensities at the samples inside (NaN elsewhere) or None without a volume, the area of one
+    sample, and ``cut`` (S,) the share of each section's outline that borders excluded samples.
     """
     gx, gy, cell = _disc(radius, float(sp.min()))
     u, v = fr[sec, 0], fr[sec, 1]
@@ -608,6 +647,7 @@ def _sample_sections(
     flat = idx.reshape(-1, 3)
     box = _bbox(flat, shape)
     values = None  # the volume over the same box, read once
+    ex = None  # the excluded voxels at the samples
     if box is not None:
         slices, lo = box
         block = _as_uint8(mask[slices])
@@ -618,6 +658,10 @@ def _sample_sections(
         w = ndimage.map_coordinates(block, (flat - lo).T, order=1, mode="grid-constant", cval=0.0,
                                     output=np.float32)
         w = w.astype(float).reshape(n_sec, n_smp)
+        if exclude is not None:
+            ex = ndimage.map_coordinates(_as_uint8(exclude[slices]), (flat - lo).T, order=1, mode="grid-constant",
+                                         cval=0.0, output=np.float32).astype(float).reshape(n_sec, n_smp)
+            w *= 1.0 - ex
     # A sample belongs to this section only when this section's curve point is (about) its nearest: within the
     # radius of curvature every point of the plane is, while a part of the body that curls back through the plane
     # (a tight coil, a fold of the tail), even a short way along, is nearer its own curve points.
@@ -629,6 +673,7 @@ def _sample_sections(
         far = np.abs(s_all[j] - np.repeat(s_all[sec], n_smp)[hit]) > min(own, radius)
         w.reshape(-1)[hit[far]] = 0.0
     w = _centre_part(w, gx, gy)
+    cut = _cut_share(w, ex, gx, gy) if ex is not None else np.zeros(n_sec)
     inside = w >= 0.5
     dense = None
     if values is not None and inside.any():
@@ -637,7 +682,7 @@ def _sample_sections(
         dense[np.flatnonzero(inside.reshape(-1))] = ndimage.map_coordinates(
             values, (sel - lo).T, order=1, mode="nearest", output=np.float64)
         dense = dense.reshape(n_sec, n_smp)
-    return xs, ys, w, inside, dense, cell
+    return xs, ys, w, inside, dense, cell, cut
 
 
 def _real_block(block: Any) -> np.ndarray:
