@@ -227,6 +227,13 @@ def test_validation():
         estimate_twist(pts, frames, mask=np.zeros_like(ph.mask), spacing=ph.spacing)
     with pytest.raises(InvalidInputError, match="meets the mask"):
         estimate_twist(pts + 500.0, frames, radius=20.0, **kw)
+    with pytest.raises(InvalidInputError, match=r"exclude must have the mask's shape .* got \(1, 2, 3\)"):
+        estimate_twist(pts, frames, exclude=np.zeros((1, 2, 3), bool), **kw)
+    with pytest.raises(InvalidInputError, match="exclude must be a 3D array"):
+        estimate_twist(pts, frames, exclude=np.zeros((4, 4), bool), **kw)
+    # nothing excluded is the same as no exclusion
+    np.testing.assert_array_equal(estimate_twist(pts, frames, exclude=np.zeros(ph.mask.shape, bool), **kw),
+                                  estimate_twist(pts, frames, **kw))
 
 
 def test_round_stretch_takes_its_angle_from_the_neighbours():
