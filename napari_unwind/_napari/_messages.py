@@ -40,6 +40,10 @@ _ADVICE: tuple[tuple[str, str], ...] = (
     # pipeline.run_job: a fold refused after the session was saved
     (r": edit it, or export it as it is with unwind straighten --session \.\.\. --allow-folds",
      ": edit the keyframes there (Refine), or tick \"allow folds\" (Export)"),
+    # skeleton/_api.py: a loop of the body that the path skips where the mask touches itself
+    (r", or straighten it as a chain of two parts that meet on the loop \(--chain HEAD P --chain P TAIL, P a point "
+     r"on the loop\)", ", or straighten it in two parts that meet on the loop: the head, two points next to each "
+     "other on the loop and the tail in the \"ends\" layer, in that order (Ends)"),
     # skeleton/_api.py: a line mask
     (r"give the cage's half extents \(--cage RX,RY in [^,]+, half_extent=\) to straighten around the line, or the "
      r"specimen's own mask", "select the specimen's own body (Select), or a mask of it"),

@@ -1028,8 +1028,8 @@ def estimate_deformation_iter(
                 touching.append(f"the mask touches itself at {where} (voxels): the path between the ends crosses "
                                 f"there and the loop it skips, {100 * out / uncut_count:.2g} % of the mask, is left "
                                 "out")
-                note(touching[-1] + "; separate the touching sides in the mask, or pass a point on the loop as a "
-                     "chain point (--chain) so that the path goes round it")
+                note(touching[-1] + "; separate the touching sides in the mask, or straighten it as a chain of two "
+                     "parts that meet on the loop (--chain HEAD P --chain P TAIL, P a point on the loop)")
             else:
                 said.append(f"{length:.3g} {u} long, {100 * out / uncut_count:.2g} % of the mask left out, joining at "
                             f"{where} (voxels)")
