@@ -82,6 +82,9 @@ class SkeletonResult:
     touching : tuple of str
         Where the mask touches itself between the ends (a hairpin or coil whose sides touch): the path crosses
         there and the stretch of body it skips is left out. A result with any is partial.
+    left_out : float
+        Fraction of the whole mask that the branches and loops cut off leave outside the straight volume (0 when
+        nothing was cut); ``coverage`` is of the mask between the ends.
     """
 
     deformation: Deformation
@@ -104,6 +107,7 @@ class SkeletonResult:
     twist_source: str = "none"
     context: float | None = None
     touching: tuple[str, ...] = ()
+    left_out: float = 0.0
 
     def twist_report(self) -> str:
         """One line: the twist's range, what set it and over how much of the length."""
@@ -136,8 +140,10 @@ class SkeletonResult:
         from ._foldfree import format_lost
 
         unit = unit_label(self.deformation.unit)
+        of = "of the mask" if not self.left_out else \
+            f"of the mask between the ends ({100 * self.left_out:.2g} % of the whole cut off: see the warnings)"
         return (f"cage: min Jacobian {self.min_jacobian:.3g} ({'no fold' if self.min_jacobian > 0 else 'FOLDS'}), "
-                f"max tilt {self.max_tilt:.3g} deg, coverage {100 * self.coverage:.2f} % of the mask, lost: "
+                f"max tilt {self.max_tilt:.3g} deg, coverage {100 * self.coverage:.2f} % {of}, lost: "
                 f"{format_lost(self.lost, unit)}")
 
 
@@ -1018,11 +1024,13 @@ def estimate_deformation_iter(
         lost_at = format_lost(cov.lost, unit_label(unit))
         note(f"the cage leaves {100 * (1 - cov.fraction):.2g} % of the mask out ({lost_at}): give a larger cage "
              "(--cage RX,RY or --cage-margin), or edit the keyframes there in the session (Deformation.set_cage)")
+    left_out_share = 0.0
     if cut_off:  # what each cut-off part leaves outside the straight volume, as a share of the whole mask
         u = unit_label(unit)
         said = []
         for length, _, at, loop, region in cut_off:
             out = len(region) * (1.0 - coverage(deformation, wm.from_working(region) * sp + org).fraction)
+            left_out_share += out / uncut_count
             where = np.round(wm.from_working(at), 1).tolist()
             if loop:
                 touching.append(f"the mask touches itself at {where} (voxels): the path between the ends crosses "
@@ -1047,7 +1055,8 @@ def estimate_deformation_iter(
         twist=theta, keyframe_indices=idx, factor=wm.factor,
         mesh={"parts": mesh_info}, timings=timings, warnings=tuple(notes), min_jacobian=jmin, max_tilt=tilt,
         coverage=cov.fraction, lost=cov.lost, folded=cov.folded, twist_confidence=theta_conf,
-        twist_source=twist_source, context=context_given, touching=tuple(touching))
+        twist_source=twist_source, context=context_given, touching=tuple(touching),
+        left_out=float(min(left_out_share, 1.0)))
 
 
 def estimate_deformation(

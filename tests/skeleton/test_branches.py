@@ -139,6 +139,9 @@ def test_the_share_reported_is_what_the_straight_volume_leaves_out(seed, stent):
     notes = [w for w in result.warnings if "branches between the ends" in w]
     assert len(notes) == 1
     assert abs(_share_said(notes[0]) - truth) <= 1.0, (_share_said(notes[0]), truth)
+    # the report's coverage is of the mask between the ends, and says how much of the whole was cut off
+    assert abs(100 * result.left_out - truth) <= 0.5
+    assert f"{100 * result.left_out:.2g} % of the whole cut off" in result.report()
 
 
 def _loop_crossed(r=4.0, shape=(70, 75, 40)):
