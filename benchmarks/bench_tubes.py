@@ -74,10 +74,9 @@ def main() -> None:
         n10 = max(1, int(round(10 / (s[1] - s[0]))))
         jump = float(np.abs(roll[n10:] - roll[:-n10]).max()) if len(roll) > n10 else 0.0
         fused = approach < 2
-        rows[fused].append((float(np.ptp(roll)), jump, is_round, bool(res.touching),
-                            any("branches between the ends" in w for w in res.warnings)))
-        cut = "; loop left out (partial)" if res.touching else ""
-        cut += "; cut as a branch" if rows[fused][-1][4] else ""
+        branch = any("branches between the ends" in w for w in res.warnings)
+        rows[fused].append((float(np.ptp(roll)), jump, is_round, bool(res.touching), branch))
+        cut = ("; loop left out (partial)" if res.touching else "") + ("; cut as a branch" if branch else "")
         print(f"tube {i}: radius {r:.1f}, length {res.deformation.length:.0f}, closest self-approach {approach:.2f} "
               f"radii{' (fused)' if fused else ''}: taken as round {is_round}, roll range {np.ptp(roll):.1f} deg, "
               f"largest change within 10 voxels {jump:.1f} deg, coverage {res.coverage:.3f}{cut}", flush=True)

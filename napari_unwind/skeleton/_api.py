@@ -610,9 +610,9 @@ def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, voxel: floa
 
 
 def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
-                  ) -> tuple[WorkingMask, list[tuple[float, float, np.ndarray, bool, np.ndarray]]]:
+                  ) -> tuple[WorkingMask, list[tuple[float, np.ndarray, bool, np.ndarray]]]:
     """The working mask without the branches off the path between the two ends, and each branch cut off as
-    ``(length, share of the mask, junction in working voxels, loop, its working voxels (M, 3))``.
+    ``(length, junction in working voxels, loop, its working voxels (M, 3))``.
 
     A voxel's detour is ``d_head + d_tail - L`` (geodesic distances on the 26-neighbour graph, physical): about
     0 along the path and at most a few radii across it, twice the distance along a side branch from where it
@@ -621,7 +621,7 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     it holds :data:`_BRANCH_MIN_SHARE` of the mask (so that fins and a forked tail stay) and it is a dead end
     (``d_head - d_tail`` nearly constant over it; a stretch of a coil that the geodesic skipped is not). A branch
     is cut back to where its detour passes :data:`_BRANCH_BACK` radii, with whatever the cut leaves hanging; its
-    share and voxels are those of all it took (part of it near the junction may still lie in the path's cage).
+    voxels are all it took (part of them, near the junction, may still lie in the path's cage).
     ``loop`` is True when what was cut comes back on itself (:func:`_loops_back`): the body touches itself there
     and the part left out is the body's own, not a branch.
     """
@@ -689,9 +689,7 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     for k, length, where in found:
         ids = np.unique(gone[lab == k])
         region = np.isin(gone, ids[ids > 0])
-        share = float(region.sum()) / count
-        branches.append((length, share, where, _loops_back(region, dist, radius, float(np.prod(wsp))),
-                         np.argwhere(region)))
+        branches.append((length, where, _loops_back(region, dist, radius, float(np.prod(wsp))), np.argwhere(region)))
     rim = ndi.binary_dilation(kept, _STRUCT26)  # the kept part's partial voxels stay with it
     return replace(wm, binary=kept, occupancy=np.where(rim, wm.occupancy, 0.0).astype(wm.occupancy.dtype)), branches
 
@@ -935,10 +933,11 @@ def estimate_deformation_iter(
                 tw = working_mask(mask, spacing=tuple(sp), volume=volume, factor=tf)
         exclude = left_out
         if left_out is not None and tw is not wm:  # the cut, read at the finer copy's voxel centres
-            at = np.indices(tw.binary.shape, dtype=float).reshape(3, -1).T * np.asarray(tw.working_spacing)
-            at = (at + tw.offset - wm.offset) / np.asarray(wm.working_spacing)
-            exclude = ndi.map_coordinates(left_out.astype(np.uint8), at.T, order=0, mode="constant",
-                                          cval=0).reshape(tw.binary.shape).astype(bool)
+            scale = np.asarray(tw.working_spacing) / np.asarray(wm.working_spacing)
+            exclude = ndi.affine_transform(left_out.astype(np.uint8), scale,
+                                           offset=(tw.offset - wm.offset) / np.asarray(wm.working_spacing),
+                                           output_shape=tw.binary.shape, order=0, mode="constant",
+                                           cval=0).astype(bool)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             theta, twist_info = twist_angles(curve - tw.offset, frames, mask=tw.binary,
@@ -1028,7 +1027,7 @@ def estimate_deformation_iter(
     if cut_off:  # what each cut-off part leaves outside the straight volume, as a share of the whole mask
         u = unit_label(unit)
         said = []
-        for length, _, at, loop, region in cut_off:
+        for length, at, loop, region in cut_off:
             out = len(region) * (1.0 - coverage(deformation, wm.from_working(region) * sp + org).fraction)
             left_out_share += out / uncut_count
             where = np.round(wm.from_working(at), 1).tolist()

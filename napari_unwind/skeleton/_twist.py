@@ -555,13 +555,18 @@ def _disc(radius: float, vox: float) -> tuple[np.ndarray, np.ndarray, float]:
     return gx[keep], gy[keep], float(g[1] - g[0]) ** 2
 
 
+def _grid_index(gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The square grid the disc samples were cut from (:func:`_disc`), as its coordinates along one side, and each
+    sample's row and column on it."""
+    g = np.unique(gx)
+    return g, np.searchsorted(g, gx), np.searchsorted(g, gy)
+
+
 def _cut_share(w: np.ndarray, ex: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     """Per section (rows of ``w``), the share of the kept part's outline (4-neighbour edges of ``w >= 0.5``)
     that borders excluded samples (``ex >= 0.5``) rather than the specimen's boundary."""
-    g = np.unique(gx)
-    ix = np.searchsorted(g, gx) + 1
-    iy = np.searchsorted(g, gy) + 1
-    n = len(g) + 2
+    g, ix, iy = _grid_index(gx, gy)
+    ix, iy, n = ix + 1, iy + 1, len(g) + 2  # a margin of one sample: the disc's edge is an outline too
     kept = np.zeros((len(w), n, n), dtype=bool)
     gone = np.zeros((len(w), n, n), dtype=bool)
     kept[:, ix, iy] = w >= 0.5
@@ -583,9 +588,7 @@ def _centre_part(w: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     cross-section, whatever curve point they are nearest to; far from the centre they would dominate the second
     moments. The part kept is the 8-connected component of ``w >= 0.5`` at the centre, or the one nearest it.
     """
-    g = np.unique(gx)
-    ix = np.searchsorted(g, gx)
-    iy = np.searchsorted(g, gy)
+    g, ix, iy = _grid_index(gx, gy)
     n = len(g)
     grid = np.zeros((len(w), n, n))
     grid[:, ix, iy] = w
