@@ -1,9 +1,11 @@
 """Branched specimens (issue 23 item 2): what the cage holds of the chosen path and of the other leg.
 
-    .venv/bin/python -m benchmarks.bench_branches [--before] [--seeds FIRST N]
+    .venv/bin/python -m benchmarks.bench_branches [--before] [--seeds FIRST N] [--hairpins FIRST N]
 
 The Y phantoms (seeds 0-7) and graft-like ones (seeds 100-103) of tests/skeleton/test_branches.py, ends at the trunk
-and at leg A; held fractions by tests/cage_reference.py's inverse (the path; leg B from where the legs part).
+and at leg A; held fractions by tests/cage_reference.py's inverse (the path; leg B from where the legs part); a Y
+taken for the body touching itself (partial) is counted. ``--hairpins``: instead, N of the tests' hairpins whose
+sides touch (``hairpin_phantom``), by its topology a Y: each is to be partial ("touches itself"), not a branch.
 ``--before``: the same solve with the branch cut switched off (the code before it).
 """
 
@@ -20,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "tests"), str(ROOT / "tests" / "skeleton")]
 
 from cage_reference import held  # noqa: E402
-from test_branches import _solve, y_phantom  # noqa: E402
+from test_branches import _solve, hairpin_phantom, y_phantom  # noqa: E402
 
 import napari_unwind.skeleton._api as api  # noqa: E402
 
@@ -30,13 +32,17 @@ def main() -> None:
     ap.add_argument("--before", action="store_true", help="switch the branch cut off")
     ap.add_argument("--seeds", type=int, nargs=2, metavar=("FIRST", "N"), default=None,
                     help="N Y phantoms and N graft-like ones from seed FIRST on (default: the tests' seeds)")
+    ap.add_argument("--hairpins", type=int, nargs=2, metavar=("FIRST", "N"), default=None,
+                    help="N hairpins whose sides touch, from seed FIRST on, instead of the Y phantoms")
     args = ap.parse_args()
+    if args.hairpins is not None:
+        return hairpins(*args.hairpins)
     if args.before:
         api._cut_branches = lambda wm, head, tail: (wm, [])
     sets = ((False, range(8)), (True, range(100, 104))) if args.seeds is None else (
         (False, range(args.seeds[0], args.seeds[0] + args.seeds[1])),
         (True, range(args.seeds[0], args.seeds[0] + args.seeds[1])))
-    paths, others = [], []
+    paths, others, touching = [], [], 0
     for stent, seeds in sets:
         for seed in seeds:
             mask, head, a_end, _, pa, pb, r, (j, apart) = y_phantom(seed, stent=stent)
@@ -48,12 +54,37 @@ def main() -> None:
             note = [w for w in res.warnings if "branches" in w]
             share = note[0].split("long, ")[1].split(" %")[0] if note else "-"
             paths.append(held(d, g[on]).mean())
+            touching += bool(res.touching)
             others.append(held(d, g[beyond]).mean())
             print(f"{'graft-like' if stent else 'Y'} {seed}: r {r:.1f}, path held {paths[-1]:.3f}, "
-                  f"other leg held {others[-1]:.3f}, branch cut {share} % of the mask", flush=True)
+                  f"other leg held {others[-1]:.3f}, branch cut {share} % of the mask"
+                  f"{'; taken for the body touching itself' if res.touching else ''}", flush=True)
     q = [0, 10, 50, 90, 100]
     print(f"\npath held, min / p10 / median / p90 / max: {' / '.join(f'{v:.3f}' for v in np.percentile(paths, q))}")
     print(f"other leg held: {' / '.join(f'{v:.3f}' for v in np.percentile(others, q))}")
+    print(f"taken for the body touching itself (partial): {touching} of {len(paths)}")
+
+
+def hairpins(first: int, n: int) -> None:
+    from napari_unwind.pipeline import judge
+
+    partial, left = 0, []
+    for seed in range(first, first + n):
+        mask, head, tail, r, gap, pin = hairpin_phantom(seed)
+        res = _solve(mask, (head, tail))
+        g = np.argwhere(mask).astype(float)
+        on_pin = cKDTree(pin).query(g)[0] <= r
+        status, _ = judge(res)
+        partial += status == "partial" and bool(res.touching)
+        left.append(res.left_out)
+        branch = any("branches between the ends" in w for w in res.warnings)
+        print(f"hairpin {seed}: r {r:.1f}, sides {gap:.2f} radii apart, hairpin {on_pin.mean():.2f} of the mask, "
+              f"held {held(res.deformation, g[on_pin]).mean():.3f}; {status}"
+              f"{', touches itself' if res.touching else ''}{', cut as a branch' if branch else ''}, "
+              f"{100 * res.left_out:.0f} % of the mask left out", flush=True)
+    q = [0, 10, 50, 90, 100]
+    print(f"\npartial, touching itself: {partial} of {n}; left out, min / p10 / median / p90 / max: "
+          f"{' / '.join(f'{v:.2f}' for v in np.percentile(left, q))}")
 
 
 if __name__ == "__main__":

@@ -560,23 +560,41 @@ _BRANCH_MIN_SHARE = 0.05  # of the mask: smaller side parts are kept
 _BRANCH_BACK = 1.0  # inscribed radii: a branch is cut where its detour exceeds this (back towards the junction)
 
 
-def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, voxel: float) -> bool:
-    """Whether ``region`` (a part hanging off the path) comes back on itself: a loop, not a branch.
+_RIDGE = 0.8  # of a section's deepest point: the depth above which a section's core lies
+_TWO_SIDED = 0.4  # of a cut part's volume: in sections with two cores, more than this and it is the body doubled
+
+
+def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float]) -> bool:
+    """Whether ``region`` (a part hanging off the path) is the body coming back on itself, not a branch.
 
     The part is cut in shells of the geodesic distance from the head (``dist``), one inscribed radius thick; the
     shells' pieces (26-connected, each at least a tenth of a shell of the tube) and their contacts from one shell to
     the next make a graph (the part's Reeb graph). A branch, even one that forks again, is a tree; a stretch of
-    the body that leaves where its two sides touch and comes back there (a hairpin whose sides touch, the turns of
-    a coil that touch) splits into two legs that meet again at its far end: a cycle.
+    the body that leaves where its two sides touch and comes back there (a loop, the turns of a coil that touch)
+    splits into two legs that meet again at its far end: a cycle. A hairpin whose two sides touch all along has
+    no cycle (its shells cross both sides at once) but its pieces are two tubes side by side: each has two cores,
+    where the part's own distance to its outline passes :data:`_RIDGE` of the piece's deepest, parted by the
+    waist where the sides meet, while a branch's section (round or flattened) has one. More than
+    :data:`_TWO_SIDED` of the part's volume in such pieces is the body doubled: 0.56-0.85 of it on hairpins whose
+    sides' centrelines lie 1.5-2 radii apart, at most 0.29 on the legs of 112 Y and graft phantoms
+    (tests/skeleton/test_branches.py, benchmarks/RESULTS.md).
     """
-    d = dist[region]
-    if not len(d) or radius <= 0:
+    if not region.any() or radius <= 0:
         return False
+    inside = np.argwhere(region)
+    box = tuple(slice(int(a), int(b) + 1) for a, b in zip(inside.min(0), inside.max(0)))
+    region, dist = region[box], dist[box]
+    d = dist[region]
+    voxel = float(np.prod(spacing))
     band = np.zeros(region.shape, dtype=np.int64)
     band[region] = np.floor((d - d.min()) / radius).astype(np.int64) + 1
     min_size = 0.1 * math.pi * radius**3 / voxel
+    # the distance to the outline, which lies half a voxel beyond the last voxel inside (the transform's own
+    # distance, to the first voxel outside, joins the cores of two sides that meet 1.5 radii apart along an axis)
+    depth = ndi.distance_transform_edt(np.pad(region, 1), sampling=spacing)[1:-1, 1:-1, 1:-1] - 0.5 * min(spacing)
     labels = np.zeros(region.shape, dtype=np.int64)
     count = 0
+    doubled = 0
     for b in range(1, int(band.max()) + 1):
         lab, n = ndi.label(band == b, _STRUCT26)
         if n == 0:
@@ -588,6 +606,14 @@ def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, voxel: floa
         remap[big] = count + 1 + np.arange(len(big))
         labels[keep] = remap[lab[keep]]
         count += len(big)
+        boxes = ndi.find_objects(lab)
+        for k in big:
+            piece = lab[boxes[k - 1]] == k
+            deep = depth[boxes[k - 1]]
+            if ndi.label(piece & (deep >= _RIDGE * deep[piece].max()), _STRUCT26)[1] >= 2:
+                doubled += int(sizes[k - 1])
+    if doubled > _TWO_SIDED * int(region.sum()):
+        return True
     if count < 3:
         return False
     edges = set()
@@ -689,7 +715,7 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     for k, length, where in found:
         ids = np.unique(gone[lab == k])
         region = np.isin(gone, ids[ids > 0])
-        branches.append((length, where, _loops_back(region, dist, radius, float(np.prod(wsp))), np.argwhere(region)))
+        branches.append((length, where, _loops_back(region, dist, radius, wsp), np.argwhere(region)))
     rim = ndi.binary_dilation(kept, _STRUCT26)  # the kept part's partial voxels stay with it
     return replace(wm, binary=kept, occupancy=np.where(rim, wm.occupancy, 0.0).astype(wm.occupancy.dtype)), branches
 
@@ -1033,8 +1059,8 @@ def estimate_deformation_iter(
             where = np.round(wm.from_working(at), 1).tolist()
             if loop:
                 touching.append(f"the mask touches itself at {where} (voxels): the path between the ends crosses "
-                                f"there and the loop it skips, {100 * out / uncut_count:.2g} % of the mask, is left "
-                                "out")
+                                f"there and the loop or fold of the body it skips, {100 * out / uncut_count:.2g} % of "
+                                "the mask, is left out")
                 note(touching[-1] + "; separate the touching sides in the mask, or straighten it as a chain of two "
                      "parts that meet on the loop (--chain HEAD P --chain P TAIL, P a point on the loop)")
             else:
@@ -1043,8 +1069,8 @@ def estimate_deformation_iter(
         if said:
             note(f"the mask branches between the ends: {len(said)} other branch(es) cut off at the junction and "
                  f"left out of the cage ({'; '.join(said)}); give the end of another branch as the tail to straighten "
-                 "along it. A specimen without branches touches itself there (a bend whose two sides touch reads as "
-                 "a branch): separate the touching sides in the mask")
+                 "along it. A specimen without branches touches itself there (a fold whose two sides run into one "
+                 "another reads as a branch): separate the touching sides in the mask")
     _stage("coverage", timings, t)
     yield Progress("coverage", 1, 1, f"{100 * cov.fraction:.2f} %")
     used = Endpoints(head=tuple(snapped[0][0]), tail=tuple(snapped[-1][1]),
