@@ -43,6 +43,11 @@ class SeriesSelectionError(InvalidInputError):
         self.series = dict(series)
 
 
+class NoBodyError(InvalidInputError):
+    """The scan shows no body above the medium around a selection: there is nothing there to straighten (a
+    candidate of the working level that the full-resolution scan does not bear out)."""
+
+
 class OutputError(UnwindError, OSError):
     """An output cannot be written (unwritable folder, existing file without ``overwrite``...)."""
 

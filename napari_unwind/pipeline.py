@@ -42,7 +42,7 @@ from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from .errors import FoldError, InvalidInputError, finite_number
+from .errors import FoldError, InvalidInputError, NoBodyError, finite_number
 from .progress import Progress
 
 __all__ = [
@@ -447,9 +447,10 @@ def judge(skeleton: Any) -> tuple[str, str]:
     """The status of a straightened specimen from its :class:`~napari_unwind.skeleton.SkeletonResult`:
     ``("ok", "")`` or ``("partial", reason)``.
 
-    ``ok`` needs coverage >= :data:`MIN_COVERAGE`, no fold over the specimen and a mask that does not touch itself
-    between the ends (a skipped loop of the body); the lost intervals of an ok specimen (together under 1 % of its
-    mask) stay in its figures.
+    ``ok`` needs coverage >= :data:`MIN_COVERAGE`, no fold over the specimen, a mask that does not touch itself
+    between the ends (a skipped loop of the body) and, where the ends were suggested, a mask that does not branch
+    (which branch to follow is the user's choice, not the longest path's); the lost intervals of an ok specimen
+    (together under 1 % of its mask) stay in its figures.
     """
     from .io._volume import unit_label
     from .skeleton._foldfree import format_lost
@@ -468,6 +469,11 @@ def judge(skeleton: Any) -> tuple[str, str]:
         reasons[-1] += " (a larger or fitted cage: --cage RX,RY, --cage-margin M)"
     for where in tuple(getattr(skeleton, "touching", ()) or ()):
         reasons.append(f"{where}: separate the touching sides in the mask")
+    branches = tuple(getattr(skeleton, "branches", ()) or ())
+    if branches and getattr(skeleton, "suggested", False):
+        reasons.append(f"the mask branches and the ends were suggested: the path follows its longest way and "
+                       f"{len(branches)} other branch(es) are cut off ({'; '.join(branches)}); give the head and "
+                       "tail (--head, --tail) at the ends of the branch to straighten")
     if reasons:
         return "partial", "; ".join(reasons)
     return "ok", ""
@@ -1052,6 +1058,10 @@ def run_all_iter(
                                         output=output, session_path=session_path,
                                         source=source, overwrite=overwrite,
                                         notes=f"unwind run --all: feature {name} of {feats.k}")
+            except NoBodyError:  # nothing there at full resolution: not a specimen, not a failure
+                r = SpecimenResult("rejected", "no body at full resolution: the scan shows no body above the medium "
+                                   "around it (a candidate of the segmentation's working level only)",
+                                   ids=tuple(c.ids), voxels=voxels, label=name)
             except Exception as exc:  # noqa: BLE001 - one specimen's failure must not stop the others
                 r = SpecimenResult("failed", _failure_reason(exc), ids=tuple(c.ids), voxels=voxels, label=name,
                                    session_path=session_path if session_path.exists() else None)

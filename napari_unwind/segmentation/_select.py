@@ -11,7 +11,7 @@ import dask.array as da
 import numpy as np
 from scipy import ndimage
 
-from ..errors import InvalidInputError
+from ..errors import InvalidInputError, NoBodyError
 from ..progress import Progress, run
 from ._features import Features
 
@@ -255,9 +255,11 @@ def default_isovalue(features: Features, mask: Any, *, volume: Any = None) -> fl
         from ._candidates import _scan_levels
 
         levels = None if volume is None or not mask.any() else _scan_levels(features, [], mask, volume)
+        if levels is None and volume is None:
+            raise InvalidInputError("the mask covers no feature; give isovalue=")
         if levels is None:
-            raise InvalidInputError("the mask covers no feature" + ("" if volume is None else " and the scan shows no "
-                                    "body above the medium around it") + "; give isovalue=")
+            raise NoBodyError("the mask covers no feature and the scan shows no body above the medium around it; "
+                              "give isovalue=")
         return float(0.5 * (levels[0] + levels[1]))
     # the lowest of the features' own, as candidates() cuts a body of several features: a dimmer feature the
     # selection encloses (fill_holes) stays in

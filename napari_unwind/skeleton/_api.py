@@ -85,6 +85,9 @@ class SkeletonResult:
     left_out : float
         Fraction of the whole mask that the branches and loops cut off leave outside the straight volume (0 when
         nothing was cut); ``coverage`` is of the mask between the ends.
+    branches : tuple of str
+        The other branches cut off at a junction between the ends (length, share left out, where it joins). With
+        suggested ends the result is partial: the path between them is one guess among the mask's branches.
     """
 
     deformation: Deformation
@@ -108,6 +111,7 @@ class SkeletonResult:
     context: float | None = None
     touching: tuple[str, ...] = ()
     left_out: float = 0.0
+    branches: tuple[str, ...] = ()
 
     def twist_report(self) -> str:
         """One line: the twist's range, what set it and over how much of the length."""
@@ -1050,9 +1054,9 @@ def estimate_deformation_iter(
         note(f"the cage leaves {100 * (1 - cov.fraction):.2g} % of the mask out ({lost_at}): give a larger cage "
              "(--cage RX,RY or --cage-margin), or edit the keyframes there in the session (Deformation.set_cage)")
     left_out_share = 0.0
+    said: list[str] = []  # the branches cut off, as reported
     if cut_off:  # what each cut-off part leaves outside the straight volume, as a share of the whole mask
         u = unit_label(unit)
-        said = []
         for length, at, loop, region in cut_off:
             out = len(region) * (1.0 - coverage(deformation, wm.from_working(region) * sp + org).fraction)
             left_out_share += out / uncut_count
@@ -1081,7 +1085,7 @@ def estimate_deformation_iter(
         mesh={"parts": mesh_info}, timings=timings, warnings=tuple(notes), min_jacobian=jmin, max_tilt=tilt,
         coverage=cov.fraction, lost=cov.lost, folded=cov.folded, twist_confidence=theta_conf,
         twist_source=twist_source, context=context_given, touching=tuple(touching),
-        left_out=float(min(left_out_share, 1.0)))
+        left_out=float(min(left_out_share, 1.0)), branches=tuple(said))
 
 
 def estimate_deformation(
