@@ -1,11 +1,12 @@
 """Branched specimens (issue 23 item 2): what the cage holds of the chosen path and of the other leg.
 
-    .venv/bin/python -m benchmarks.bench_branches [--before] [--seeds FIRST N] [--hairpins FIRST N]
+    .venv/bin/python -m benchmarks.bench_branches [--before] [--seeds FIRST N] [--hairpins FIRST N] [--suggested]
 
 The Y phantoms (seeds 0-7) and graft-like ones (seeds 100-103) of tests/skeleton/test_branches.py, ends at the trunk
 and at leg A; held fractions by tests/cage_reference.py's inverse (the path; leg B from where the legs part); a Y
 taken for the body touching itself (partial) is counted. ``--hairpins``: instead, N of the tests' hairpins whose
 sides touch (``hairpin_phantom``), by its topology a Y: each is to be partial ("touches itself"), not a branch.
+``--suggested``: no ends given (the suggested ones, as a run with no click), and only each result's status.
 ``--before``: the same solve with the branch cut switched off (the code before it).
 """
 
@@ -34,18 +35,24 @@ def main() -> None:
                     help="N Y phantoms and N graft-like ones from seed FIRST on (default: the tests' seeds)")
     ap.add_argument("--hairpins", type=int, nargs=2, metavar=("FIRST", "N"), default=None,
                     help="N hairpins whose sides touch, from seed FIRST on, instead of the Y phantoms")
+    ap.add_argument("--suggested", action="store_true", help="no ends given: each result's status only")
     args = ap.parse_args()
     if args.hairpins is not None:
-        return hairpins(*args.hairpins)
+        return hairpins(*args.hairpins, suggested=args.suggested)
     if args.before:
         api._cut_branches = lambda wm, head, tail: (wm, [])
     sets = ((False, range(8)), (True, range(100, 104))) if args.seeds is None else (
         (False, range(args.seeds[0], args.seeds[0] + args.seeds[1])),
         (True, range(args.seeds[0], args.seeds[0] + args.seeds[1])))
     paths, others, touching = [], [], 0
+    statuses: dict[str, int] = {}
     for stent, seeds in sets:
         for seed in seeds:
             mask, head, a_end, _, pa, pb, r, (j, apart) = y_phantom(seed, stent=stent)
+            if args.suggested:
+                st = _status(_solve(mask, None), f"{'graft-like' if stent else 'Y'} {seed}")
+                statuses[st] = statuses.get(st, 0) + 1
+                continue
             res = _solve(mask, (head, a_end))
             d = res.deformation
             g = np.argwhere(mask).astype(float)
@@ -59,18 +66,35 @@ def main() -> None:
             print(f"{'graft-like' if stent else 'Y'} {seed}: r {r:.1f}, path held {paths[-1]:.3f}, "
                   f"other leg held {others[-1]:.3f}, branch cut {share} % of the mask"
                   f"{'; taken for the body touching itself' if res.touching else ''}", flush=True)
+    if args.suggested:
+        print(f"\nwith suggested ends: {statuses}")
+        return
     q = [0, 10, 50, 90, 100]
     print(f"\npath held, min / p10 / median / p90 / max: {' / '.join(f'{v:.3f}' for v in np.percentile(paths, q))}")
     print(f"other leg held: {' / '.join(f'{v:.3f}' for v in np.percentile(others, q))}")
     print(f"taken for the body touching itself (partial): {touching} of {len(paths)}")
 
 
-def hairpins(first: int, n: int) -> None:
+def _status(res, name: str) -> str:
+    """Print and return the status of a solve with suggested ends (``judge``'s, with the start of its reason)."""
+    from napari_unwind.pipeline import judge
+
+    status, reason = judge(res)
+    print(f"{name}: suggested ends, {status}{': ' + reason[:90] if reason else ''}", flush=True)
+    return status
+
+
+def hairpins(first: int, n: int, *, suggested: bool = False) -> None:
     from napari_unwind.pipeline import judge
 
     partial, left = 0, []
+    statuses: dict[str, int] = {}
     for seed in range(first, first + n):
         mask, head, tail, r, gap, pin = hairpin_phantom(seed)
+        if suggested:
+            st = _status(_solve(mask, None), f"hairpin {seed}")
+            statuses[st] = statuses.get(st, 0) + 1
+            continue
         res = _solve(mask, (head, tail))
         g = np.argwhere(mask).astype(float)
         on_pin = cKDTree(pin).query(g)[0] <= r
@@ -82,6 +106,9 @@ def hairpins(first: int, n: int) -> None:
               f"held {held(res.deformation, g[on_pin]).mean():.3f}; {status}"
               f"{', touches itself' if res.touching else ''}{', cut as a branch' if branch else ''}, "
               f"{100 * res.left_out:.0f} % of the mask left out", flush=True)
+    if suggested:
+        print(f"\nwith suggested ends: {statuses}")
+        return
     q = [0, 10, 50, 90, 100]
     print(f"\npartial, touching itself: {partial} of {n}; left out, min / p10 / median / p90 / max: "
           f"{' / '.join(f'{v:.2f}' for v in np.percentile(left, q))}")
