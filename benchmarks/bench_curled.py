@@ -59,18 +59,12 @@ def one(ph, tmp: Path) -> tuple[dict, list[dict]]:
 
 def among(ph, seed: int, tmp: Path) -> tuple[str, str, int]:
     """The phantom beside an S-bend fish in one scan: (the phantom's status or "missing", the fish's, exit)."""
-    from napari_unwind.datasets import fish_phantom
+    import sys
 
-    f = fish_phantom(seed=seed, curve="s-bend", length=110, body_radius=7)
-    rng = np.random.default_rng(seed)
-    n0 = max(ph.volume.shape[0], f.volume.shape[0]) + 4
-    n1 = max(ph.volume.shape[1], f.volume.shape[1]) + 4
-    split = ph.volume.shape[2] + 6  # the phantom's side: axis2 < split
-    vol = rng.normal(104, 40, (n0, n1, split + f.volume.shape[2] + 6)).clip(0).astype(np.uint16)
-    for v, x0 in ((np.asarray(ph.volume), 4), (np.asarray(f.volume), split + 2)):
-        a0, a1 = (n0 - v.shape[0]) // 2, (n1 - v.shape[1]) // 2
-        box = (slice(a0, a0 + v.shape[0]), slice(a1, a1 + v.shape[1]), slice(x0, x0 + v.shape[2]))
-        vol[box] = np.maximum(vol[box], v)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from test_pipeline import beside_a_fish
+
+    vol, split = beside_a_fish(ph, seed)  # the phantom's side: axis2 < split
     scan = write_volume(vol, tmp / "scan.nrrd", spacing=ph.spacing)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

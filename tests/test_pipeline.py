@@ -209,6 +209,22 @@ def test_run_all_on_a_scan_with_nothing_specimen_like_says_so_and_exits_1(tmp_pa
     assert "rejected" in out  # a summary line per candidate
 
 
+def beside_a_fish(ph, seed: int) -> tuple[np.ndarray, int]:
+    """A phantom's scan beside an S-bend fish's in one scan (benchmarks/bench_curled.py --among): ``(volume uint16,
+    split)``, the phantom on axis 2 below ``split``, the fish above, in noise (104 +- 40)."""
+    f = fish_phantom(seed=seed, curve="s-bend", length=110, body_radius=7)
+    rng = np.random.default_rng(seed)
+    n0 = max(ph.volume.shape[0], f.volume.shape[0]) + 4
+    n1 = max(ph.volume.shape[1], f.volume.shape[1]) + 4
+    split = ph.volume.shape[2] + 6
+    vol = rng.normal(104, 40, (n0, n1, split + f.volume.shape[2] + 6)).clip(0).astype(np.uint16)
+    for v, x0 in ((np.asarray(ph.volume), 4), (np.asarray(f.volume), split + 2)):
+        a0, a1 = (n0 - v.shape[0]) // 2, (n1 - v.shape[1]) // 2
+        box = (slice(a0, a0 + v.shape[0]), slice(a1, a1 + v.shape[1]), slice(x0, x0 + v.shape[2]))
+        vol[box] = np.maximum(vol[box], v)
+    return vol, split
+
+
 def test_a_candidate_the_full_resolution_scan_does_not_bear_out_is_rejected_not_failed(tmp_path):
     # a coiled phantom's S-bend beside a fish (bench_curled --among, seed 1000), no click: the working level offered
     # a body that no feature holds where the full-resolution scan shows none above the medium. It was a "failed"
@@ -218,16 +234,7 @@ def test_a_candidate_the_full_resolution_scan_does_not_bear_out_is_rejected_not_
     from napari_unwind.progress import run
 
     ph = hard_fish_phantom(1000, kind="s-bend")
-    f = fish_phantom(seed=1000, curve="s-bend", length=110, body_radius=7)
-    rng = np.random.default_rng(1000)
-    n0 = max(ph.volume.shape[0], f.volume.shape[0]) + 4
-    n1 = max(ph.volume.shape[1], f.volume.shape[1]) + 4
-    split = ph.volume.shape[2] + 6
-    vol = rng.normal(104, 40, (n0, n1, split + f.volume.shape[2] + 6)).clip(0).astype(np.uint16)
-    for v, x0 in ((np.asarray(ph.volume), 4), (np.asarray(f.volume), split + 2)):
-        a0, a1 = (n0 - v.shape[0]) // 2, (n1 - v.shape[1]) // 2
-        box = (slice(a0, a0 + v.shape[0]), slice(a1, a1 + v.shape[1]), slice(x0, x0 + v.shape[2]))
-        vol[box] = np.maximum(vol[box], v)
+    vol, _ = beside_a_fish(ph, 1000)
     scan = write_volume(vol, tmp_path / "scan.nrrd", spacing=ph.spacing)
     res = run(run_all_iter(scan, tmp_path / "out"))
     rows = {r.label: r for r in res.specimens}
