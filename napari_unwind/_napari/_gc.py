@@ -58,6 +58,12 @@ def release(collect: bool = True) -> None:
 
 
 def _busy(dock: Any) -> bool:
+    """A dock of an open viewer whose step runs. A dock whose viewer closed is never busy: a job the close cut short
+    never reports its end, and the dock lingers until a collection frees its cycles (its ``idle`` would stay False
+    and hold back every other dock's collection)."""
+    if _private.viewer_closed(dock.viewer):
+        _DOCKS.discard(dock)
+        return False
     try:
         return not dock.idle
     except RuntimeError:  # its Qt widgets were deleted (the viewer closed)

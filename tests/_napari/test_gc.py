@@ -17,11 +17,11 @@ from napari_unwind._napari._widget import UnwindWidget  # noqa: E402
 pytestmark = pytest.mark.gui
 
 
-def _dock(make_napari_viewer, qtbot):
+def _dock(make_napari_viewer, qtbot, timeout=120_000):
     viewer = make_napari_viewer()
     w = UnwindWidget(viewer)
     viewer.window.add_dock_widget(w, name="Unwind")
-    qtbot.waitUntil(lambda: w.idle and not _gc.pending(), timeout=120_000)
+    qtbot.waitUntil(lambda: w.idle and not _gc.pending(), timeout=timeout)
     return viewer, w
 
 
@@ -85,3 +85,22 @@ def test_each_job_of_the_dock_is_followed_by_one_collection_when_idle(make_napar
         gc.callbacks.remove(count)
     assert passes, "no full collection after the job"
     assert gc.get_freeze_count() > 100_000  # and the survivors frozen again
+
+
+def test_a_dock_left_busy_behind_a_closed_viewer_does_not_hold_back_the_next(make_napari_viewer, qtbot, monkeypatch):
+    """A viewer closed while its dock was busy (a job the close cut short; the dock not yet freed, its cycles wait
+    for a collection) is done with: the next dock's first collection still runs. CI on 6b66dc6 waited 16 minutes
+    for it (five GUI tests timed out) until an allocation-driven full pass happened to free the old dock."""
+    monkeypatch.setattr(_gc, "RELEASE_AFTER_MS", 200)
+    old_viewer, old = _dock(make_napari_viewer, qtbot)
+
+    class Unfinished:  # what the dock holds of a job that will never report its end
+        done = running = False
+
+    old.job = Unfinished()
+    assert not old.idle
+    old_viewer.close()
+    # timed out here before the fix: ``old`` kept the release timer restarting
+    viewer, w = _dock(make_napari_viewer, qtbot, timeout=20_000)
+    assert old_viewer is not None and not old.idle  # the old dock still there, still busy
+    assert gc.get_freeze_count() > 100_000  # the new dock's first collection ran and froze the survivors

@@ -134,13 +134,15 @@ def hairpin_phantom(seed: int):
     return mask, line[0], line[-1], r, gap / r, line[len(lead_a):len(line) - len(lead_b)]
 
 
-def _check_fold(result, mask, pin, r):
+def _check_fold(result, mask, pin, r, says="fold"):
+    """``pin`` (the centreline of what the path skips, radius ``r``) is left out, and the result is partial because
+    the mask touches itself (the note saying ``says``), never ok with a branch cut."""
     from napari_unwind.pipeline import judge
 
     g = np.argwhere(mask).astype(float)
     on_pin = cKDTree(pin).query(g)[0] <= r
-    assert held(result.deformation, g[on_pin]).mean() < 0.5  # the hairpin is indeed left out
-    assert result.touching and "touches itself" in result.touching[0] and "fold" in result.touching[0]
+    assert held(result.deformation, g[on_pin]).mean() < 0.5  # what the path skips is indeed left out
+    assert result.touching and "touches itself" in result.touching[0] and says in result.touching[0]
     assert not any("branches between the ends" in w for w in result.warnings)
     status, reason = judge(result)
     assert status == "partial" and "touches itself" in reason, (status, reason)
@@ -221,17 +223,8 @@ def test_a_loop_that_the_path_skips_is_partial_and_named_not_cut_as_a_branch():
     # the loop is the tube's own: it hangs where the tube crosses itself, and the path between the ends goes
     # straight through the crossing. Left out, it makes the specimen partial (never ok), and the note says where the
     # mask touches itself, not that it branches.
-    from napari_unwind.pipeline import judge
-
     mask, head, tail, loop, r = _loop_crossed()
-    result = _solve(mask, (head, tail))
-    g = np.argwhere(mask).astype(float)
-    on_loop = cKDTree(loop).query(g)[0] <= r
-    assert held(result.deformation, g[on_loop]).mean() < 0.5  # the loop is indeed left out
-    assert result.touching and "touches itself" in result.touching[0]
-    assert not any("branches between the ends" in w for w in result.warnings)
-    status, reason = judge(result)
-    assert status == "partial" and "touches itself" in reason, (status, reason)
+    _check_fold(_solve(mask, (head, tail)), mask, loop, r, says="loop")
 
 
 @pytest.mark.parametrize("seed, stent", [(0, False), (101, True)])
