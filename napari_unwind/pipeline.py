@@ -448,9 +448,9 @@ def judge(skeleton: Any) -> tuple[str, str]:
     ``("ok", "")`` or ``("partial", reason)``.
 
     ``ok`` needs coverage >= :data:`MIN_COVERAGE`, no fold over the specimen, a mask that does not touch itself
-    between the ends (a skipped loop of the body) and, where the ends were suggested, a mask that does not branch
-    (which branch to follow is the user's choice, not the longest path's); the lost intervals of an ok specimen
-    (together under 1 % of its mask) stay in its figures.
+    between the ends (a skipped loop of the body, or a side of it beside the path) and, where the ends were
+    suggested, a mask that does not branch (which branch to follow is the user's choice, not the longest path's);
+    the lost intervals of an ok specimen (together under 1 % of its mask) stay in its figures.
     """
     from .io._volume import unit_label
     from .skeleton._foldfree import format_lost

@@ -81,7 +81,8 @@ class SkeletonResult:
         corners of the cage.
     touching : tuple of str
         Where the mask touches itself between the ends (a hairpin or coil whose sides touch): the path crosses
-        there and the stretch of body it skips is left out. A result with any is partial.
+        there and the stretch of body it skips is left out; or two sides of the body lie side by side along the
+        path, one of them not followed. A result with any is partial.
     left_out : float
         Fraction of the whole mask that the branches and loops cut off leave outside the straight volume (0 when
         nothing was cut); ``coverage`` is of the mask between the ends.
@@ -568,23 +569,16 @@ _RIDGE = 0.8  # of a section's deepest point: the depth above which a section's 
 _TWO_SIDED = 0.4  # of a cut part's volume: in sections with two cores, more than this and it is the body doubled
 
 
-def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float]) -> bool:
-    """Whether ``region`` (a part hanging off the path) is the body coming back on itself, not a branch.
+def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float]
+                  ) -> tuple[tuple[slice, ...], np.ndarray, int, np.ndarray]:
+    """``region`` (bool, working voxels) cut in shells of the geodesic distance from the head (``dist``), one
+    inscribed radius thick, and each shell into its 26-connected pieces of at least a tenth of a shell of the tube.
 
-    The part is cut in shells of the geodesic distance from the head (``dist``), one inscribed radius thick; the
-    shells' pieces (26-connected, each at least a tenth of a shell of the tube) and their contacts from one shell to
-    the next make a graph (the part's Reeb graph). A branch, even one that forks again, is a tree; a stretch of
-    the body that leaves where its two sides touch and comes back there (a loop, the turns of a coil that touch)
-    splits into two legs that meet again at its far end: a cycle. A hairpin whose two sides touch all along has
-    no cycle (its shells cross both sides at once) but its pieces are two tubes side by side: each has two cores,
-    where the part's own distance to its outline passes :data:`_RIDGE` of the piece's deepest, parted by the
-    waist where the sides meet, while a branch's section (round or flattened) has one. More than
-    :data:`_TWO_SIDED` of the part's volume in such pieces is the body doubled: 0.56-0.85 of it on hairpins whose
-    sides' centrelines lie 1.5-2 radii apart, at most 0.29 on the legs of 112 Y and graft phantoms
-    (tests/skeleton/test_branches.py, benchmarks/RESULTS.md).
+    Returns ``(box, labels, count, doubled)``: the region's bounding box, the pieces' labels 1..count within it (0:
+    outside or too small), and the voxels (within the box) of the pieces with two cores, where the region's own
+    distance to its outline passes :data:`_RIDGE` of the piece's deepest in two places parted by a waist: two
+    tubes side by side (a branch's section, round or flattened, has one core).
     """
-    if not region.any() or radius <= 0:
-        return False
     inside = np.argwhere(region)
     box = tuple(slice(int(a), int(b) + 1) for a, b in zip(inside.min(0), inside.max(0)))
     region, dist = region[box], dist[box]
@@ -597,8 +591,8 @@ def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Se
     # distance, to the first voxel outside, joins the cores of two sides that meet 1.5 radii apart along an axis)
     depth = ndi.distance_transform_edt(np.pad(region, 1), sampling=spacing)[1:-1, 1:-1, 1:-1] - 0.5 * min(spacing)
     labels = np.zeros(region.shape, dtype=np.int64)
+    doubled = np.zeros(region.shape, dtype=bool)
     count = 0
-    doubled = 0
     for b in range(1, int(band.max()) + 1):
         lab, n = ndi.label(band == b, _STRUCT26)
         if n == 0:
@@ -615,8 +609,60 @@ def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Se
             piece = lab[boxes[k - 1]] == k
             deep = depth[boxes[k - 1]]
             if ndi.label(piece & (deep >= _RIDGE * deep[piece].max()), _STRUCT26)[1] >= 2:
-                doubled += int(sizes[k - 1])
-    if doubled > _TWO_SIDED * int(region.sum()):
+                doubled[boxes[k - 1]] |= piece
+    return box, labels, count, doubled
+
+
+def _doubled_along(kept: np.ndarray, head_w: np.ndarray, spacing: Sequence[float]) -> tuple[float, np.ndarray | None]:
+    """The share of ``kept`` (bool, working voxels: the mask the path is straightened in) in sections with two cores
+    (:func:`_shell_pieces`, shells of the geodesic distance from ``head_w``), and the working voxel amid them
+    (None when there are none).
+
+    Where two sides of the body touch, the geodesic from the head crosses between them: a path that runs up one
+    side and stops at the turn (ends suggested at the far points of a hairpin) keeps the other side within its
+    sections, beside it in the straight volume and never followed. Measured: 0.45-0.63 of the kept mask on such
+    hairpins; at most 0.26 on fish, coils, tubes that touch themselves, Y and graft phantoms and the real scans
+    (benchmarks/RESULTS.md).
+    """
+    from scipy.sparse import csgraph
+    from scipy.spatial import cKDTree
+
+    from ._endpoints import _graph
+
+    if not kept.any():
+        return 0.0, None
+    wsp = np.asarray(spacing, dtype=float)
+    radius = float(ndi.distance_transform_edt(np.pad(kept, 1), sampling=wsp).max())
+    graph, coords = _graph(kept, wsp)
+    head = int(cKDTree(coords * wsp).query(np.asarray(head_w) * wsp)[1])
+    d = csgraph.dijkstra(graph, directed=False, indices=[head])[0]
+    dist = np.zeros(kept.shape)
+    dist[tuple(coords.T)] = np.where(np.isfinite(d), d, 0.0)
+    box, _, _, doubled = _shell_pieces(kept, dist, radius, wsp)
+    if not doubled.any():
+        return 0.0, None
+    at = np.argwhere(doubled)
+    depth = dist[box][doubled]
+    middle = at[int(np.argmin(np.abs(depth - np.median(depth))))]
+    return float(doubled.sum()) / float(kept.sum()), middle + np.array([b.start for b in box])
+
+
+def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float]) -> bool:
+    """Whether ``region`` (a part hanging off the path) is the body coming back on itself, not a branch.
+
+    The part is cut in shells of the geodesic distance from the head (:func:`_shell_pieces`); the pieces and
+    their contacts from one shell to the next make a graph (the part's Reeb graph). A branch, even one that forks
+    again, is a tree; a stretch of the body that leaves where its two sides touch and comes back there (a loop,
+    the turns of a coil that touch) splits into two legs that meet again at its far end: a cycle. A hairpin whose
+    two sides touch all along has no cycle (its shells cross both sides at once) but its pieces are two tubes side
+    by side, with two cores each. More than :data:`_TWO_SIDED` of the part's volume in such pieces is the body
+    doubled: 0.56-0.85 of it on hairpins whose sides' centrelines lie 1.5-2 radii apart, at most 0.29 on the legs
+    of 112 Y and graft phantoms (tests/skeleton/test_branches.py, benchmarks/RESULTS.md).
+    """
+    if not region.any() or radius <= 0:
+        return False
+    _, labels, count, doubled = _shell_pieces(region, dist, radius, spacing)
+    if doubled.sum() > _TWO_SIDED * int(region.sum()):
         return True
     if count < 3:
         return False
@@ -910,6 +956,14 @@ def estimate_deformation_iter(
         if cut_off:
             left_out = uncut & ~wm.binary
             uncut_count = int(uncut.sum())
+        # and what is kept: two sides of the body side by side along the path (one of them never followed)
+        doubled_share, doubled_at = _doubled_along(wm.binary, wm.to_working(snapped[0][0]), wm.working_spacing)
+        if doubled_share > _TWO_SIDED:
+            where = np.round(wm.from_working(doubled_at), 1).tolist()
+            touching.append(f"the mask touches itself along the path at {where} (voxels): "
+                            f"{100 * doubled_share:.2g} % of the mask straightened lies where two sides of "
+                            "the body run side by side, one of them not followed by the path")
+            note(touching[-1] + "; separate the touching sides in the mask")
         t = _stage("branches", timings, t)
 
     # the ends of every part: a quadratic over about one body width instead of the kinks that the point-like
