@@ -566,7 +566,7 @@ _BRANCH_BACK = 1.0  # inscribed radii: a branch is cut where its detour exceeds 
 
 
 _RIDGE = 0.8  # of a section's deepest point: the depth above which a section's core lies
-_TWO_SIDED = 0.4  # of a cut part's volume: in sections with two cores, more than this and it is the body doubled
+_TWO_SIDED = 0.4  # of a cut part or of the kept mask: more than this in sections with two cores is the body doubled
 
 
 def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float]
