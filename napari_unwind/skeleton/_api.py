@@ -577,8 +577,11 @@ def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: 
     Returns ``(box, labels, count, doubled)``: the region's bounding box, the pieces' labels 1..count within it (0:
     outside or too small), and the voxels (within the box) of the pieces with two cores, where the region's own
     distance to its outline passes :data:`_RIDGE` of the piece's deepest in two places parted by a waist: two
-    tubes side by side (a branch's section, round or flattened, has one core).
+    tubes side by side (a branch's section, round or flattened, has one core). A piece with a tunnel (a ring: the
+    wall of a hollow tube, whose ridge runs all round) is not counted.
     """
+    from skimage.measure import euler_number
+
     inside = np.argwhere(region)
     box = tuple(slice(int(a), int(b) + 1) for a, b in zip(inside.min(0), inside.max(0)))
     region, dist = region[box], dist[box]
@@ -608,7 +611,10 @@ def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: 
         for k in big:
             piece = lab[boxes[k - 1]] == k
             deep = depth[boxes[k - 1]]
-            if ndi.label(piece & (deep >= _RIDGE * deep[piece].max()), _STRUCT26)[1] >= 2:
+            # a ring (the section of a hollow tube's wall) has its ridge all round and breaks into cores too:
+            # two tubes side by side are a solid piece, a ring has a tunnel (Euler number 0, not 1)
+            if ndi.label(piece & (deep >= _RIDGE * deep[piece].max()), _STRUCT26)[1] >= 2 and \
+                    euler_number(np.pad(piece, 1), connectivity=3) == 1:
                 doubled[boxes[k - 1]] |= piece
     return box, labels, count, doubled
 
