@@ -569,10 +569,17 @@ _RIDGE = 0.8  # of a section's deepest point: the depth above which a section's 
 _TWO_SIDED = 0.4  # of a cut part or of the kept mask: more than this in sections with two cores is the body doubled
 
 
-def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float]
-                  ) -> tuple[tuple[slice, ...], np.ndarray, int, np.ndarray]:
+def _depth(region: np.ndarray, spacing: Sequence[float]) -> np.ndarray:
+    """The Euclidean distance (physical) of each voxel of ``region`` (bool) to the nearest voxel outside it, the
+    array's border counting as outside; 0 outside."""
+    return ndi.distance_transform_edt(np.pad(region, 1), sampling=spacing)[1:-1, 1:-1, 1:-1]
+
+
+def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float],
+                  edt: np.ndarray | None = None) -> tuple[tuple[slice, ...], np.ndarray, int, np.ndarray]:
     """``region`` (bool, working voxels) cut in shells of the geodesic distance from the head (``dist``), one
     inscribed radius thick, and each shell into its 26-connected pieces of at least a tenth of a shell of the tube.
+    ``edt``: the region's :func:`_depth` when the caller has it (the same array shape as ``region``).
 
     Returns ``(box, labels, count, doubled)``: the region's bounding box, the pieces' labels 1..count within it (0:
     outside or too small), and the voxels (within the box) of the pieces with two cores, where the region's own
@@ -592,7 +599,7 @@ def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: 
     min_size = 0.1 * math.pi * radius**3 / voxel
     # the distance to the outline, which lies half a voxel beyond the last voxel inside (the transform's own
     # distance, to the first voxel outside, joins the cores of two sides that meet 1.5 radii apart along an axis)
-    depth = ndi.distance_transform_edt(np.pad(region, 1), sampling=spacing)[1:-1, 1:-1, 1:-1] - 0.5 * min(spacing)
+    depth = (_depth(region, spacing) if edt is None else edt[box]) - 0.5 * min(spacing)
     labels = np.zeros(region.shape, dtype=np.int64)
     doubled = np.zeros(region.shape, dtype=bool)
     count = 0
@@ -619,10 +626,30 @@ def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: 
     return box, labels, count, doubled
 
 
-def _doubled_along(kept: np.ndarray, head_w: np.ndarray, spacing: Sequence[float]) -> tuple[float, np.ndarray | None]:
+def _along(kept: np.ndarray, head_w: np.ndarray, spacing: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """The geodesic distance (physical, on the 26-neighbour graph of ``kept``; 0 outside it and where unreached)
+    from the voxel of ``kept`` nearest ``head_w``, and :func:`_depth` of ``kept``."""
+    from scipy.sparse import csgraph
+    from scipy.spatial import cKDTree
+
+    from ._endpoints import _graph
+
+    wsp = np.asarray(spacing, dtype=float)
+    dist = np.zeros(kept.shape)
+    if kept.any():
+        graph, coords = _graph(kept, wsp)
+        head = int(cKDTree(coords * wsp).query(np.asarray(head_w) * wsp)[1])
+        d = csgraph.dijkstra(graph, directed=False, indices=[head])[0]
+        dist[tuple(coords.T)] = np.where(np.isfinite(d), d, 0.0)
+    return dist, _depth(kept, wsp)
+
+
+def _doubled_along(kept: np.ndarray, dist: np.ndarray, edt: np.ndarray, spacing: Sequence[float]
+                   ) -> tuple[float, np.ndarray | None]:
     """The share of ``kept`` (bool, working voxels: the mask the path is straightened in) in sections with two cores
-    (:func:`_shell_pieces`, shells of the geodesic distance from ``head_w``), and the working voxel amid them
-    (None when there are none).
+    (:func:`_shell_pieces`, shells of ``dist``, the geodesic distance from the head over ``kept``; ``edt`` its
+    :func:`_depth`: both as :func:`_cut_branches` hands them over), and the working voxel amid them (None when
+    there are none).
 
     Where two sides of the body touch, the geodesic from the head crosses between them: a path that runs up one
     side and stops at the turn (ends suggested at the far points of a hairpin) keeps the other side within its
@@ -630,21 +657,10 @@ def _doubled_along(kept: np.ndarray, head_w: np.ndarray, spacing: Sequence[float
     hairpins; at most 0.26 on fish, coils, tubes that touch themselves, Y and graft phantoms and the real scans
     (benchmarks/RESULTS.md).
     """
-    from scipy.sparse import csgraph
-    from scipy.spatial import cKDTree
-
-    from ._endpoints import _graph
-
     if not kept.any():
         return 0.0, None
     wsp = np.asarray(spacing, dtype=float)
-    radius = float(ndi.distance_transform_edt(np.pad(kept, 1), sampling=wsp).max())
-    graph, coords = _graph(kept, wsp)
-    head = int(cKDTree(coords * wsp).query(np.asarray(head_w) * wsp)[1])
-    d = csgraph.dijkstra(graph, directed=False, indices=[head])[0]
-    dist = np.zeros(kept.shape)
-    dist[tuple(coords.T)] = np.where(np.isfinite(d), d, 0.0)
-    box, _, _, doubled = _shell_pieces(kept, dist, radius, wsp)
+    box, _, _, doubled = _shell_pieces(kept, dist, float(edt.max()), wsp, edt)
     if not doubled.any():
         return 0.0, None
     at = np.argwhere(doubled)
@@ -692,9 +708,11 @@ def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Se
 
 
 def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
-                  ) -> tuple[WorkingMask, list[tuple[float, np.ndarray, bool, np.ndarray]]]:
-    """The working mask without the branches off the path between the two ends, and each branch cut off as
-    ``(length, junction in working voxels, loop, its working voxels (M, 3))``.
+                  ) -> tuple[WorkingMask, list[tuple[float, np.ndarray, bool, np.ndarray]],
+                             tuple[np.ndarray, np.ndarray]]:
+    """The working mask without the branches off the path between the two ends, each branch cut off as
+    ``(length, junction in working voxels, loop, its working voxels (M, 3))``, and :func:`_along` of what is kept
+    (the geodesic distance from the head and the depth, taken from this function's own when nothing was cut).
 
     A voxel's detour is ``d_head + d_tail - L`` (geodesic distances on the 26-neighbour graph, physical): about
     0 along the path and at most a few radii across it, twice the distance along a side branch from where it
@@ -714,23 +732,26 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
 
     binary = wm.binary
     if not binary.any():
-        return wm, []
+        return wm, [], _along(binary, head_w, wm.working_spacing)
     wsp = np.asarray(wm.working_spacing)
     graph, coords = _graph(binary, wsp)
     ends = [int(i) for i in cKDTree(coords * wsp).query(np.array([head_w, tail_w]) * wsp)[1]]  # nearest voxels
     d = csgraph.dijkstra(graph, directed=False, indices=ends)
+    dist = np.zeros(binary.shape)
+    dist[tuple(coords.T)] = np.where(np.isfinite(d[0]), d[0], 0.0)
+    edt = _depth(binary, wsp)
     total = float(d[0, ends[1]])
     if not np.isfinite(total) or total <= 0:
-        return wm, []
+        return wm, [], (dist, edt)
     detour = d[0] + d[1] - total
-    radius = float(ndi.distance_transform_edt(np.pad(binary, 1), sampling=wsp).max())
+    radius = float(edt.max())
     slack = _BRANCH_SLACK * radius
     off = np.zeros(binary.shape, dtype=bool)
     far = np.isfinite(detour) & (detour > slack)
     off[tuple(coords[far].T)] = True
     lab, n = ndi.label(off, _STRUCT26)
     if n == 0:
-        return wm, []
+        return wm, [], (dist, edt)
     det = np.zeros(binary.shape)
     det[tuple(coords.T)] = np.where(np.isfinite(detour), detour, 0.0)
     dq = np.zeros(binary.shape)
@@ -752,7 +773,7 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
             where = np.argwhere(part)[np.argmin(det[box][part])] + np.array([b.start for b in box])
             found.append((k, length, where.astype(float)))
     if not found:
-        return wm, []
+        return wm, [], (dist, edt)
     # back to the junction: the parts off the path by a smaller detour that touch a branch go with it (the stub
     # a branch leaves within the slack would pull the sections' centroids towards it)
     near = np.zeros(binary.shape, dtype=bool)
@@ -765,15 +786,14 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     kept &= lab2 == lab2[tuple(coords[ends[0]])]
     # each branch with all it took (its cut-back stub and what hangs beyond), as reported
     gone, _ = ndi.label(binary & ~kept, _STRUCT26)
-    dist = np.zeros(binary.shape)
-    dist[tuple(coords.T)] = np.where(np.isfinite(d[0]), d[0], 0.0)
     branches = []
     for k, length, where in found:
         ids = np.unique(gone[lab == k])
         region = np.isin(gone, ids[ids > 0])
         branches.append((length, where, _loops_back(region, dist, radius, wsp), np.argwhere(region)))
     rim = ndi.binary_dilation(kept, _STRUCT26)  # the kept part's partial voxels stay with it
-    return replace(wm, binary=kept, occupancy=np.where(rim, wm.occupancy, 0.0).astype(wm.occupancy.dtype)), branches
+    return (replace(wm, binary=kept, occupancy=np.where(rim, wm.occupancy, 0.0).astype(wm.occupancy.dtype)), branches,
+            _along(kept, head_w, wsp))
 
 
 def _context_given(bounds: np.ndarray, tissue: np.ndarray, knots: np.ndarray, asked: float, vox: float,
@@ -958,12 +978,13 @@ def estimate_deformation_iter(
         # a specimen that branches between its ends (a Y-shaped graft, a vessel's side branch): the path between
         # the ends is kept, the other branches are cut off at the junction and left out of the cage
         uncut = wm.binary
-        wm, cut_off = _cut_branches(wm, wm.to_working(snapped[0][0]), wm.to_working(snapped[0][1]))
+        wm, cut_off, (kept_dist, kept_edt) = _cut_branches(wm, wm.to_working(snapped[0][0]),
+                                                           wm.to_working(snapped[0][1]))
         if cut_off:
             left_out = uncut & ~wm.binary
             uncut_count = int(uncut.sum())
         # and what is kept: two sides of the body side by side along the path (one of them never followed)
-        doubled_share, doubled_at = _doubled_along(wm.binary, wm.to_working(snapped[0][0]), wm.working_spacing)
+        doubled_share, doubled_at = _doubled_along(wm.binary, kept_dist, kept_edt, wm.working_spacing)
         if doubled_share > _TWO_SIDED:
             where = np.round(wm.from_working(doubled_at), 1).tolist()
             touching.append(f"the mask touches itself along the path at {where} (voxels): "
@@ -974,8 +995,8 @@ def estimate_deformation_iter(
 
     # the ends of every part: a quadratic over about one body width instead of the kinks that the point-like
     # Dirichlet ends give the level-set centroids (the cage folds at such kinks)
-    end_window = end_window_factor * float(
-        ndi.distance_transform_edt(np.pad(wm.binary, 1), sampling=wm.working_spacing).max())
+    body_depth = kept_edt if len(snapped) == 1 else _depth(wm.binary, wm.working_spacing)
+    end_window = end_window_factor * float(body_depth.max())
     pieces = []
     mesh_info: list[dict[str, int]] = []
     for i, (pa, pb) in enumerate(snapped):
