@@ -40,7 +40,10 @@ def main() -> None:
     if args.hairpins is not None:
         return hairpins(*args.hairpins, suggested=args.suggested)
     if args.before:
-        api._cut_branches = lambda wm, head, tail: (wm, [], api._along(wm.binary, head, wm.working_spacing))
+        def uncut(wm, head, tail):
+            return api._Cut(wm, [], [], *api._along(wm.binary, head, wm.working_spacing))
+
+        api._cut_branches = uncut
     sets = ((False, range(8)), (True, range(100, 104))) if args.seeds is None else (
         (False, range(args.seeds[0], args.seeds[0] + args.seeds[1])),
         (True, range(args.seeds[0], args.seeds[0] + args.seeds[1])))

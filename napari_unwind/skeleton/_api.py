@@ -7,7 +7,7 @@ import time
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -81,8 +81,9 @@ class SkeletonResult:
         corners of the cage.
     touching : tuple of str
         Where the mask touches itself between the ends (a hairpin or coil whose sides touch): the path crosses
-        there and the stretch of body it skips is left out; or two sides of the body lie side by side along the
-        path, one of them not followed. A result with any is partial.
+        there and the loop of body it skips is left out, or the stretch it skips between two such places stays
+        beside the path, not straightened; or two sides of the body lie side by side along the path, one of them
+        not followed. A result with any is partial.
     left_out : float
         Fraction of the whole mask that the branches and loops cut off leave outside the straight volume (0 when
         nothing was cut); ``coverage`` is of the mask between the ends.
@@ -567,6 +568,7 @@ _BRANCH_BACK = 1.0  # inscribed radii: a branch is cut where its detour exceeds 
 
 _RIDGE = 0.8  # of a section's deepest point: the depth above which a section's core lies
 _TWO_SIDED = 0.4  # of a cut part or of the kept mask: more than this in sections with two cores is the body doubled
+_APART = 0.5  # of a part that is no dead end: at least this in shell pieces apart from the path's is a skipped stretch
 
 
 def _depth(region: np.ndarray, spacing: Sequence[float]) -> np.ndarray:
@@ -669,25 +671,30 @@ def _doubled_along(kept: np.ndarray, dist: np.ndarray, edt: np.ndarray, spacing:
     return float(doubled.sum()) / float(kept.sum()), middle + np.array([b.start for b in box])
 
 
-def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float]) -> bool:
+def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float],
+                kept: np.ndarray | None = None) -> bool:
     """Whether ``region`` (a part hanging off the path) is the body coming back on itself, not a branch.
 
     The part is cut in shells of the geodesic distance from the head (:func:`_shell_pieces`); the pieces and
     their contacts from one shell to the next make a graph (the part's Reeb graph). A branch, even one that forks
     again, is a tree; a stretch of the body that leaves where its two sides touch and comes back there (a loop,
-    the turns of a coil that touch) splits into two legs that meet again at its far end: a cycle. A hairpin whose
+    the turns of a coil that touch) splits into two legs that meet again at its far end: a cycle. With ``kept``
+    (the mask the path keeps) the graph has one more node, joined once to each group of touching pieces that lie
+    against it: a loop whose legs part before the cut (its sides touch at one place) meets the kept mask in two
+    groups, a branch in one (also where it runs along the path for a while). A hairpin whose
     two sides touch all along has no cycle (its shells cross both sides at once) but its pieces are two tubes side
     by side, with two cores each. More than :data:`_TWO_SIDED` of the part's volume in such pieces is the body
     doubled: 0.56-0.85 of it on hairpins whose sides' centrelines lie 1.5-2 radii apart, at most 0.29 on the legs
     of 112 Y and graft phantoms (tests/skeleton/test_branches.py, benchmarks/RESULTS.md).
     """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     if not region.any() or radius <= 0:
         return False
-    _, labels, count, doubled = _shell_pieces(region, dist, radius, spacing)
+    box, labels, count, doubled = _shell_pieces(region, dist, radius, spacing)
     if doubled.sum() > _TWO_SIDED * int(region.sum()):
         return True
-    if count < 3:
-        return False
     edges = set()
     pad = np.pad(labels, 1)
     core = tuple(slice(1, -1) for _ in range(3))
@@ -696,30 +703,54 @@ def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Se
         here = pad[core]
         both = (here > 0) & (other > 0) & (here != other)
         edges.update(zip(np.minimum(here[both], other[both]).tolist(), np.maximum(here[both], other[both]).tolist()))
+    if kept is not None and count:  # node 0: the kept mask, joined to one piece of each group lying against it
+        grown = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
+        near = ndi.binary_dilation(kept[grown], _STRUCT26)
+        near = near[tuple(slice(b.start - g.start, b.start - g.start + (b.stop - b.start)) for b, g in zip(box, grown))]
+        against = np.unique(labels[near & (labels > 0)])
+        if len(against) > 1:
+            aset = set(against.tolist())
+            inner = np.array([e for e in edges if e[0] in aset and e[1] in aset]).reshape(-1, 2)
+            index = {int(k): n for n, k in enumerate(against)}
+            sub = coo_matrix((np.ones(len(inner)), ([index[a] for a in inner[:, 0]], [index[b] for b in inner[:, 1]])),
+                             shape=(len(against), len(against)))
+            _, group = connected_components(sub, directed=False)
+            against = against[np.unique(group, return_index=True)[1]]
+        edges.update((0, int(k)) for k in against)
     if not edges:
         return False
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     e = np.array(sorted(edges))
-    graph = coo_matrix((np.ones(len(e)), (e[:, 0] - 1, e[:, 1] - 1)), shape=(count, count))
-    n_comp = connected_components(graph, directed=False)[0]
-    return len(e) - count + n_comp > 0  # independent cycles
+    nodes = count + 1  # node 0 (the kept mask, when given) and the pieces 1..count
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(nodes, nodes))
+    n_comp = connected_components(graph, directed=False)[0] - (0 if kept is not None else 1)  # node 0 unused
+    return len(e) - (nodes if kept is not None else count) + n_comp > 0  # independent cycles
 
 
-def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
-                  ) -> tuple[WorkingMask, list[tuple[float, np.ndarray, bool, np.ndarray]],
-                             tuple[np.ndarray, np.ndarray]]:
+class _Cut(NamedTuple):
+    """What :func:`_cut_branches` gives: the working mask kept, the branches cut off ``(length, junction, loop,
+    voxels)``, the stretches skipped ``(share of the mask, a working voxel on it farthest from the path)``, and
+    the kept mask's geodesic distance from the head and depth (:func:`_along`)."""
+
+    wm: WorkingMask
+    branches: list[tuple[float, np.ndarray, bool, np.ndarray]]
+    skipped: list[tuple[float, np.ndarray]]
+    dist: np.ndarray
+    edt: np.ndarray
+
+
+def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray) -> _Cut:
     """The working mask without the branches off the path between the two ends, each branch cut off as
-    ``(length, junction in working voxels, loop, its working voxels (M, 3))``, and :func:`_along` of what is kept
-    (the geodesic distance from the head and the depth, taken from this function's own when nothing was cut).
+    ``(length, junction in working voxels, loop, its working voxels (M, 3))``, the stretches of body the path
+    skips (:class:`_Cut`), and :func:`_along` of what is kept (taken from this function's own when nothing was cut).
 
     A voxel's detour is ``d_head + d_tail - L`` (geodesic distances on the 26-neighbour graph, physical): about
     0 along the path and at most a few radii across it, twice the distance along a side branch from where it
     leaves. The parts whose detour exceeds :data:`_BRANCH_SLACK` inscribed radii are the candidates; one is a
     branch when its length (half its largest detour, plus the slack) is at least :data:`_BRANCH_MIN_LENGTH` of L,
     it holds :data:`_BRANCH_MIN_SHARE` of the mask (so that fins and a forked tail stay) and it is a dead end
-    (``d_head - d_tail`` nearly constant over it; a stretch of a coil that the geodesic skipped is not). A branch
+    (``d_head - d_tail`` nearly constant over it). A part as long and as large that is no dead end is a stretch of
+    the body that the geodesic skipped where two turns touch (it meets the path at both its ends): it stays, and is
+    reported as skipped (the straight volume holds it beside the path, not straightened). A branch
     is cut back to where its detour passes :data:`_BRANCH_BACK` radii, with whatever the cut leaves hanging; its
     voxels are all it took (part of them, near the junction, may still lie in the path's cage).
     ``loop`` is True when what was cut comes back on itself (:func:`_loops_back`): the body touches itself there
@@ -732,7 +763,7 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
 
     binary = wm.binary
     if not binary.any():
-        return wm, [], _along(binary, head_w, wm.working_spacing)
+        return _Cut(wm, [], [], *_along(binary, head_w, wm.working_spacing))
     wsp = np.asarray(wm.working_spacing)
     graph, coords = _graph(binary, wsp)
     ends = [int(i) for i in cKDTree(coords * wsp).query(np.array([head_w, tail_w]) * wsp)[1]]  # nearest voxels
@@ -742,7 +773,7 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     edt = _depth(binary, wsp)
     total = float(d[0, ends[1]])
     if not np.isfinite(total) or total <= 0:
-        return wm, [], (dist, edt)
+        return _Cut(wm, [], [], dist, edt)
     detour = d[0] + d[1] - total
     radius = float(edt.max())
     slack = _BRANCH_SLACK * radius
@@ -751,13 +782,14 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     off[tuple(coords[far].T)] = True
     lab, n = ndi.label(off, _STRUCT26)
     if n == 0:
-        return wm, [], (dist, edt)
+        return _Cut(wm, [], [], dist, edt)
     det = np.zeros(binary.shape)
     det[tuple(coords.T)] = np.where(np.isfinite(detour), detour, 0.0)
     dq = np.zeros(binary.shape)
     dq[tuple(coords.T)] = np.where(np.isfinite(detour), d[0] - d[1], 0.0)
     cut = np.zeros(binary.shape, dtype=bool)
     found = []
+    skipped = []
     count = int(binary.sum())
     for k, box in enumerate(ndi.find_objects(lab), start=1):
         part = lab[box] == k
@@ -768,12 +800,29 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
         # touching) meets the path at both its ends, and the difference runs from one end's to the other's
         q = dq[box][part]
         dead_end = float(np.percentile(q, 95) - np.percentile(q, 5)) <= 2.0 * slack
-        if length >= _BRANCH_MIN_LENGTH * total and share >= _BRANCH_MIN_SHARE and dead_end:
-            cut[lab == k] = True
-            where = np.argwhere(part)[np.argmin(det[box][part])] + np.array([b.start for b in box])
-            found.append((k, length, where.astype(float)))
+        if length >= _BRANCH_MIN_LENGTH * total and share >= _BRANCH_MIN_SHARE:
+            if dead_end:
+                cut[lab == k] = True
+                where = np.argwhere(part)[np.argmin(det[box][part])] + np.array([b.start for b in box])
+                found.append((k, length, where.astype(float)))
+            else:  # the farthest point from the path: one to chain through
+                far_at = np.argwhere(part)[np.argmax(det[box][part])] + np.array([b.start for b in box])
+                skipped.append((k, share, far_at))
+    if skipped:
+        # a stretch the path skips lies apart from it in the shells of the geodesic distance from the head; the far
+        # side of a tall body along a tight coil is no dead end either, but it lies in the path's own shell pieces
+        sbox, pieces, _, _ = _shell_pieces(binary, dist, radius, wsp, edt)
+        path = np.zeros(binary.shape, dtype=bool)
+        path[tuple(coords[np.isfinite(detour) & (detour <= _BRANCH_BACK * radius)].T)] = True
+        apart = (pieces > 0) & ~np.isin(pieces, np.unique(pieces[path[sbox]]))
+        kept_apart = []
+        for k, share, at in skipped:
+            part = (lab == k)[sbox]
+            if float(apart[part].sum()) >= _APART * max(int(part.sum()), 1):
+                kept_apart.append((share, at))
+        skipped = kept_apart
     if not found:
-        return wm, [], (dist, edt)
+        return _Cut(wm, [], skipped, dist, edt)
     # back to the junction: the parts off the path by a smaller detour that touch a branch go with it (the stub
     # a branch leaves within the slack would pull the sections' centroids towards it)
     near = np.zeros(binary.shape, dtype=bool)
@@ -784,16 +833,17 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray
     kept = binary & ~cut
     lab2, _ = ndi.label(kept, _STRUCT26)  # what the cut leaves hanging (beyond the branch) goes with it
     kept &= lab2 == lab2[tuple(coords[ends[0]])]
+    skipped = [(share, at) for share, at in skipped if kept[tuple(at)]]  # not gone with a branch
     # each branch with all it took (its cut-back stub and what hangs beyond), as reported
     gone, _ = ndi.label(binary & ~kept, _STRUCT26)
     branches = []
     for k, length, where in found:
         ids = np.unique(gone[lab == k])
         region = np.isin(gone, ids[ids > 0])
-        branches.append((length, where, _loops_back(region, dist, radius, wsp), np.argwhere(region)))
+        branches.append((length, where, _loops_back(region, dist, radius, wsp, kept), np.argwhere(region)))
     rim = ndi.binary_dilation(kept, _STRUCT26)  # the kept part's partial voxels stay with it
-    return (replace(wm, binary=kept, occupancy=np.where(rim, wm.occupancy, 0.0).astype(wm.occupancy.dtype)), branches,
-            _along(kept, head_w, wsp))
+    return _Cut(replace(wm, binary=kept, occupancy=np.where(rim, wm.occupancy, 0.0).astype(wm.occupancy.dtype)),
+                branches, skipped, *_along(kept, head_w, wsp))
 
 
 def _context_given(bounds: np.ndarray, tissue: np.ndarray, knots: np.ndarray, asked: float, vox: float,
@@ -978,8 +1028,15 @@ def estimate_deformation_iter(
         # a specimen that branches between its ends (a Y-shaped graft, a vessel's side branch): the path between
         # the ends is kept, the other branches are cut off at the junction and left out of the cage
         uncut = wm.binary
-        wm, cut_off, (kept_dist, kept_edt) = _cut_branches(wm, wm.to_working(snapped[0][0]),
-                                                           wm.to_working(snapped[0][1]))
+        cut = _cut_branches(wm, wm.to_working(snapped[0][0]), wm.to_working(snapped[0][1]))
+        wm, cut_off, kept_dist, kept_edt = cut.wm, cut.branches, cut.dist, cut.edt
+        for share, at in cut.skipped:  # a stretch of body skipped where two turns touch: not straightened
+            where = np.round(wm.from_working(at), 1).tolist()
+            touching.append(f"the mask touches itself between the ends: the path crosses where two turns touch and "
+                            f"skips a stretch of the body through {where} (voxels), {100 * share:.2g} % of the mask, "
+                            "which lies in the straight volume beside the path, not straightened")
+            note(touching[-1] + "; separate the touching turns in the mask, or straighten it as a chain of two "
+                 f"parts through that point (--chain HEAD P --chain P TAIL, P = {where})")
         if cut_off:
             left_out = uncut & ~wm.binary
             uncut_count = int(uncut.sum())
