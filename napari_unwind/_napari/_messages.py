@@ -44,6 +44,10 @@ _ADVICE: tuple[tuple[str, str], ...] = (
     (r", or straighten it as a chain of two parts that meet on the loop \(--chain HEAD P --chain P TAIL, P a point "
      r"on the loop\)", ", or straighten it in two parts that meet on the loop: the head, two points next to each "
      "other on the loop and the tail in the \"ends\" layer, in that order (Ends)"),
+    # skeleton/_api.py: a stretch of the body that the path skips between two places where the mask touches itself
+    (r", or straighten it as a chain of two parts through that point \(--chain HEAD P --chain P TAIL, P = [^)]*\)",
+     ", or straighten it in two parts that meet at that point: the head, two points next to each other there and "
+     "the tail in the \"ends\" layer, in that order (Ends)"),
     # pipeline.judge: a branched mask straightened between suggested ends
     (r"; give the head and tail \(--head, --tail\) at the ends of the branch to straighten",
      "; drag the head and tail in the \"ends\" layer to the ends of the branch to straighten (Ends)"),

@@ -83,3 +83,15 @@ def test_the_fold_warning_names_the_refine_step():
     assert for_dock(text) == ("the deformation folds (the cage is wider than the bend's radius) at s = 1-2 mm: "
                               "shrink the cage there (Refine: drag the cage's sides inward in the cross-section, "
                               "at those s)")
+
+
+def test_the_skipped_stretch_names_the_ends_layer_with_its_point():
+    text = ("the mask touches itself between the ends: the path crosses where two turns touch and skips a stretch of "
+            "the body through [27.0, 33.0, 61.0] (voxels), 34 % of the mask, which lies in the straight volume beside "
+            "the path, not straightened; separate the touching turns in the mask, or straighten it as a chain of two "
+            "parts through that point (--chain HEAD P --chain P TAIL, P = [27.0, 33.0, 61.0])")
+    shown = for_dock(text)
+    assert shown.endswith("separate the touching turns in the mask, or straighten it in two parts that meet at that "
+                          "point: the head, two points next to each other there and the tail in the \"ends\" layer, "
+                          "in that order (Ends)"), shown
+    assert "through [27.0, 33.0, 61.0] (voxels)" in shown
