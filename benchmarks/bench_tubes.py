@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import warnings
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -49,13 +50,25 @@ def tube(rng: np.random.Generator, grid: np.ndarray) -> tuple | None:
     return mask, (np.where(mask, 1000.0, 100.0) + noise).astype(np.float32), c, r, approach / r
 
 
+def grid_points() -> np.ndarray:
+    """The voxel centres of SHAPE, (N, 3) in index order."""
+    return np.stack(np.meshgrid(*[np.arange(n, dtype=float) for n in SHAPE], indexing="ij"), -1).reshape(-1, 3)
+
+
+def tubes(seed: int, indices: Sequence[int]) -> dict[int, tuple | None]:
+    """The tubes ``indices`` as this benchmark draws them with ``--seed seed`` (``tube``'s tuple, or None)."""
+    rng = np.random.default_rng(seed)
+    grid = grid_points()
+    return {i: t for i, t in ((i, tube(rng, grid)) for i in range(max(indices) + 1)) if i in indices}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=22)
     ap.add_argument("--n", type=int, default=40, help="curves drawn (short ones are skipped)")
     args = ap.parse_args()
     rng = np.random.default_rng(args.seed)
-    grid = np.stack(np.meshgrid(*[np.arange(n, dtype=float) for n in SHAPE], indexing="ij"), -1).reshape(-1, 3)
+    grid = grid_points()
     rows = {False: [], True: []}
     for i in range(args.n):
         t = tube(rng, grid)

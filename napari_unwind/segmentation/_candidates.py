@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
+from .._morphology import depth_map
 from ..errors import InvalidInputError
 from ._features import Features, FeatureStats, _enclosers
 
@@ -537,7 +538,7 @@ def _split(body: np.ndarray, spacing: np.ndarray, *, saddle: float, min_share: f
     """Touching bodies apart: a watershed of the distance transform seeded by its maxima, regions merged while
     the saddle between them is shallow (``>= saddle`` x the lower of their two peaks) or one is small (below
     ``min_share`` of its neighbour). Returns the part labels (0 outside) and their number."""
-    edt = ndimage.distance_transform_edt(np.pad(body, 1), sampling=spacing)[1:-1, 1:-1, 1:-1]
+    edt = depth_map(body, spacing)
     from skimage.morphology import h_maxima
     from skimage.segmentation import watershed
 
@@ -636,7 +637,7 @@ def _split_by_features(parts: np.ndarray, n: int, labels: np.ndarray, stats: dic
         markers = np.zeros(parts.shape, np.int32)
         for j, f in enumerate(big, start=1):
             markers[part & (labels == f)] = j
-        edt = ndimage.distance_transform_edt(np.pad(part, 1), sampling=spacing)[1:-1, 1:-1, 1:-1]
+        edt = depth_map(part, spacing)
         sub = watershed(-edt, markers, mask=part)
         for j in range(1, len(big) + 1):
             m += 1

@@ -12,6 +12,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy import ndimage as ndi
 
+from .._morphology import depth_map
 from ..deformation import Deformation, Keyframe, parallel_transport_frames
 from ..errors import InvalidInputError
 from ..io._volume import Volume, check_spacing, normalise_unit, unit_label
@@ -571,17 +572,11 @@ _TWO_SIDED = 0.4  # of a cut part or of the kept mask: more than this in section
 _APART = 0.5  # of a part that is no dead end: at least this in shell pieces apart from the path's is a skipped stretch
 
 
-def _depth(region: np.ndarray, spacing: Sequence[float]) -> np.ndarray:
-    """The Euclidean distance (physical) of each voxel of ``region`` (bool) to the nearest voxel outside it, the
-    array's border counting as outside; 0 outside."""
-    return ndi.distance_transform_edt(np.pad(region, 1), sampling=spacing)[1:-1, 1:-1, 1:-1]
-
-
 def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float],
                   edt: np.ndarray | None = None) -> tuple[tuple[slice, ...], np.ndarray, int, np.ndarray]:
     """``region`` (bool, working voxels) cut in shells of the geodesic distance from the head (``dist``), one
     inscribed radius thick, and each shell into its 26-connected pieces of at least a tenth of a shell of the tube.
-    ``edt``: the region's :func:`_depth` when the caller has it (the same array shape as ``region``).
+    ``edt``: the region's ``depth_map`` when the caller has it (the same array shape as ``region``).
 
     Returns ``(box, labels, count, doubled)``: the region's bounding box, the pieces' labels 1..count within it (0:
     outside or too small), and the voxels (within the box) of the pieces with two cores, where the region's own
@@ -601,7 +596,7 @@ def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: 
     min_size = 0.1 * math.pi * radius**3 / voxel
     # the distance to the outline, which lies half a voxel beyond the last voxel inside (the transform's own
     # distance, to the first voxel outside, joins the cores of two sides that meet 1.5 radii apart along an axis)
-    depth = (_depth(region, spacing) if edt is None else edt[box]) - 0.5 * min(spacing)
+    depth = (depth_map(region, spacing) if edt is None else edt[box]) - 0.5 * min(spacing)
     labels = np.zeros(region.shape, dtype=np.int64)
     doubled = np.zeros(region.shape, dtype=bool)
     count = 0
@@ -630,7 +625,7 @@ def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: 
 
 def _along(kept: np.ndarray, head_w: np.ndarray, spacing: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
     """The geodesic distance (physical, on the 26-neighbour graph of ``kept``; 0 outside it and where unreached)
-    from the voxel of ``kept`` nearest ``head_w``, and :func:`_depth` of ``kept``."""
+    from the voxel of ``kept`` nearest ``head_w``, and ``depth_map`` of ``kept``."""
     from scipy.sparse import csgraph
     from scipy.spatial import cKDTree
 
@@ -643,14 +638,14 @@ def _along(kept: np.ndarray, head_w: np.ndarray, spacing: Sequence[float]) -> tu
         head = int(cKDTree(coords * wsp).query(np.asarray(head_w) * wsp)[1])
         d = csgraph.dijkstra(graph, directed=False, indices=[head])[0]
         dist[tuple(coords.T)] = np.where(np.isfinite(d), d, 0.0)
-    return dist, _depth(kept, wsp)
+    return dist, depth_map(kept, wsp)
 
 
 def _doubled_along(kept: np.ndarray, dist: np.ndarray, edt: np.ndarray, spacing: Sequence[float]
                    ) -> tuple[float, np.ndarray | None]:
     """The share of ``kept`` (bool, working voxels: the mask the path is straightened in) in sections with two cores
     (:func:`_shell_pieces`, shells of ``dist``, the geodesic distance from the head over ``kept``; ``edt`` its
-    :func:`_depth`: both as :func:`_cut_branches` hands them over), and the working voxel amid them (None when
+    ``depth_map``: both as :func:`_cut_branches` hands them over), and the working voxel amid them (None when
     there are none).
 
     Where two sides of the body touch, the geodesic from the head crosses between them: a path that runs up one
@@ -770,7 +765,7 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray) -> _C
     d = csgraph.dijkstra(graph, directed=False, indices=ends)
     dist = np.zeros(binary.shape)
     dist[tuple(coords.T)] = np.where(np.isfinite(d[0]), d[0], 0.0)
-    edt = _depth(binary, wsp)
+    edt = depth_map(binary, wsp)
     total = float(d[0, ends[1]])
     if not np.isfinite(total) or total <= 0:
         return _Cut(wm, [], [], dist, edt)
@@ -1052,7 +1047,7 @@ def estimate_deformation_iter(
 
     # the ends of every part: a quadratic over about one body width instead of the kinks that the point-like
     # Dirichlet ends give the level-set centroids (the cage folds at such kinks)
-    body_depth = kept_edt if len(snapped) == 1 else _depth(wm.binary, wm.working_spacing)
+    body_depth = kept_edt if len(snapped) == 1 else depth_map(wm.binary, wm.working_spacing)
     end_window = end_window_factor * float(body_depth.max())
     pieces = []
     mesh_info: list[dict[str, int]] = []

@@ -35,6 +35,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
+from .._morphology import depth_map
 from ..errors import InvalidInputError
 from ..io._volume import check_spacing
 
@@ -292,7 +293,7 @@ def _tip_point(
     for ax in range(3):
         part = np.repeat(part, f[ax], axis=ax)
     local = crop[sub] & part[: hi[0] - lo[0], : hi[1] - lo[1], : hi[2] - lo[2]]
-    edt = ndimage.distance_transform_edt(np.pad(local, 1), sampling=sp)[1:-1, 1:-1, 1:-1]
+    edt = depth_map(local, sp)
     q = node * f - lo
     blk = edt[q[0]:q[0] + f[0], q[1]:q[1] + f[1], q[2]:q[2] + f[2]]
     k = np.asarray(np.unravel_index(int(np.argmax(blk)), blk.shape))

@@ -269,20 +269,16 @@ def tubes_1234():
     """Tubes 5 and 13 of benchmarks/bench_tubes.py seed 1234 (round tubes along random curves that come back to
     touch themselves), each with where its curve comes nearest itself ``(j, k)``, curve indices more than 4 radii
     apart along it."""
-    from benchmarks.bench_tubes import SHAPE, tube
+    from benchmarks.bench_tubes import tubes
 
-    rng = np.random.default_rng(1234)
-    grid = np.stack(np.meshgrid(*[np.arange(n, dtype=float) for n in SHAPE], indexing="ij"), -1).reshape(-1, 3)
     out = {}
-    for i in range(14):
-        t = tube(rng, grid)
-        if i in (5, 13):
-            c, r = t[2], t[3]
-            s = np.r_[0, np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))]
-            d = np.linalg.norm(c[:, None] - c[None], axis=2)
-            d[np.abs(s[:, None] - s[None]) <= 4 * r] = np.inf
-            j, k = sorted(np.unravel_index(int(np.argmin(d)), d.shape))
-            out[i] = (*t, s, j, k)
+    for i, t in tubes(1234, (5, 13)).items():
+        c, r = t[2], t[3]
+        s = np.r_[0, np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))]
+        d = np.linalg.norm(c[:, None] - c[None], axis=2)
+        d[np.abs(s[:, None] - s[None]) <= 4 * r] = np.inf
+        j, k = sorted(np.unravel_index(int(np.argmin(d)), d.shape))
+        out[i] = (*t, s, j, k)
     return out
 
 
