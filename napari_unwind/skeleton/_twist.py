@@ -31,7 +31,11 @@ Method
    90-degree flip of a near-round section) cancel in it, although each alone may look elongated. Divided by the
    local mean reliability (at least 0.1: a 5-voxel section), it is the agreement the confidence reads: a thin
    tail's small sections weigh less in the estimate, but where they agree the estimate is followed. The
-   confidence is 0 below half of ``min_anisotropy`` and 1 from twice it (a smoothstep between). The twist is the blend
+   confidence is 0 below half of ``min_anisotropy`` and 1 from twice it (a smoothstep between). It is weighed by the
+   precision of the smoothed angle: its standard error, from the sections' scatter about the local fit and the
+   fit's equivalent kernel (large at a thin tail's tip, where a few small sections, each off by tens of degrees,
+   carry a line extrapolated from one side), scales the confidence by ``(2 degrees / error)^2`` where it exceeds 2
+   degrees (an inverse-variance weight: such a stretch is smoothed more, not dropped). The twist is the blend
    (a tridiagonal least-squares solve, see :func:`_blend`) that follows the unwrapped estimate where the
    confidence is 1 and keeps the twist rate 0 (the minimal-rotation frames) where it is 0, constant between two
    confident stretches, smooth everywhere: never a jump.
@@ -84,6 +88,7 @@ _MAX_GRID = 49  # samples across the disc diameter
 _FULL_SECTION = 50.0  # voxels in a cross-section for its orientation to count fully
 _CUT_FULL, _CUT_NONE = 0.1, 0.3  # share of a section's outline along excluded voxels: counted fully / not at all
 _MIN_RELIABLE = 0.1  # reliability (a 5-voxel section) below which a section's agreement counts less
+_ANGLE_ERROR = 2.0  # degrees: a smoothed angle whose standard error is larger is followed by (this / it)^2
 _MAX_RADIUS_VOXELS = 50_000  # mask voxels used to estimate the default radius
 _CUES = ("auto", "density", "shape")
 _ORIENTED = 0.25  # orientation strength of a clearly oriented stretch (a fish's trunk: 0.4-0.5; a 0.8 ellipse: 0.22)
@@ -259,7 +264,8 @@ def estimate_twist(
         Radians, continuous along the curve; ``apply_twist(frames, angles)`` gives frames whose ``v`` is dorsal.
     info : dict
         Only with ``return_info``: ``"anisotropy"`` (K,) the smoothed anisotropy in [0, 1]; ``"strength"`` (K,)
-        the orientation strength; ``"confidence"`` (K,) in [0, 1], how much the estimate was followed;
+        the orientation strength; ``"angle_error"`` (K,) the standard error (degrees) of the smoothed angle;
+        ``"confidence"`` (K,) in [0, 1], how much the estimate was followed;
         ``"oriented"`` the fraction of the length with strength >= 0.25; ``"sign_cue"`` the
         cue that chose the dorsal side (``"density"``, ``"shape"`` or ``"none"``); ``"scores"`` the score of
         each cue (positive: ``v`` was dorsal before the sign choice); ``"radius"``, ``"smoothing"``;
@@ -367,7 +373,7 @@ def estimate_twist(
 
     # -- smooth along s (local linear fit of the doubled-angle vectors), evaluated at every point
     s_sec = s_all[sec]
-    zhat, (conf_s, rel_s) = _local_linear(s_sec, z, np.stack([conf, rel]), s_all, smoothing)
+    zhat, (conf_s, rel_s), zerr = _local_linear(s_sec, z, np.stack([conf, rel]), s_all, smoothing)
     # -- confidence: the smoothed doubled-angle vector's length is the anisotropy that survives averaging the
     # orientations along s; sections that disagree (a round vessel's noise, the flip of a near-round section's
     # major axis) cancel in it although each alone may look elongated
@@ -375,10 +381,17 @@ def estimate_twist(
     # the confidence reads the agreement per unit of reliability: small sections weigh less in the estimate, but
     # where they all agree (a thin tail) their agreement is not less; below _MIN_RELIABLE it fades with their size
     agreement = strength / np.maximum(rel_s, _MIN_RELIABLE)
-    confidence = _smoothstep(agreement, 0.5 * min_anisotropy, 2.0 * min_anisotropy)
+    # -- and its precision: the standard error of the smoothed angle (half that of the doubled angle), from the
+    # sections' scatter about the local fit and how many carry it; large at a thin tail's tip, where a few small
+    # sections, each erring by tens of degrees, carry a fit extrapolated from one side; beyond _ANGLE_ERROR the
+    # confidence falls as its inverse variance, so that such a stretch is smoothed into its neighbours, not dropped
+    angle_error = np.degrees(0.5 * zerr / np.maximum(strength, 1e-12))
+    precise = np.minimum(1.0, (_ANGLE_ERROR / np.maximum(angle_error, 1e-12)) ** 2)
+    confidence = _smoothstep(agreement, 0.5 * min_anisotropy, 2.0 * min_anisotropy) * precise
     ds = np.gradient(s_all) if k_pts > 1 else np.ones(1)
     oriented = float(ds[strength >= _ORIENTED].sum() / max(ds.sum(), 1e-300))
     info: dict[str, Any] = {"radius": radius, "smoothing": smoothing, "anisotropy": conf_s, "strength": strength,
+                            "angle_error": angle_error,
                             "confidence": confidence, "oriented": oriented, "round": False, "sign_cue": "none",
                             "scores": {}}
     if oriented < min_oriented:
@@ -734,13 +747,21 @@ def _min_eig(cxx: np.ndarray, cyy: np.ndarray, cxy: np.ndarray) -> np.ndarray:
 
 def _local_linear(
     s_in: np.ndarray, z: np.ndarray, c: np.ndarray, s_out: np.ndarray, sigma: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Gaussian-weighted local linear fit of ``z(s_in)`` evaluated at ``s_out``, and the local mean of ``c``
-    (shape (len(s_in),), or (m, len(s_in)) for m quantities averaged with the same weights)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gaussian-weighted local linear fit of ``z(s_in)`` evaluated at ``s_out``, the local mean of ``c``
+    (shape (len(s_in),), or (m, len(s_in)) for m quantities averaged with the same weights), and the standard error
+    of the fit's value at each ``s_out`` (the same units as ``z``).
+
+    The fit's value is ``a = sum_i l_i z_i`` with the local linear (equivalent kernel) weights ``l_i``; its standard
+    error is ``sqrt(sum_i l_i^2 |r_i|^2)`` with ``r_i`` the residual of ``z_i`` about the local line, scaled by
+    ``n / (n - 2)`` for the two fitted coefficients (``n`` the window's effective number of samples). It is large
+    where few samples carry the fit or where they scatter, and at the ends, where the line is extrapolated from one
+    side."""
     c = np.asarray(c, dtype=float)
     out_z = np.empty(len(s_out), dtype=complex)
+    out_e = np.empty(len(s_out))
     out_c = np.empty(c.shape[:-1] + (len(s_out),))
-    block = max(1, 4_000_000 // max(1, len(s_in)))
+    block = max(1, 2_000_000 // max(1, len(s_in)))
     for b0 in range(0, len(s_out), block):
         so = s_out[b0:b0 + block]
         d = (s_in[None, :] - so[:, None]) / sigma
@@ -748,14 +769,20 @@ def _local_linear(
         s0 = g.sum(axis=1)
         s1 = (g * d).sum(axis=1)
         s2 = (g * d * d).sum(axis=1)
-        t0 = g @ z
-        t1 = (g * d) @ z
         det = s0 * s2 - s1 * s1
         lin = det > 1e-9 * np.maximum(s0 * s2, 1e-300)
-        a = np.where(lin, (s2 * t0 - s1 * t1) / np.where(lin, det, 1.0), t0 / np.maximum(s0, 1e-300))
+        safe = np.where(lin, det, 1.0)[:, None]
+        # equivalent kernels of the intercept and of the slope (the window's mean where no line is determined)
+        lw = np.where(lin[:, None], g * (s2[:, None] - s1[:, None] * d) / safe, g / np.maximum(s0, 1e-300)[:, None])
+        mw = np.where(lin[:, None], g * (s0[:, None] * d - s1[:, None]) / safe, 0.0)
+        a = lw @ z
+        b = mw @ z
+        r2 = np.abs(z[None, :] - a[:, None] - b[:, None] * d) ** 2
+        n_eff = s0 * s0 / np.maximum((g * g).sum(axis=1), 1e-300)
         out_z[b0:b0 + block] = a
+        out_e[b0:b0 + block] = np.sqrt((lw * lw * r2).sum(axis=1) * n_eff / np.maximum(n_eff - 2.0, 1.0))
         out_c[..., b0:b0 + block] = (c @ g.T) / np.maximum(s0, 1e-300)
-    return out_z, out_c
+    return out_z, out_c, out_e
 
 
 def _unwrapped_interp(s: np.ndarray, angle: np.ndarray, good: np.ndarray) -> np.ndarray:
