@@ -150,7 +150,7 @@ def _along_itself(crop: np.ndarray, spacing: np.ndarray) -> tuple[float, float, 
     from ..skeleton._endpoints import _graph, _longest_geodesic  # the 26-neighbour graph, physical edge lengths
 
     sp = np.asarray(spacing, dtype=float)
-    r = float(ndimage.distance_transform_edt(np.pad(crop, 1), sampling=sp).max())
+    r = float(depth_map(crop, sp).max())
     n = int(np.count_nonzero(crop))
     if n < 2 or r <= 0:
         return 0.0, 0.0, np.inf
@@ -302,7 +302,7 @@ def _scan_levels(features: Features, ids: list[int], lab: np.ndarray, volume: An
     if shape != tuple(int(n) for n in features.full_shape):
         raise InvalidInputError(f"the scan has shape {shape}, but these features were computed on a volume of shape "
                                 f"{tuple(features.full_shape)}")
-    thick = float(ndimage.distance_transform_edt(np.pad(lab[_box(lab, 0)], 1)).max())
+    thick = float(depth_map(lab[_box(lab, 0)], (1.0, 1.0, 1.0)).max())  # working voxels
     pad = int(np.ceil(max(4.0, 3.0 * thick)))  # working voxels
     box = _box(lab, pad)
     scale = np.asarray(features.scale, dtype=float)
@@ -354,7 +354,7 @@ def _levels(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.nd
 
 def _levels_around(features: Features, ids: list[int], lab: np.ndarray, basin_id: np.ndarray
                    ) -> tuple[float, float] | None:
-    thick = float(ndimage.distance_transform_edt(np.pad(lab[_box(lab, 0)], 1)).max())
+    thick = float(depth_map(lab[_box(lab, 0)], (1.0, 1.0, 1.0)).max())  # working voxels
     pad = int(np.ceil(max(4.0, 3.0 * thick)))
     box = _box(lab, pad)
     dist = ndimage.distance_transform_edt(~lab[box])

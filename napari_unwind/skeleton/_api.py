@@ -301,7 +301,7 @@ def _across(wm: WorkingMask) -> float:
     """The thickest section of the working mask, in full-resolution voxels (twice the largest inscribed radius)."""
     if not wm.binary.any():
         return 0.0
-    return 2.0 * float(ndi.distance_transform_edt(np.pad(wm.binary, 1)).max()) * wm.factor
+    return 2.0 * float(depth_map(wm.binary, (1.0, 1.0, 1.0)).max()) * wm.factor
 
 
 def _slender_working_mask(mask: Any, sp: np.ndarray, volume: Any, max_side: int) -> WorkingMask:

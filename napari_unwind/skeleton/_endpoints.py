@@ -214,10 +214,10 @@ def suggest_endpoints(
     length = float(da[b])
 
     # -- is there an axis at all?
-    solid = np.pad((counts >= 0.5 * np.prod(f)) & coarse, 1)
+    solid = (counts >= 0.5 * np.prod(f)) & coarse
     if not solid.any():
-        solid = np.pad(coarse, 1)
-    r_in = float(ndimage.distance_transform_edt(solid, sampling=csp).max())
+        solid = coarse
+    r_in = float(depth_map(solid, csp).max())
     elongation = length / (2.0 * r_in)
     if elongation < _MIN_ELONGATION:
         raise InvalidInputError(
