@@ -1,13 +1,16 @@
 """Branched specimens (issue 23 item 2): what the cage holds of the chosen path and of the other leg.
 
     .venv/bin/python -m benchmarks.bench_branches [--before] [--seeds FIRST N] [--hairpins FIRST N] [--suggested]
+        [--no-thickness]
 
 The Y phantoms (seeds 0-7) and graft-like ones (seeds 100-103) of tests/skeleton/test_branches.py, ends at the trunk
 and at leg A; held fractions by tests/cage_reference.py's inverse (the path; leg B from where the legs part); a Y
 taken for the body touching itself (partial) is counted. ``--hairpins``: instead, N of the tests' hairpins whose
 sides touch (``hairpin_phantom``), by its topology a Y: each is to be partial ("touches itself"), not a branch.
 ``--suggested``: no ends given (the suggested ones, as a run with no click), and only each result's status.
-``--before``: the same solve with the branch cut switched off (the code before it).
+``--before``: the same solve with the branch cut switched off (the code before it). ``--no-thickness``: a part cut
+off is read as the body doubled by its two-cored sections only, not also by its sections' size (the code before
+``_thick_pieces``).
 """
 
 from __future__ import annotations
@@ -36,7 +39,10 @@ def main() -> None:
     ap.add_argument("--hairpins", type=int, nargs=2, metavar=("FIRST", "N"), default=None,
                     help="N hairpins whose sides touch, from seed FIRST on, instead of the Y phantoms")
     ap.add_argument("--suggested", action="store_true", help="no ends given: each result's status only")
+    ap.add_argument("--no-thickness", action="store_true", help="do not read the cut parts' sections' size")
     args = ap.parse_args()
+    if args.no_thickness:
+        api._THICK_PIECES = np.inf
     if args.hairpins is not None:
         return hairpins(*args.hairpins, suggested=args.suggested)
     if args.before:

@@ -1,17 +1,18 @@
 """Round tubes along random 3D curves (issue 23 item 1, a vessel family drawn from a seed): is each taken as round,
 and how far do its frames roll against the rotation-minimising frames?
 
-    .venv/bin/python -m benchmarks.bench_tubes [--seed 22] [--n 40]
+    .venv/bin/python -m benchmarks.bench_tubes [--seed 22] [--n 40] [--no-thickness]
 
 Tube i: a radius of 3-8 voxels around a cubic spline through 6 random-walk points scaled into a 110^3 scan (liquid
 100, tube 1000, Gaussian noise 40); ends at the curve's ends. Curves shorter than 8 radii are skipped; a curve that
 comes within 2 radii of itself (at least 4 radii away along it) makes a tube fused with itself, which is reported
 in a total of its own (its fused sections are not round), with how many were found to touch themselves (a loop left
-out: partial) or had a part cut off as a branch (ok, with a note: a hairpin whose sides touch all along cannot be told
+out: partial) or had a part cut off as a branch (ok, with a note: sides that run into one another cannot be told
 from a branch by its mask). A spline may leave the scan and come back: the tube is
 then in two parts and the solve refuses it (a row "refused" with the reason's start). The skeleton is solved with
 the defaults and the volume; the roll is that of tests/test_real_scans_run.py (double reflection, independent of
-our frames).
+our frames). ``--no-thickness``: a part cut off is read as the body doubled by its two-cored sections only, not also by
+its sections' size (the code before ``_thick_pieces``).
 """
 
 from __future__ import annotations
@@ -66,7 +67,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=22)
     ap.add_argument("--n", type=int, default=40, help="curves drawn (short ones are skipped)")
+    ap.add_argument("--no-thickness", action="store_true", help="do not read the cut parts' sections' size")
     args = ap.parse_args()
+    if args.no_thickness:
+        import napari_unwind.skeleton._api as api
+
+        api._THICK_PIECES = np.inf
     rng = np.random.default_rng(args.seed)
     grid = grid_points()
     rows = {False: [], True: []}

@@ -569,6 +569,7 @@ _BRANCH_BACK = 1.0  # inscribed radii: a branch is cut where its detour exceeds 
 
 _RIDGE = 0.8  # of a section's deepest point: the depth above which a section's core lies
 _TWO_SIDED = 0.4  # of a cut part or of the kept mask: more than this in sections with two cores is the body doubled
+_THICK_PIECES = 1.7  # a cut part whose shell pieces hold, in the median, this many times a tube as deep is doubled
 _APART = 0.5  # of a part that is no dead end: at least this in shell pieces apart from the path's is a skipped stretch
 
 
@@ -666,6 +667,23 @@ def _doubled_along(kept: np.ndarray, dist: np.ndarray, edt: np.ndarray, spacing:
     return float(doubled.sum()) / float(kept.sum()), middle + np.array([b.start for b in box])
 
 
+def _thick_pieces(region: np.ndarray, labels: np.ndarray, count: int, radius: float, spacing: Sequence[float]
+                  ) -> float:
+    """The median, over the shell pieces of a part (:func:`_shell_pieces`'s ``labels`` within its box, ``region``
+    the part there), of a piece's volume over that of a round tube as deep as the piece, one shell (``radius``)
+    long: about 1 on a branch, round or not too flat, about 2 where two sides of the body lie side by side, even
+    so close that the distance to the outline has one core across them (sides 1.5 radii apart at a radius of 3
+    voxels, where the transform's steps join the cores). The pieces under half the median piece's volume (the
+    part's first and last shells, cut short) are left out; 0 for a part of fewer than three pieces."""
+    if count < 3:
+        return 0.0
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)[1:].astype(float)
+    deepest = np.asarray(ndi.maximum(depth_map(region, spacing), labels, index=np.arange(1, count + 1)))
+    whole = sizes >= 0.5 * np.median(sizes)
+    tube = radius * math.pi * np.maximum(deepest, 1e-12) ** 2
+    return float(np.median(sizes[whole] * float(np.prod(spacing)) / tube[whole]))
+
+
 def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float],
                 kept: np.ndarray | None = None) -> bool:
     """Whether ``region`` (a part hanging off the path) is the body coming back on itself, not a branch.
@@ -680,7 +698,10 @@ def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Se
     two sides touch all along has no cycle (its shells cross both sides at once) but its pieces are two tubes side
     by side, with two cores each. More than :data:`_TWO_SIDED` of the part's volume in such pieces is the body
     doubled: 0.56-0.85 of it on hairpins whose sides' centrelines lie 1.5-2 radii apart, at most 0.29 on the legs
-    of 112 Y and graft phantoms (tests/skeleton/test_branches.py, benchmarks/RESULTS.md).
+    of 112 Y and graft phantoms (tests/skeleton/test_branches.py, benchmarks/RESULTS.md). Where the sides are so
+    thin that the distance transform's steps join their cores, the pieces' size tells: more than
+    :data:`_THICK_PIECES` times a round tube as deep (:func:`_thick_pieces`; two discs 1.15 radii apart or more
+    cover 1.7 discs) is the body doubled: 1.75-2.25 on the 30 hairpins above, at most 1.62 on 116 Y and graft legs.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -688,7 +709,8 @@ def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Se
     if not region.any() or radius <= 0:
         return False
     box, labels, count, doubled = _shell_pieces(region, dist, radius, spacing)
-    if doubled.sum() > _TWO_SIDED * int(region.sum()):
+    if doubled.sum() > _TWO_SIDED * int(region.sum()) or _thick_pieces(region[box], labels, count, radius,
+                                                                         spacing) > _THICK_PIECES:
         return True
     edges = set()
     pad = np.pad(labels, 1)
