@@ -700,8 +700,8 @@ def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Se
     doubled: 0.56-0.85 of it on hairpins whose sides' centrelines lie 1.5-2 radii apart, at most 0.29 on the legs
     of 112 Y and graft phantoms (tests/skeleton/test_branches.py, benchmarks/RESULTS.md). Where the sides are so
     thin that the distance transform's steps join their cores, the pieces' size tells: more than
-    :data:`_THICK_PIECES` times a round tube as deep (:func:`_thick_pieces`; two discs 1.15 radii apart or more
-    cover 1.7 discs) is the body doubled: 1.75-2.25 on the 30 hairpins above, at most 1.62 on 116 Y and graft legs.
+    :data:`_THICK_PIECES` times a round tube as deep (:func:`_thick_pieces`; two discs 1.17 radii apart or more
+    cover 1.7 discs) is the body doubled: 1.71-2.25 on 70 such hairpins, at most 1.62 on 116 Y and graft legs.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
