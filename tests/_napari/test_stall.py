@@ -10,9 +10,12 @@ Showing the result on the UI thread (napari adding layers: the ends, the straigh
 exported volume) is measured apart. napari's cost of a new layer is 40-80 ms to add it and 10-80 ms for its first
 paint under Xvfb's software GL; the dock adds each new layer hidden and shows it on a later turn, one step a turn
 (``_reveal``), so no turn holds two of them: checked by counting, per turn, the layers added and the layers shown
-(a layer added visible counts twice: it is drawn in the same turn), and by the longest gap, which must stay under
-SHOWN_LIMIT (150 ms: 81-97 ms measured on a loaded machine, 147-438 ms before the steps were split; the 100 ms goal
-is in benchmarks/RESULTS.md). The figures are printed (``pytest -s``).
+(a layer added visible counts twice: it is drawn in the same turn). The times are bounds against work on the UI
+thread, not the goal: the 100 ms goal and its figures are in benchmarks/RESULTS.md ("edit latency and UI stalls",
+measured with ``pytest -s`` on this file). Showing a result is napari's own cost and grows with the machine's load
+(81-97 ms on a loaded machine, 167 ms on the official CI at dc1147e, 232-270 ms with two suites on two cores), so its
+bound is SHOWN_LIMIT (400 ms); what the steps' split and the dock's collection policy keep out of a turn is checked
+by counting (the turns above; tests/_napari/test_gc.py), not by time. The figures are printed (``pytest -s``).
 """
 
 import time
@@ -35,11 +38,11 @@ pytestmark = pytest.mark.gui
 #: seconds, the longest gap until the result: 9-21 ms measured with the dock's numba warm-up and collection policy;
 #: without them 221-241 ms (a first call compiling) and 224-227 ms (a full collection of napari's heap)
 LIMIT = 0.25
-SHOWN_LIMIT = 0.15  # seconds, the longest gap while the dock shows a result
-#: seconds, the longest gap of steps 1-3 from the click until settled: 19-120 ms measured (RESULTS.md); the click
-#: after a mask 344-372 ms without the dock's collection policy; before the steps were split 0.25-1.6 s, and turns
-#: with two layers, which fail apart
-STEP_LIMIT = 0.25
+#: seconds, the longest gap while the dock shows a result (the skeleton's layers, an export, steps 1-3 from the click
+#: until settled): 19-120 ms measured on a quiet machine, 167 ms on the official CI, 232-270 ms under two suites (a
+#: bound of 150-250 ms failed there); 0.45 s of work on the UI thread when the export is shown reads 561 ms (planted,
+#: caught). Turns with two layers, which a bound cannot tell from load, fail apart
+SHOWN_LIMIT = 0.4
 
 
 def layer_steps(viewer, ticks):
@@ -223,7 +226,7 @@ def test_no_long_stall_opening_segmenting_selecting_and_suggesting(make_napari_v
     assert not crowded, f"turns that added or showed more than one layer: {crowded}"
     running = {name: round(during, 3) for name, (during, _, _, _) in figures.items() if during >= LIMIT}
     assert not running, f"the UI stalled (s) from the click until the result: {running}"
-    slow = {name: round(shown, 3) for name, (_, shown, _, _) in figures.items() if shown >= STEP_LIMIT}
+    slow = {name: round(shown, 3) for name, (_, shown, _, _) in figures.items() if shown >= SHOWN_LIMIT}
     assert not slow, f"the UI stalled (s) showing the result: {slow}"
 
 
