@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 import textwrap
+from argparse import ArgumentParser, Namespace
 
 
 def run_isolated(code: str, *, timeout: float = 3600) -> dict:
@@ -34,3 +35,17 @@ def table(rows: list[list[str]]) -> str:
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     fmt = lambda r: "| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |"  # noqa: E731
     return "\n".join([fmt(rows[0]), "| " + " | ".join("-" * w for w in widths) + " |", *map(fmt, rows[1:])])
+
+
+def thickness_switch(ap: ArgumentParser) -> None:
+    """Add ``--no-thickness`` to ``ap``: a part cut off is read as the body doubled by its two-cored sections only,
+    not also by its sections' size (the code before ``_thick_pieces``); :func:`apply_thickness_switch` applies it."""
+    ap.add_argument("--no-thickness", action="store_true", help="do not read the cut parts' sections' size")
+
+
+def apply_thickness_switch(args: Namespace) -> None:
+    """Switch the sections' size off in this process when ``args.no_thickness`` (see :func:`thickness_switch`)."""
+    if args.no_thickness:
+        import napari_unwind.skeleton._api as api
+
+        api._THICK_PIECES = float("inf")

@@ -29,6 +29,7 @@ from cage_reference import held  # noqa: E402
 from test_branches import _solve, hairpin_phantom, y_phantom  # noqa: E402
 
 import napari_unwind.skeleton._api as api  # noqa: E402
+from benchmarks._util import apply_thickness_switch, thickness_switch  # noqa: E402
 
 
 def main() -> None:
@@ -39,10 +40,9 @@ def main() -> None:
     ap.add_argument("--hairpins", type=int, nargs=2, metavar=("FIRST", "N"), default=None,
                     help="N hairpins whose sides touch, from seed FIRST on, instead of the Y phantoms")
     ap.add_argument("--suggested", action="store_true", help="no ends given: each result's status only")
-    ap.add_argument("--no-thickness", action="store_true", help="do not read the cut parts' sections' size")
+    thickness_switch(ap)
     args = ap.parse_args()
-    if args.no_thickness:
-        api._THICK_PIECES = np.inf
+    apply_thickness_switch(args)
     if args.hairpins is not None:
         return hairpins(*args.hairpins, suggested=args.suggested)
     if args.before:

@@ -25,6 +25,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
+from benchmarks._util import apply_thickness_switch, thickness_switch
 from napari_unwind.errors import InvalidInputError
 from napari_unwind.progress import run
 from napari_unwind.skeleton import estimate_deformation_iter
@@ -67,12 +68,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=22)
     ap.add_argument("--n", type=int, default=40, help="curves drawn (short ones are skipped)")
-    ap.add_argument("--no-thickness", action="store_true", help="do not read the cut parts' sections' size")
+    thickness_switch(ap)
     args = ap.parse_args()
-    if args.no_thickness:
-        import napari_unwind.skeleton._api as api
-
-        api._THICK_PIECES = np.inf
+    apply_thickness_switch(args)
     rng = np.random.default_rng(args.seed)
     grid = grid_points()
     rows = {False: [], True: []}

@@ -574,13 +574,15 @@ _APART = 0.5  # of a part that is no dead end: at least this in shell pieces apa
 
 
 def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Sequence[float],
-                  edt: np.ndarray | None = None) -> tuple[tuple[slice, ...], np.ndarray, int, np.ndarray]:
+                  edt: np.ndarray | None = None
+                  ) -> tuple[tuple[slice, ...], np.ndarray, int, np.ndarray, np.ndarray]:
     """``region`` (bool, working voxels) cut in shells of the geodesic distance from the head (``dist``), one
     inscribed radius thick, and each shell into its 26-connected pieces of at least a tenth of a shell of the tube.
     ``edt``: the region's ``depth_map`` when the caller has it (the same array shape as ``region``).
 
-    Returns ``(box, labels, count, doubled)``: the region's bounding box, the pieces' labels 1..count within it (0:
-    outside or too small), and the voxels (within the box) of the pieces with two cores, where the region's own
+    Returns ``(box, labels, count, doubled, edt)``: the region's bounding box, the pieces' labels 1..count within it
+    (0: outside or too small), ``depth_map`` of the region within the box, and the voxels (within the box) of the
+    pieces with two cores, where the region's own
     distance to its outline passes :data:`_RIDGE` of the piece's deepest in two places parted by a waist: two
     tubes side by side (a branch's section, round or flattened, has one core). A piece with a tunnel (a ring: the
     wall of a hollow tube, whose ridge runs all round) is not counted.
@@ -597,7 +599,8 @@ def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: 
     min_size = 0.1 * math.pi * radius**3 / voxel
     # the distance to the outline, which lies half a voxel beyond the last voxel inside (the transform's own
     # distance, to the first voxel outside, joins the cores of two sides that meet 1.5 radii apart along an axis)
-    depth = (depth_map(region, spacing) if edt is None else edt[box]) - 0.5 * min(spacing)
+    edt = depth_map(region, spacing) if edt is None else edt[box]
+    depth = edt - 0.5 * min(spacing)
     labels = np.zeros(region.shape, dtype=np.int64)
     doubled = np.zeros(region.shape, dtype=bool)
     count = 0
@@ -621,7 +624,7 @@ def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: 
             if ndi.label(piece & (deep >= _RIDGE * deep[piece].max()), _STRUCT26)[1] >= 2 and \
                     euler_number(np.pad(piece, 1), connectivity=3) == 1:
                 doubled[boxes[k - 1]] |= piece
-    return box, labels, count, doubled
+    return box, labels, count, doubled, edt
 
 
 def _along(kept: np.ndarray, head_w: np.ndarray, spacing: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
@@ -658,7 +661,7 @@ def _doubled_along(kept: np.ndarray, dist: np.ndarray, edt: np.ndarray, spacing:
     if not kept.any():
         return 0.0, None
     wsp = np.asarray(spacing, dtype=float)
-    box, _, _, doubled = _shell_pieces(kept, dist, float(edt.max()), wsp, edt)
+    box, _, _, doubled, _ = _shell_pieces(kept, dist, float(edt.max()), wsp, edt)
     if not doubled.any():
         return 0.0, None
     at = np.argwhere(doubled)
@@ -667,18 +670,18 @@ def _doubled_along(kept: np.ndarray, dist: np.ndarray, edt: np.ndarray, spacing:
     return float(doubled.sum()) / float(kept.sum()), middle + np.array([b.start for b in box])
 
 
-def _thick_pieces(region: np.ndarray, labels: np.ndarray, count: int, radius: float, spacing: Sequence[float]
+def _thick_pieces(edt: np.ndarray, labels: np.ndarray, count: int, radius: float, spacing: Sequence[float]
                   ) -> float:
-    """The median, over the shell pieces of a part (:func:`_shell_pieces`'s ``labels`` within its box, ``region``
-    the part there), of a piece's volume over that of a round tube as deep as the piece, one shell (``radius``)
-    long: about 1 on a branch, round or not too flat, about 2 where two sides of the body lie side by side, even
-    so close that the distance to the outline has one core across them (sides 1.5 radii apart at a radius of 3
-    voxels, where the transform's steps join the cores). The pieces under half the median piece's volume (the
-    part's first and last shells, cut short) are left out; 0 for a part of fewer than three pieces."""
+    """The median, over the shell pieces of a part (:func:`_shell_pieces`'s ``labels`` and ``edt``, the part's
+    ``depth_map``, within its box), of a piece's volume over that of a round tube as deep as the piece, one shell
+    (``radius``) long: about 1 on a branch, round or not too flat, about 2 where two sides of the body lie side by side,
+    even so close that the distance to the outline has one core across them (sides 1.5 radii apart at a radius of 3
+    voxels, where the transform's steps join the cores). The pieces under half the median piece's volume (the part's
+    first and last shells, cut short) are left out; 0 for a part of fewer than three pieces."""
     if count < 3:
         return 0.0
     sizes = np.bincount(labels.ravel(), minlength=count + 1)[1:].astype(float)
-    deepest = np.asarray(ndi.maximum(depth_map(region, spacing), labels, index=np.arange(1, count + 1)))
+    deepest = np.asarray(ndi.maximum(edt, labels, index=np.arange(1, count + 1)))
     whole = sizes >= 0.5 * np.median(sizes)
     tube = radius * math.pi * np.maximum(deepest, 1e-12) ** 2
     return float(np.median(sizes[whole] * float(np.prod(spacing)) / tube[whole]))
@@ -708,8 +711,8 @@ def _loops_back(region: np.ndarray, dist: np.ndarray, radius: float, spacing: Se
 
     if not region.any() or radius <= 0:
         return False
-    box, labels, count, doubled = _shell_pieces(region, dist, radius, spacing)
-    if doubled.sum() > _TWO_SIDED * int(region.sum()) or _thick_pieces(region[box], labels, count, radius,
+    box, labels, count, doubled, edt = _shell_pieces(region, dist, radius, spacing)
+    if doubled.sum() > _TWO_SIDED * int(region.sum()) or _thick_pieces(edt, labels, count, radius,
                                                                          spacing) > _THICK_PIECES:
         return True
     edges = set()
@@ -828,7 +831,7 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray) -> _C
     if skipped:
         # a stretch the path skips lies apart from it in the shells of the geodesic distance from the head; the far
         # side of a tall body along a tight coil is no dead end either, but it lies in the path's own shell pieces
-        sbox, pieces, _, _ = _shell_pieces(binary, dist, radius, wsp, edt)
+        sbox, pieces, _, _, _ = _shell_pieces(binary, dist, radius, wsp, edt)
         path = np.zeros(binary.shape, dtype=bool)
         path[tuple(coords[np.isfinite(detour) & (detour <= _BRANCH_BACK * radius)].T)] = True
         apart = (pieces > 0) & ~np.isin(pieces, np.unique(pieces[path[sbox]]))

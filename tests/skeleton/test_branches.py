@@ -356,8 +356,8 @@ def test_the_thickness_of_a_part_s_sections_against_the_area_of_discs(shape, tru
         disc = ((y - half) ** 2 + z * z <= r * r) | ((y + half) ** 2 + z * z <= r * r)
     region = np.broadcast_to(disc, (n, *disc.shape)).copy()
     dist = np.broadcast_to(step * np.arange(n, dtype=float)[:, None, None], region.shape) * region  # along it
-    box, labels, count, _ = _shell_pieces(region, dist, r, (step, 1.0, 1.0))
-    got = _thick_pieces(region[box], labels, count, r, (step, 1.0, 1.0))
+    box, labels, count, _, edt = _shell_pieces(region, dist, r, (step, 1.0, 1.0))
+    got = _thick_pieces(edt, labels, count, r, (step, 1.0, 1.0))
     assert abs(got - truth) <= 0.1 * truth, (got, truth)
 
 
