@@ -581,11 +581,11 @@ def _shell_pieces(region: np.ndarray, dist: np.ndarray, radius: float, spacing: 
     ``edt``: the region's ``depth_map`` when the caller has it (the same array shape as ``region``).
 
     Returns ``(box, labels, count, doubled, edt)``: the region's bounding box, the pieces' labels 1..count within it
-    (0: outside or too small), ``depth_map`` of the region within the box, and the voxels (within the box) of the
-    pieces with two cores, where the region's own
-    distance to its outline passes :data:`_RIDGE` of the piece's deepest in two places parted by a waist: two
-    tubes side by side (a branch's section, round or flattened, has one core). A piece with a tunnel (a ring: the
-    wall of a hollow tube, whose ridge runs all round) is not counted.
+    (0: outside or too small), the voxels (within the box) of the pieces with two cores, and ``depth_map`` of the
+    region within the box. A piece has two cores where the region's own distance to its outline passes
+    :data:`_RIDGE` of the piece's deepest in two places parted by a waist: two tubes side by side (a branch's
+    section, round or flattened, has one core). A piece with a tunnel (a ring: the wall of a hollow tube, whose
+    ridge runs all round) is not counted.
     """
     from skimage.measure import euler_number
 
