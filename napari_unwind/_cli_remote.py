@@ -326,6 +326,8 @@ def run_remote(args: argparse.Namespace) -> int:
     if not args.mask and not args.select:
         raise UnwindError("say which specimen to straighten: --select A0,A1,A2 (a point inside it, full-resolution "
                           "voxels; the scan is segmented first) or --mask MASK (a mask from unwind select)")
+    if getattr(args, "mask_label", None) is not None and not args.mask:
+        raise UnwindError("--mask-label picks a label of --mask MASK: give the mask too")
     if args.mask and (args.features is not None or args.fill_holes or args.isovalue is not None
                       or args.level is not None):
         raise UnwindError("--features, --level, --isovalue and --fill-holes choose the segmentation; they do not "
@@ -344,7 +346,14 @@ def run_remote(args: argparse.Namespace) -> int:
         vid = client.upload(volume, name=Path(str(args.input).rstrip("/")).name.split(".")[0] or "scan").volume_id
         mask_id = ""
         if args.mask:
-            mask_id = client.upload(open_volume(args.mask), name="mask").volume_id
+            mask = open_volume(args.mask)
+            if getattr(args, "mask_label", None) is not None:  # the label's voxels are uploaded, not the map
+                from .io import Volume
+                from .pipeline import pick_mask_label
+
+                mask = Volume(pick_mask_label(mask.data, args.mask_label).astype("uint8"), spacing=mask.spacing,
+                              origin=mask.origin, unit=mask.unit)
+            mask_id = client.upload(mask, name="mask").volume_id
         job = client.pipeline(
             vid, select=args.select, mask_volume_id=mask_id, options=_pipeline_options(args),
             head=None if endpoints is None else endpoints.head, tail=None if endpoints is None else endpoints.tail,

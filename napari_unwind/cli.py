@@ -372,6 +372,9 @@ def cmd_measure(args: argparse.Namespace) -> int:
     session = _load_session_for(args, None, outputs,
                                 [x for x in (args.mask, args.labels, *[c for _, c in args.channel]) if x])
     seg = session.segmentation
+    if args.mask_label is not None and not args.mask:
+        raise UnwindError("--mask-label picks a label of --mask MASK: give the mask too (the session's own mask "
+                          "file is read with the label it recorded)")
     mask_path = args.mask or (seg.mask if seg is not None else None)
     if mask_path is None and not args.quiet:
         print("note: no mask (the session's selection was not a mask file; give --mask): no cross-section columns",
@@ -379,12 +382,13 @@ def cmd_measure(args: argparse.Namespace) -> int:
     mask = None
     if mask_path is not None:
         mask = open_volume(mask_path)
-        label = seg.mask_label if (seg is not None and not args.mask) else None
+        label = args.mask_label if args.mask else (seg.mask_label if seg is not None else None)
         if label is not None:
             from .io import Volume
+            from .pipeline import pick_mask_label
 
-            mask = Volume((mask.data == label).astype("uint8"), spacing=mask.spacing, origin=mask.origin,
-                          unit=mask.unit)
+            mask = Volume(pick_mask_label(mask.data, label).astype("uint8"), spacing=mask.spacing,
+                          origin=mask.origin, unit=mask.unit)
     channels = {}
     for name, path in args.channel:
         if name in channels:
@@ -757,9 +761,14 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
     mask = open_volume(args.mask)
     scan = open_volume(args.volume, **_reader_options(args, args.volume)) if args.volume else None
     spacing, origin, unit, notes = _mask_geometry(mask, scan, args.mask)
+    mask_data = mask.data
+    if args.mask_label is not None:
+        from .pipeline import pick_mask_label
+
+        mask_data = pick_mask_label(mask_data, args.mask_label)
     say = (lambda *a: None) if args.quiet else print
     t0 = time.perf_counter()
-    result, messages = _estimate(mask.data, endpoints, spacing=spacing, origin=origin, unit=unit,
+    result, messages = _estimate(mask_data, endpoints, spacing=spacing, origin=origin, unit=unit,
                                  volume=None if scan is None else scan.data, args=args)
     dt = time.perf_counter() - t0
     source_path, source_vol = (args.volume, scan) if scan is not None else (args.mask, mask)
@@ -767,7 +776,7 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
     refined = (mask.metadata.get("unwind") or {}).get("refined_mask") if isinstance(mask.metadata, dict) else None
     iso = refined.get("isovalue") if isinstance(refined, dict) else None
     # the selection is the mask file (unwind measure and the dock find it again), at the isovalue that refined it
-    segmentation = Segmentation(isovalue=iso, mask=str(Path(args.mask).absolute()))
+    segmentation = Segmentation(isovalue=iso, mask=str(Path(args.mask).absolute()), mask_label=args.mask_label)
     session = Session(source=source, deformation=result.deformation, segmentation=segmentation,
                       endpoints=result.endpoints, twist=result.twist_profile(),
                       notes=f"unwind skeleton: mask {Path(args.mask).absolute()}"
@@ -859,6 +868,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not args.mask and not args.select:
         raise UnwindError("say which specimen to straighten: --select A0,A1,A2 (a point inside it, full-resolution "
                           "voxels; the scan is segmented first) or --mask MASK (a mask from unwind select)")
+    if args.mask_label is not None and not args.mask:
+        raise UnwindError("--mask-label picks a label of --mask MASK: give the mask too")
     if args.mask and (args.features is not None or args.fill_holes or args.isovalue is not None
                       or args.level is not None):
         raise UnwindError("--features, --level, --isovalue and --fill-holes choose the segmentation; they do not "
@@ -879,10 +890,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         mask_vol = open_volume(args.mask)
         _, _, _, notes = _mask_geometry(mask_vol, volume, args.mask)
         mask = mask_vol.data
+        if args.mask_label is not None:
+            from .pipeline import check_mask_label
+
+            check_mask_label(mask, args.mask_label)  # before the checksum and the solve
     source = _source_info(args.input, volume, args.quiet)
     result = _run_with_bar(
         run_iter(volume, mask=mask, seeds=args.select, endpoints=endpoints, options=options, output=args.output,
                  session_path=target, source=source, overwrite=args.overwrite, mask_source=args.mask,
+                 mask_label=args.mask_label,
                  notes="unwind run" + (f": mask {Path(args.mask).absolute()}" if args.mask else "")),
         args.quiet,
     )
@@ -1105,6 +1121,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("skeleton", help="estimate the deformation of a specimen mask: a session file")
     p.add_argument("mask", help="the specimen's mask (nonzero = inside), any format, e.g. from unwind select")
     p.add_argument("-o", "--output", required=True, help="the session file to write (*.unwind.json)")
+    p.add_argument("--mask-label", type=_whole(1), default=None, metavar="N",
+                   help="the mask is a label map: its voxels of label N are the specimen (default: every non-zero "
+                   "voxel; a map of several labels is then named in a warning)")
     _add_skeleton_options(p)
     p.add_argument("--volume", metavar="SCAN", default=None,
                    help="the scan the mask belongs to (same shape): the session's source, the one unwind "
@@ -1125,6 +1144,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(length, keyframes, min Jacobian, tilt, coverage, status and reason; every candidate feature has "
                    "a row, rejected ones too); a specimen that fails is reported with its reason and the others go on")
     p.add_argument("--mask", default=None, help="the specimen's mask (same shape as INPUT) instead of segmenting")
+    p.add_argument("--mask-label", type=_whole(1), default=None, metavar="N",
+                   help="the mask is a label map: its voxels of label N are the specimen (default: every non-zero "
+                   "voxel; a map of several labels is then named in a warning)")
     p.add_argument("--select", type=_triple, action="append", metavar="A0,A1,A2",
                    help="a point inside the specimen, full-resolution voxels (repeatable: several features)")
     p.add_argument("--features", type=_whole(1, 100), default=None,
@@ -1187,6 +1209,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--session", required=True, help="the session file (*.unwind.json) holding the deformation")
     p.add_argument("--mask", default=None,
                    help="the specimen mask on the scan's grid (default: the session's mask file, when it has one)")
+    p.add_argument("--mask-label", type=_whole(1), default=None, metavar="N",
+                   help="the mask is a label map: its voxels of label N are the specimen (default: the session's label "
+                   "with its mask file; every non-zero voxel of a mask given here)")
     p.add_argument("--labels", default=None, help="a label image on the scan's grid: an area column per label")
     p.add_argument("--channel", action="append", type=_channel_arg, default=[], metavar="[NAME=]PATH",
                    help="an intensity image on the scan's grid (repeatable): mean, std, min, max per station")

@@ -61,7 +61,10 @@ __all__ = [
     "exit_status",
     "export_step",
     "fold_rule",
+    "check_mask_label",
     "judge",
+    "mask_label_counts",
+    "pick_mask_label",
     "run",
     "run_all_iter",
     "run_iter",
@@ -730,18 +733,82 @@ def select_step(volume: Any, features: Any, *, seeds: Any = None, ids: Any = Non
     return Selection(mask=mask, ids=tuple(int(i) for i in chosen), isovalue=float(iso), segmentation=record)
 
 
+def mask_label_counts(mask: Any) -> dict[int, int]:
+    """The voxel count of each non-zero value of an integer mask (a label map); {} for a bool or float mask.
+
+    Reads the whole mask once (the skeleton solve reads it whole too)."""
+    import numpy as np
+
+    dtype = getattr(mask, "dtype", None)
+    if dtype is None or not np.issubdtype(np.dtype(dtype), np.integer):
+        return {}
+    arr = np.asarray(mask).reshape(-1)
+    if arr.dtype.kind == "u" and arr.dtype.itemsize <= 2:
+        counts = np.bincount(arr)
+        values = np.flatnonzero(counts)
+        counts = counts[values]
+    else:
+        values, counts = np.unique(arr, return_counts=True)
+    return {int(v): int(c) for v, c in zip(values, counts) if v != 0}
+
+
+def pick_mask_label(mask: Any, label: Any) -> Any:
+    """The voxels of one ``label`` of an integer mask (a label map) as a bool array of its shape.
+
+    Raises :class:`InvalidInputError` for a label that is no integer, or that no voxel of the mask holds (the
+    message names the labels it does hold)."""
+    import numpy as np
+
+    from .io._volume import Volume
+
+    m = mask.data if isinstance(mask, Volume) else mask
+    check_mask_label(m, label)
+    return np.asarray(m) == int(label)
+
+
+def check_mask_label(mask: Any, label: Any) -> None:
+    """Raise :class:`InvalidInputError` unless ``label`` is an integer that some voxel of ``mask`` holds (the
+    message names the labels it does hold). A face calls it before any long work; :func:`pick_mask_label` too."""
+    import numpy as np
+
+    if isinstance(label, bool) or not isinstance(label, (int, np.integer)):
+        raise InvalidInputError(f"the mask's label must be an integer, got {label!r}")
+    counts = mask_label_counts(mask)
+    if int(label) not in counts:
+        held = ", ".join(map(str, sorted(counts)[:12])) + (", ..." if len(counts) > 12 else "")
+        raise InvalidInputError(f"no voxel of the mask holds label {int(label)}"
+                                + (f"; its labels are {held}: give one of them" if counts
+                                   else ": it is not a label map of integers (give it without a label)"))
+
+
+def _labels_note(mask: Any) -> str | None:
+    """A warning when the mask is a label map of several labels: all of them are taken as the one specimen."""
+    counts = mask_label_counts(mask)
+    if len(counts) < 2:
+        return None
+    total = sum(counts.values())
+    top = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
+    shown = ", ".join(f"label {v}: {100 * c / total:.3g} %" for v, c in top[:5]) + (", ..." if len(top) > 5 else "")
+    return (f"the mask holds {len(counts)} labels ({shown} of its voxels): all are taken as one specimen; to "
+            "straighten one, give its label (--mask-label N, in Python mask_label=N)")
+
+
 def skeleton_step(mask: Any, endpoints: Any = None, *, spacing: Any, origin: Any = None, unit: str | None = None,
                   volume: Any = None, options: SkeletonOptions = SkeletonOptions()
                   ) -> Generator[Progress, None, Any]:
     """The skeleton solve with ``options``; returns the :class:`~napari_unwind.skeleton.SkeletonResult`, whose
-    ``warnings`` hold every UserWarning of the solve (one line each; they are not issued again)."""
+    ``warnings`` hold every UserWarning of the solve (one line each; they are not issued again), and a note when
+    ``mask`` is a label map of several labels (every non-zero voxel is the specimen: :func:`pick_mask_label`
+    takes one)."""
     from . import skeleton as _skeleton
 
+    labels = _labels_note(mask)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         result = yield from _skeleton.estimate_deformation_iter(mask, endpoints, spacing=spacing, origin=origin,
                                                                 unit=unit, volume=volume, **options.kwargs())
-    messages = list(result.warnings) + [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+    messages = ([labels] if labels else []) + list(result.warnings) + [
+        str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     messages = [" ".join(m.split()) for m in dict.fromkeys(messages)]
     return replace(result, warnings=tuple(dict.fromkeys(messages)))
 
@@ -797,6 +864,7 @@ def run_iter(
     overwrite: bool = False,
     scheduler: str | None = None,
     mask_source: str | os.PathLike | None = None,
+    mask_label: int | None = None,
 ) -> Generator[Progress, None, SpecimenResult]:
     """Straighten one specimen: segment (unless given), select and refine (or a mask), skeleton, session, export.
 
@@ -832,6 +900,9 @@ def run_iter(
     mask_source : path, optional
         The file ``mask`` was read from: the session records it as its selection (``segmentation.mask``), so that
         ``unwind measure`` and the dock find it again (None: not recorded).
+    mask_label : int, optional
+        ``mask`` is a label map: its voxels of this label are the specimen (the session records the label).
+        None: every non-zero voxel (a label map of several labels is then named in the warnings).
 
     Returns
     -------
@@ -850,6 +921,8 @@ def run_iter(
     if (mask is not None) + (has_seeds or has_ids) + (candidate is not None) != 1:
         raise InvalidInputError("say which specimen to straighten with exactly one of: a mask, points inside it "
                                 "and/or feature ids (the scan is segmented first), or a candidate")
+    if mask_label is not None and mask is None:
+        raise InvalidInputError("mask_label picks a label of the mask: give the mask too (mask=...)")
     if candidate is not None and features is None:
         raise InvalidInputError("a candidate needs the features it came from (features=)")
     if session_path is not None and source is None:
@@ -868,11 +941,12 @@ def run_iter(
         if tuple(m.shape) != tuple(volume.shape):
             raise InvalidInputError(f"the mask has shape {tuple(m.shape)} but the scan has {tuple(volume.shape)}; "
                                     "the mask must be at the scan's full resolution")
-        mask = m
+        mask = m if mask_label is None else pick_mask_label(m, mask_label)
         if mask_source is not None:
             from .session import Segmentation
 
-            segmentation = Segmentation(mask=str(Path(mask_source).absolute()))
+            segmentation = Segmentation(mask=str(Path(mask_source).absolute()),
+                                        mask_label=None if mask_label is None else int(mask_label))
     else:
         if features is None:
             features = yield from segment_step(volume, options.segment)

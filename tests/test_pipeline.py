@@ -243,3 +243,64 @@ def test_a_candidate_the_full_resolution_scan_does_not_bear_out_is_rejected_not_
     assert nobody and all(r.status == "rejected" for r in nobody)
     assert not any((tmp_path / "out" / f"specimen-{r.label}.unwind.json").exists() for r in nobody)
     assert sum(r.status == "ok" for r in rows.values()) == 2 and exit_status(res.specimens) == 0
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# a label map given as the mask
+# ------------------------------------------------------------------------------------------------------------------
+def test_label_counts_and_one_label_against_numpy():
+    from napari_unwind.pipeline import mask_label_counts, pick_mask_label
+
+    rng = np.random.default_rng(5)
+    for dtype in (np.uint8, np.uint16, np.int16, np.int32, np.uint64):
+        lab = rng.integers(0, 4, size=(7, 8, 9)).astype(dtype)
+        if np.dtype(dtype).kind == "i":
+            lab[0, 0, :3] = -2
+        values, counts = np.unique(lab, return_counts=True)
+        assert mask_label_counts(lab) == {int(v): int(c) for v, c in zip(values, counts) if v != 0}, dtype
+        np.testing.assert_array_equal(pick_mask_label(lab, 3), lab == 3)
+    assert mask_label_counts(np.ones((3, 3, 3), bool)) == {} and mask_label_counts(np.ones((2, 2, 2))) == {}
+    with pytest.raises(InvalidInputError, match="no voxel of the mask holds label 7; its labels are 1, 2, 3"):
+        pick_mask_label(rng.integers(0, 4, size=(5, 5, 5)).astype(np.uint8), 7)
+    with pytest.raises(InvalidInputError, match="must be an integer, got 1.5"):
+        pick_mask_label(np.ones((2, 2, 2), np.uint8), 1.5)
+
+
+def test_a_label_map_as_the_mask_is_named_and_one_label_is_straightened_as_its_own_mask(fish, tmp_path):
+    from napari_unwind.io import open_volume
+    from napari_unwind.session import load_session
+
+    tmp, f, mask, scan = fish
+    ends = ["--head", _arg(f.head), "--tail", _arg(f.tail)]
+    lab = f.mask.astype(np.uint8)
+    far = np.zeros(f.mask.shape, bool)
+    far[:6, :6, :6] = True  # a block of another structure, away from the fish
+    assert not (far & f.mask).any()
+    lab[far] = 2
+    labels = write_volume(lab, tmp_path / "labels.nrrd", spacing=f.spacing, unit=f.unit)
+    # the label of the fish: the same straight volume as the fish's own mask, and the session records the label
+    code, out, err = run_unwind("run", scan, "--mask", labels, "--mask-label", "1", *ends, "-o", tmp_path / "l.nrrd",
+                                "-q")
+    assert code == 0, err
+    code, out, err = run_unwind("run", scan, "--mask", mask, *ends, "-o", tmp_path / "m.nrrd", "-q")
+    assert code == 0, err
+    np.testing.assert_array_equal(open_volume(tmp_path / "l.nrrd").data, open_volume(tmp_path / "m.nrrd").data)
+    assert load_session(tmp_path / "l.unwind.json").segmentation.mask_label == 1
+    code, out, err = run_unwind("skeleton", labels, "--mask-label", "1", "--volume", scan, *ends, "-o",
+                                tmp_path / "s.unwind.json", "-q")
+    assert code == 0 and load_session(tmp_path / "s.unwind.json").segmentation.mask_label == 1, err
+    # every label at once: said, with each label's share of the mask's voxels
+    code, out, err = run_unwind("run", scan, "--mask", labels, *ends, "-o", tmp_path / "all.nrrd", "-q")
+    share = 100 * f.mask.sum() / (f.mask.sum() + far.sum())
+    assert (f"the mask holds 2 labels (label 1: {share:.3g} %, label 2: {100 - share:.3g} % of its voxels): all are "
+            "taken as one specimen") in err, err
+    assert "--mask-label N" in err
+    code, out, err = run_unwind("run", scan, "--mask", mask, *ends, "-o", tmp_path / "one.nrrd", "-q")
+    assert "labels" not in err, err  # a mask of one label says nothing
+    # a label the map does not hold, or a label without a mask: one line, exit 1
+    code, out, err = run_unwind("run", scan, "--mask", labels, "--mask-label", "3", *ends, "-o", tmp_path / "x.nrrd")
+    assert code == 1 and err.strip() == "unwind: error: no voxel of the mask holds label 3; its labels are 1, 2: " \
+                                        "give one of them", err
+    assert not (tmp_path / "x.nrrd").exists()
+    code, out, err = run_unwind("run", scan, "--select", "1,1,1", "--mask-label", "1", "-o", tmp_path / "y.nrrd")
+    assert code == 1 and "--mask-label picks a label of --mask MASK" in err, err
