@@ -389,12 +389,20 @@ def cmd_measure(args: argparse.Namespace) -> int:
 
             mask = Volume(pick_mask_label(mask.data, label).astype("uint8"), spacing=mask.spacing,
                           origin=mask.origin, unit=mask.unit)
+    notes: list[str] = []
+    if mask is not None:
+        mask = _on_session_grid(mask, session, "mask", notes)
+        if label is None:
+            from .pipeline import _labels_note
+
+            notes += [n for n in (_labels_note(mask.data),) if n]
     channels = {}
     for name, path in args.channel:
         if name in channels:
             raise UnwindError(f"two channels are named {name!r}: name them with --channel NAME=PATH")
         channels[name] = open_volume(path)
-    labels = open_volume(args.labels) if args.labels else None
+    labels = _on_session_grid(open_volume(args.labels), session, "label image", notes) if args.labels else None
+    _warn_lines(notes)
     t0 = time.perf_counter()
     profile = _run_with_bar(measure_iter(session.deformation, mask=mask, labels=labels, channels=channels or None,
                                          spacing=args.spacing), args.quiet)
@@ -411,6 +419,14 @@ def cmd_measure(args: argparse.Namespace) -> int:
         print(f"measured {len(profile)} stations ({len(profile.columns)} columns) in "
               f"{time.perf_counter() - t0:.1f} s -> {written}" + (f", {args.plot}" if args.plot else ""))
     return 0
+
+
+def _on_session_grid(volume: Any, session: Any, what: str, notes: list[str]) -> Any:
+    """:meth:`~napari_unwind.session.Session.on_scan_grid`, its note added to ``notes``."""
+    volume, note = session.on_scan_grid(volume, what)
+    if note:
+        notes.append(note)
+    return volume
 
 
 def _check_same_grid(session: Any, volume: Any, path: str) -> None:

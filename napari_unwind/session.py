@@ -801,6 +801,33 @@ class Session:
             **({"channels": [c.to_dict() for c in self.channels]} if self.channels else {}),
         }
 
+    def on_scan_grid(self, volume: Any, what: str = "mask") -> tuple[Any, str | None]:
+        """A mask (or label image) of the source scan's shape, on the deformation's grid voxel for voxel, as the
+        pipeline takes a mask (the scan's geometry is used, whatever the mask's header says).
+
+        Returns the Volume (with the deformation's spacing, origin and unit where its own differ) and a note saying
+        so (None when they agree). A Volume of another shape is returned as it is (its geometry is then checked
+        where it is used)."""
+        from .io._volume import Volume
+        from .warp import _check_geometry
+
+        d = self.deformation
+        if d is None or not isinstance(volume, Volume) or tuple(volume.shape) != tuple(self.source.shape):
+            return volume, None
+        try:
+            _check_geometry(volume, d)
+            return volume, None
+        except InvalidInputError:
+            pass
+
+        def triple(v: Any) -> str:
+            return " x ".join(f"{float(x):g}" for x in v)
+
+        note = (f"the {what}'s spacing {triple(volume.spacing)} / origin {triple(volume.origin)} differ from the "
+                f"session's scan's {triple(d.spacing)} / {triple(d.origin)}: the scan's are used (same shape, voxel "
+                "for voxel)")
+        return Volume(volume.data, spacing=d.spacing, origin=d.origin, unit=d.unit), note
+
     @classmethod
     def from_dict(cls, d: Any) -> Session:
         """Build from a dict of any known schema (older ones are migrated); raises :class:`InvalidInputError`."""

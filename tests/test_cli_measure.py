@@ -58,7 +58,30 @@ def test_an_existing_profile_is_kept_without_overwrite_and_bad_input_is_one_line
     assert code != 0 and out.read_text() == "mine\n" and "Traceback" not in err
     code, _, err = _run("measure", "--session", session, "--mask", mask, "-o", tmp / "p.xlsx", "-q")
     assert code != 0 and ".csv" in err and len(err.strip().splitlines()) == 1
-    other = write_volume(fish.mask.astype(np.uint8), tmp / "coarse.nrrd", spacing=(2.0, 2.0, 2.0), unit=fish.unit)
+    other = write_volume(fish.mask[::2].astype(np.uint8), tmp / "coarse.nrrd", spacing=(2.0, 1.0, 1.0),
+                         unit=fish.unit)
     code, _, err = _run("measure", "--session", session, "--mask", other, "-o", tmp / "p.csv", "-q")
     assert code != 0 and "Traceback" not in err and not (tmp / "p.csv").exists()
     assert no_leftovers(tmp) == []
+
+
+def test_a_mask_of_the_scans_shape_whose_header_differs_is_read_voxel_for_voxel_as_unwind_run_reads_it(case):
+    tmp, fish, scan, session, d, mask = case
+    code, _, err = _run("measure", "--session", session, "--mask", mask, "-o", tmp / "right.csv", "-q")
+    assert code == 0, err
+    # the same voxels, a header without the scan's geometry (a tool that writes no spacing or origin)
+    bare = write_volume(fish.mask.astype(np.uint8), tmp / "bare.nrrd", spacing=(2.0, 2.0, 2.0), origin=(5, 6, 7),
+                        unit=fish.unit)
+    code, _, err = _run("measure", "--session", session, "--mask", bare, "-o", tmp / "bare.csv", "-q")
+    assert code == 0, err
+    assert "the mask's spacing 2 x 2 x 2 / origin 5 x 6 x 7 differ from the session's scan's" in err, err
+    assert (tmp / "bare.csv").read_bytes() == (tmp / "right.csv").read_bytes()
+    # a label map of the scan's shape: its labels named, one of them measured as its own mask
+    lab = fish.mask.astype(np.uint8)
+    lab[:4, :4, :4] = 2
+    labels = write_volume(lab, tmp / "labels.nrrd", spacing=fish.spacing, unit=fish.unit)
+    code, _, err = _run("measure", "--session", session, "--mask", labels, "--mask-label", "1", "-o",
+                        tmp / "one.csv", "-q")
+    assert code == 0 and (tmp / "one.csv").read_bytes() == (tmp / "right.csv").read_bytes(), err
+    code, _, err = _run("measure", "--session", session, "--mask", labels, "-o", tmp / "all.csv", "-q")
+    assert code == 0 and "the mask holds 2 labels" in err, err

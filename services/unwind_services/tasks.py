@@ -267,11 +267,13 @@ def measure(ctx: TaskContext, req: Any) -> TaskGen:
         return ctx.catalog.volume(ctx.owner, volume_id)[1] if volume_id else None
 
     channels = {n: volume(c.volume_id) for n, c in zip(_channel_names(req), req.channels, strict=True)}
+    # a mask and a label image of the scan's shape are on its grid voxel for voxel, as the pipeline takes a mask
+    mask, mask_note = session.on_scan_grid(volume(req.mask_volume_id), "mask")
+    labels, labels_note = session.on_scan_grid(volume(req.labels_volume_id), "label image")
     t0 = time.perf_counter()
-    profile = yield from measure_iter(session.deformation, mask=volume(req.mask_volume_id),
-                                      labels=volume(req.labels_volume_id), channels=channels or None,
+    profile = yield from measure_iter(session.deformation, mask=mask, labels=labels, channels=channels or None,
                                       spacing=req.spacing or None)
-    return pb.JobResult(table_csv=profile.csv_text(),
+    return pb.JobResult(table_csv=profile.csv_text(), warnings=[n for n in (mask_note, labels_note) if n],
                         figures=_figures(stations=len(profile), seconds=time.perf_counter() - t0))
 
 

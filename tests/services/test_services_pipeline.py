@@ -146,6 +146,17 @@ def test_each_step_on_the_server_matches_the_core(setup, tmp_path):
         expected_csv = measure(d, mask=mask.astype(np.uint8), channels={"scan": volume}).csv_text()
         assert mj.result.table_csv == expected_csv
         assert "area [" in mj.result.table_csv.splitlines()[0] and int(mj.result.figures["stations"]) > 50
+        assert list(mj.result.warnings) == []
+        # the same voxels under a header without the scan's geometry: on its grid voxel for voxel, as a run takes a
+        # mask, and said
+        from napari_unwind.io import Volume
+
+        bare = c.upload(Volume(mask, spacing=(2.0, 2.0, 2.0), origin=(5.0, 6.0, 7.0), unit=volume.unit),
+                        name="bare").volume_id
+        bj_ = c.measure(sk.result.session_id, mask_volume_id=bare, channels={"scan": vid})
+        assert bj_.result.table_csv == expected_csv
+        assert [w.split(":")[0] for w in bj_.result.warnings] == [
+            "the mask's spacing 2 x 2 x 2 / origin 5 x 6 x 7 differ from the session's scan's 1 x 1 x 1 / 0 x 0 x 0"]
         from napari_unwind.client import RemoteError
 
         for bad, code in (({"": vid}, "INVALID_ARGUMENT"), ({"a,b": vid}, "INVALID_ARGUMENT"),
