@@ -783,12 +783,24 @@ def check_mask_label(mask: Any, label: Any) -> None:
 
 def _labels_note(mask: Any) -> str | None:
     """A warning when the mask is a label map of several labels: all of them are taken as the one specimen."""
-    counts = mask_label_counts(mask)
+    import numpy as np
+
+    dtype = getattr(mask, "dtype", None)
+    if dtype is None or not np.issubdtype(np.dtype(dtype), np.integer):
+        return None
+    arr = np.asarray(mask)
+    if arr.size == 0 or (arr.min() >= 0 and arr.max() <= 1):  # a 0/1 mask: one label (the common case, read fast)
+        return None
+    counts = mask_label_counts(arr)
     if len(counts) < 2:
         return None
     total = sum(counts.values())
     top = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
-    shown = ", ".join(f"label {v}: {100 * c / total:.3g} %" for v, c in top[:5]) + (", ..." if len(top) > 5 else "")
+    def share(c: int) -> str:
+        p = 100 * c / total
+        return f"{p:.3g} %" if p >= 0.01 else "< 0.01 %"
+
+    shown = ", ".join(f"label {v}: {share(c)}" for v, c in top[:5]) + (", ..." if len(top) > 5 else "")
     return (f"the mask holds {len(counts)} labels ({shown} of its voxels): all are taken as one specimen; to "
             "straighten one, give its label (--mask-label N, in Python mask_label=N)")
 
