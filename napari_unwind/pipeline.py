@@ -460,15 +460,22 @@ def judge(skeleton: Any) -> tuple[str, str]:
 
     reasons = []
     cov = _num(getattr(skeleton, "coverage", None))
+    apart = _num(getattr(skeleton, "apart", None)) or 0.0
+    cage_helps = False
     if cov is not None and cov < MIN_COVERAGE:
         lost = tuple(getattr(skeleton, "lost", ()) or ())
         where = f" (lost: {format_lost(lost, unit_label(skeleton.deformation.unit))})" if lost else ""
         reasons.append(f"coverage {100 * cov:.1f} % of the mask inside the cage (goal {100 * MIN_COVERAGE:.0f} %)"
                        + where)
+        if apart >= 1.0 - MIN_COVERAGE:  # no cage holds a part the path does not run through
+            reasons[-1] += (f"; {100 * apart:.2g} % of the mask lies in separate parts off the path (a mask of this "
+                            "specimen alone, or --chain START END through each part)")
+        cage_helps = (1.0 - cov) - apart >= 1e-3
     folded = _num(getattr(skeleton, "folded", None))
     if folded and skeleton.deformation.folds():
         reasons.append(f"the deformation folds over {100 * folded:.2g} % of the specimen's mask")
-    if reasons:
+        cage_helps = True
+    if reasons and cage_helps:
         reasons[-1] += " (a larger or fitted cage: --cage RX,RY, --cage-margin M)"
     for where in tuple(getattr(skeleton, "touching", ()) or ()):
         reasons.append(f"{where}: separate the touching sides in the mask")

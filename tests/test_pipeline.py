@@ -304,3 +304,45 @@ def test_a_label_map_as_the_mask_is_named_and_one_label_is_straightened_as_its_o
     assert not (tmp_path / "x.nrrd").exists()
     code, out, err = run_unwind("run", scan, "--select", "1,1,1", "--mask-label", "1", "-o", tmp_path / "y.nrrd")
     assert code == 1 and "--mask-label picks a label of --mask MASK" in err, err
+
+
+def test_a_separate_part_off_the_path_is_named_as_such_not_as_a_cage_too_small(fish):
+    """A second body in the mask (another specimen, or a piece cut off by the scan's face): the result is partial and
+    its reason names the share in separate parts (scipy's labelling of the mask is the reference), not a larger
+    cage; a fragment beside the body inside the cage counts nothing."""
+    from scipy import ndimage
+
+    from napari_unwind.pipeline import skeleton_step
+    from napari_unwind.progress import run as drive
+    from napari_unwind.session import Endpoints
+
+    tmp, f, mask, scan = fish
+    m = np.pad(f.mask, ((0, 0), (0, 0), (0, 40)))
+    other = np.zeros_like(m)
+    c = (m.shape[0] // 2, m.shape[1] // 2, m.shape[2] - 18)
+    z, y, x = np.ogrid[: m.shape[0], : m.shape[1], : m.shape[2]]
+    other[(z - c[0]) ** 2 / 30.0**2 + (y - c[1]) ** 2 / 8.0**2 + (x - c[2]) ** 2 / 8.0**2 <= 1] = True
+    assert not ndimage.binary_dilation(other, iterations=3)[m].any()  # well apart from the fish
+    both = m | other
+    ends = Endpoints(head=tuple(f.head), tail=tuple(f.tail))
+    res = drive(skeleton_step(both, ends, spacing=f.spacing))
+    labels, n = ndimage.label(both, np.ones((3, 3, 3)))
+    assert n == 2
+    share = other.sum() / both.sum()
+    assert res.apart == pytest.approx(share, rel=0.1), (res.apart, share)
+    status, reason = judge(res)
+    assert status == "partial" and f"{100 * res.apart:.2g} % of the mask lies in separate parts off the path" in reason
+    assert "a larger or fitted cage" not in reason, reason
+    assert any("separate part(s) of the mask" in w for w in res.warnings), res.warnings
+    assert not any(w.startswith("the cage leaves") for w in res.warnings), res.warnings
+    # the fish with a fragment two voxels off its side (a fin the segmentation broke off): in the cage, nothing apart
+    cube = np.ones((3, 3, 3), bool)
+    shell = ndimage.binary_dilation(m, cube, iterations=3) & ~ndimage.binary_dilation(m, cube, iterations=1)
+    mid = f.centerline[len(f.centerline) // 2]
+    on = np.argwhere(shell)
+    p = on[np.argmin(np.linalg.norm(on - mid, axis=1))]
+    frag = shell & ((z - p[0]) ** 2 + (y - p[1]) ** 2 + (x - p[2]) ** 2 <= 4)
+    with_frag = m | frag
+    assert ndimage.label(with_frag, np.ones((3, 3, 3)))[1] == 2 and frag.sum() >= 5
+    alone = drive(skeleton_step(with_frag, ends, spacing=f.spacing))
+    assert alone.apart == 0.0 and judge(alone)[0] == "ok", (alone.apart, judge(alone))

@@ -59,6 +59,16 @@ _ADVICE: tuple[tuple[str, str], ...] = (
     # segmentation/_candidates.py: a curved body rejected as not elongated by its principal axes
     (r"; to straighten it, select it \(--select A0,A1,A2\) or give its mask",
      "; to straighten it, click it among the features (step 2, Segment), or choose a mask layer of it"),
+    # pipeline: a label map given as the mask
+    (r"to straighten one, give its label \(--mask-label N, in Python mask_label=N\)",
+     "to straighten one, click that label in the viewer (Segment)"),
+    # skeleton/_api.py: separate parts of the mask off the path
+    (r"give a mask of this specimen alone, or straighten the parts as one chain \(--chain START END for each part, "
+     r"head to tail\)", "choose a mask of this specimen alone (Segment), or add the start and end of every part to "
+     "the \"ends\" layer, in order from head to tail (Ends)"),
+    # pipeline.judge: the same, in a partial specimen's reason
+    (r" \(a mask of this specimen alone, or --chain START END through each part\)",
+     " (a mask of this specimen alone, or the start and end of every part in the \"ends\" layer, head to tail)"),
     # warp: the output size limit
     (r"the limit max_output=(\S+) bytes", r"the size limit of \1 bytes"),
     (r", or pass max_output=\.\.\. \(CLI: --max-output\) to raise the limit \(max_output=None: no limit\)",

@@ -32,6 +32,7 @@ from ._harmonic import (
 __all__ = ["estimate_deformation", "estimate_deformation_iter", "SkeletonResult", "WorkingMask", "working_mask"]
 
 _STRUCT26 = np.ones((3, 3, 3), dtype=bool)
+_APART_SAID = 0.01  # separate parts off the path holding this share of the mask are said (the coverage goal's rest)
 
 
 @dataclass(frozen=True)
@@ -91,6 +92,10 @@ class SkeletonResult:
     branches : tuple of str
         The other branches cut off at a junction between the ends (length, share left out, where it joins). With
         suggested ends the result is partial: the path between them is one guess among the mask's branches.
+    apart : float
+        Fraction of the mask (between the ends) in separate parts that the path does not run through and that the
+        straight volume leaves out (another specimen in the mask, a piece cut off by the scan's face); part of the
+        ``1 - coverage`` that no cage would hold.
     """
 
     deformation: Deformation
@@ -115,6 +120,7 @@ class SkeletonResult:
     touching: tuple[str, ...] = ()
     left_out: float = 0.0
     branches: tuple[str, ...] = ()
+    apart: float = 0.0
 
     def twist_report(self) -> str:
         """One line: the twist's range, what set it and over how much of the length."""
@@ -1207,7 +1213,12 @@ def estimate_deformation_iter(
     tilt = max_tilt(deformation)
     if cov is None:
         cov = coverage(deformation, mask_pts, bin_width=2 * float(max(wm.working_spacing)))
-    if cov.lost and sum(f for *_, f in cov.lost) >= 1e-3:
+    apart, n_apart = _apart_from_path(wm, curve_w, deformation, sp, org)
+    if apart >= _APART_SAID:
+        note(f"{n_apart} separate part(s) of the mask, {100 * apart:.2g} % of it, lie off the path between the ends "
+             "and outside the straight volume: give a mask of this specimen alone, or straighten the parts as one "
+             "chain (--chain START END for each part, head to tail)")
+    if cov.lost and sum(f for *_, f in cov.lost) >= 1e-3 and (1 - cov.fraction) - apart >= 1e-3:
         lost_at = format_lost(cov.lost, unit_label(unit))
         note(f"the cage leaves {100 * (1 - cov.fraction):.2g} % of the mask out ({lost_at}): give a larger cage "
              "(--cage RX,RY or --cage-margin), or edit the keyframes there in the session (Deformation.set_cage)")
@@ -1243,7 +1254,39 @@ def estimate_deformation_iter(
         mesh={"parts": mesh_info}, timings=timings, warnings=tuple(notes), min_jacobian=jmin, max_tilt=tilt,
         coverage=cov.fraction, lost=cov.lost, folded=cov.folded, twist_confidence=theta_conf,
         twist_source=twist_source, context=context_given, touching=tuple(touching),
-        left_out=float(min(left_out_share, 1.0)), branches=tuple(said))
+        left_out=float(min(left_out_share, 1.0)), branches=tuple(said), apart=float(apart))
+
+
+def _apart_from_path(wm: Any, curve_w: np.ndarray, deformation: Deformation, sp: np.ndarray,
+                     org: np.ndarray) -> tuple[float, int]:
+    """The share of the (working) mask in separate parts that the path does not run through (nor pass within two
+    working voxels of) and that the straight volume leaves out, and how many such parts hold any of it: another
+    specimen in the mask, or a piece of this one cut off by the scan's face (a fin broken off beside the body lies
+    in the cage and counts nothing)."""
+    labels, n = ndi.label(wm.binary, _STRUCT26)
+    if n < 2:
+        return 0.0, 0
+    idx = np.round(np.asarray(curve_w) / np.asarray(wm.working_spacing, dtype=float)).astype(int)
+    off = np.stack(np.meshgrid(*[np.arange(-2, 3)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    near = (idx[:, None, :] + off[None]).reshape(-1, 3)
+    near = near[((near >= 0) & (near < np.asarray(labels.shape))).all(axis=1)]
+    untouched = np.ones(n + 1, dtype=bool)
+    untouched[np.unique(labels[tuple(near.T)])] = False
+    untouched[0] = False
+    if not untouched.any():
+        return 0.0, 0
+    apart_labels = labels * untouched[labels]
+    vox = np.argwhere(apart_labels)
+    from ..warp import _fast_inverse
+
+    pts = wm.from_working(vox) * sp + org
+    xys, inside = _fast_inverse(deformation, pts)  # held as coverage holds a voxel: inside, where J > 0
+    det = np.full(len(pts), -1.0)
+    ok = np.isfinite(xys[:, 2])
+    det[ok] = deformation.jacobian(xys[ok])
+    outside = ~(inside & (det > 0))
+    lost_parts = np.unique(apart_labels[tuple(vox[outside].T)])
+    return float(outside.sum() / max(int(wm.binary.sum()), 1)), int(len(lost_parts))
 
 
 def estimate_deformation(
