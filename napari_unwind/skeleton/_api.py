@@ -1134,9 +1134,12 @@ def estimate_deformation_iter(
                                            cval=0).astype(bool)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
+            # the scan's faces in the crop's working index coordinates (a crop's own faces cut nothing)
+            fov = np.array([-np.asarray(tw.start) / tw.factor - 0.5,
+                            (np.asarray(tw.shape) - np.asarray(tw.start)) / tw.factor - 0.5])
             theta, twist_info = twist_angles(curve - tw.offset, frames, mask=tw.binary,
                                              spacing=tw.working_spacing, volume=tw.volume, exclude=exclude,
-                                             return_info=True)
+                                             field_of_view=fov, return_info=True)
         theta = np.asarray(theta, dtype=float)
         theta_conf = np.zeros(len(curve)) if twist_info["round"] else np.asarray(twist_info["confidence"], float)
         twist_source = "none" if twist_info["round"] else "estimated"

@@ -209,6 +209,7 @@ def estimate_twist(
     min_anisotropy: float = 0.08,
     min_oriented: float = 0.25,
     exclude: Any = None,
+    field_of_view: Any = None,
     return_info: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, dict[str, Any]]:
     """Twist angles that turn the frames' ``v`` towards the specimen's dorsal side.
@@ -255,6 +256,12 @@ def estimate_twist(
         Voxels of the body that are not this specimen's (a branch cut off at its junction, a loop the path
         skips): left out of the sections, and a section whose outline runs along them (cut rather than ending
         at the specimen's boundary) counts less, fully from a tenth of its outline to nothing at 30 %.
+    field_of_view : array_like, shape (2, 3), optional
+        The scan's extent in index coordinates of ``mask`` (the faces' positions, ``lo`` and ``hi`` along each
+        axis): beyond it the specimen is not known, and a section whose outline runs along a face (where the scan
+        cut the specimen: a vessel running beside the face is a half-disc there) counts less, as a section cut
+        along ``exclude`` does. Default: ``mask``'s own array, ``(-0.5, N - 0.5)`` along each axis (give it when
+        ``mask`` is a crop of the scan).
     return_info : bool
         Also return a dict of diagnostics.
 
@@ -313,6 +320,14 @@ def estimate_twist(
                 f"exclude must have the mask's shape {tuple(mask.shape)}, got {tuple(exclude.shape)}"
             )
 
+    if field_of_view is None:
+        fov = np.array([[-0.5] * 3, [n - 0.5 for n in mask.shape]], dtype=float)
+    else:
+        fov = np.asarray(field_of_view, dtype=float) if np.ndim(field_of_view) == 2 else np.zeros(0)
+        if fov.shape != (2, 3) or not np.all(np.isfinite(fov)) or np.any(fov[0] >= fov[1]):
+            raise InvalidInputError(f"field_of_view must be the scan's (lo, hi) index extent along the 3 axes, lo < "
+                                    f"hi, got {field_of_view!r}")
+
     s_all = _arclength(pts)
     length = float(s_all[-1])
     tree = cKDTree(pts)
@@ -328,7 +343,7 @@ def estimate_twist(
     # -- sections: a subset of the points about one (finest) voxel apart, at most _MAX_SECTIONS
     sec = _section_indices(s_all, max(vox, length / _MAX_SECTIONS))
     xs, ys, w, inside, dense, cell, cut = _sample_sections(pts, fr, sec, s_all, tree, mask, volume, sp, radius,
-                                                           exclude)
+                                                           exclude, fov)
 
     # -- per-section moments
     m0 = w.sum(axis=1)
@@ -643,8 +658,10 @@ def _sample_sections(
     sp: np.ndarray,
     radius: float,
     exclude: Any = None,
+    fov: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, float, np.ndarray]:
-    """Sample the mask (and the volume) on a disc in each section plane.
+    """Sample the mask (and the volume) on a disc in each section plane (``fov``: the scan's (lo, hi) index extent,
+    beyond which the samples count as cut away; default the mask's array).
 
     Returns ``xs, ys`` (S, P) in-plane coordinates, ``w`` (S, P) the mask occupancy in [0, 1] (0 for samples that
     belong to another part of the curve or are excluded), ``inside`` (S, P) bool ``w >= 0.5``, ``dense`` (S, P)
@@ -689,6 +706,13 @@ def _sample_sections(
         far = np.abs(s_all[j] - np.repeat(s_all[sec], n_smp)[hit]) > min(own, radius)
         w.reshape(-1)[hit[far]] = 0.0
     w = _centre_part(w, gx, gy)
+    # beyond the scan's faces the mask is not known: an outline along a face is where the scan cut the specimen
+    # (a vessel running beside the face is a half-disc there), not its boundary; it counts as cut, like a branch's
+    if fov is None:
+        fov = np.array([[-0.5] * 3, [n - 0.5 for n in shape]])
+    beyond = ((flat < fov[0]) | (flat > fov[1])).any(axis=1).reshape(n_sec, n_smp)
+    if beyond.any():
+        ex = beyond.astype(float) if ex is None else np.maximum(ex, beyond)
     cut = _cut_share(w, ex, gx, gy) if ex is not None else np.zeros(n_sec)
     inside = w >= 0.5
     dense = None

@@ -83,8 +83,53 @@ def test_a_mask_cropped_to_the_specimen_reads_the_sections_up_to_its_faces(roll)
     assert min(crop.shape) < min(ph.mask.shape) - 20  # really cropped, on every side
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        angles = estimate_twist(pts - lo * np.asarray(ph.spacing), frames, mask=crop, spacing=ph.spacing)
+        angles = estimate_twist(pts - lo * np.asarray(ph.spacing), frames, mask=crop, spacing=ph.spacing,
+                                field_of_view=[-lo - 0.5, np.asarray(ph.mask.shape) - lo - 0.5])
     _check(ph, _angle_errors(apply_twist(frames, angles), v_true), s, max_deg=4.0, median_deg=1.0)
+
+
+def _half_vessel(pad: int):
+    """A round vessel (radius 6 voxels) along a planar arc whose plane holds its axis, cut lengthwise through its
+    axis by the scan's last axis0 face: half-discs all along; ``pad`` empty slices beyond that face."""
+    n1 = n2 = 90
+    c0 = 12
+    t = np.linspace(0.15, np.pi - 0.15, 200)
+    arc = np.stack([np.full_like(t, c0), 45 + 35 * np.cos(t), 12 + 60 * np.sin(t)], axis=1)
+    grid = np.stack(np.meshgrid(np.arange(c0 + 1), np.arange(n1), np.arange(n2), indexing="ij"), -1).reshape(-1, 3)
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(arc).query(grid)
+    mask = (d <= 6.0).reshape(c0 + 1, n1, n2)
+    mask = np.pad(mask, ((0, pad), (0, 0), (0, 0)))
+    return mask, arc
+
+
+def test_a_round_vessel_cut_lengthwise_by_the_scans_face_is_round_not_oriented_by_the_cut():
+    """The sections of a vessel that runs along the scan's face are half-discs: elongated and agreeing along the
+    vessel, they read as a dorsoventral axis (the aorta cut by a field of view turned 80 degrees along 90 mm). Beyond
+    the scan nothing is known: the outline along the face is no boundary of the vessel, and the vessel is round. The
+    same half-disc body inside the scan (empty voxels beyond its flat side) is a D-shaped body and is oriented."""
+    for pad, oriented in ((0, False), (6, True)):
+        mask, arc = _half_vessel(pad)
+        pts = arc[5:-5]
+        frames = parallel_transport_frames(pts)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            _, info = estimate_twist(pts, frames, mask=mask, spacing=1.0, return_info=True)
+        assert info["round"] is (not oriented), (pad, info["oriented"])
+    # the pipeline reads a crop of the scan: the crop's own faces are no scan faces, the scan's are
+    mask, arc = _half_vessel(0)
+    from napari_unwind.pipeline import skeleton_step
+    from napari_unwind.progress import run as drive
+    from napari_unwind.session import Endpoints
+
+    for pad, source in ((0, "none"), (6, "estimated")):
+        m = np.pad(mask, ((4, pad), (0, 0), (0, 0)))
+        res = drive(skeleton_step(m, Endpoints(head=tuple(arc[3] + (4, 0, 0)), tail=tuple(arc[-4] + (4, 0, 0))),
+                                  spacing=1.0))
+        assert res.twist_source == source, (pad, res.twist_source, res.warnings)
+    with pytest.raises(InvalidInputError, match="field_of_view must be"):
+        estimate_twist(pts, frames, mask=mask, spacing=1.0, field_of_view=[[0, 0, 0], [0, 5, 5]])
 
 
 @pytest.mark.parametrize("spacing", [(2.0, 1.0, 1.0), (1.5, 0.7, 1.0)])
