@@ -58,10 +58,10 @@ __all__ = [
     "SkeletonOptions",
     "SpecimenResult",
     "candidates",
+    "check_mask_label",
     "exit_status",
     "export_step",
     "fold_rule",
-    "check_mask_label",
     "judge",
     "mask_label_counts",
     "pick_mask_label",
@@ -803,6 +803,7 @@ def _labels_note(mask: Any) -> str | None:
         return None
     total = sum(counts.values())
     top = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
+
     def share(c: int) -> str:
         p = 100 * c / total
         return f"{p:.3g} %" if p >= 0.01 else "< 0.01 %"

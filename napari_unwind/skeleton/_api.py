@@ -19,7 +19,7 @@ from ..io._volume import Volume, check_spacing, normalise_unit, unit_label
 from ..progress import Progress, ProgressGenerator, checkpoint, run
 from ..session import Endpoints
 from ._curve import arclength, regularise_ends, resample_curve, select_keyframes, smooth_curve
-from ._foldfree import coverage, format_lost, max_tilt, unfold
+from ._foldfree import coverage, format_lost, held_points, max_tilt, unfold
 from ._harmonic import (
     decimate_surface,
     harmonic_field,
@@ -1280,14 +1280,7 @@ def _apart_from_path(wm: Any, curve_w: np.ndarray, deformation: Deformation, sp:
         return 0.0, 0
     apart_labels = labels * untouched[labels]
     vox = np.argwhere(apart_labels)
-    from ..warp import _fast_inverse
-
-    pts = wm.from_working(vox) * sp + org
-    xys, inside = _fast_inverse(deformation, pts)  # held as coverage holds a voxel: inside, where J > 0
-    det = np.full(len(pts), -1.0)
-    ok = np.isfinite(xys[:, 2])
-    det[ok] = deformation.jacobian(xys[ok])
-    outside = ~(inside & (det > 0))
+    outside = ~held_points(deformation, wm.from_working(vox) * sp + org)[0]  # lost as coverage counts a voxel lost
     lost_parts = np.unique(apart_labels[tuple(vox[outside].T)])
     return float(outside.sum() / max(int(wm.binary.sum()), 1)), int(len(lost_parts))
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..deformation import Deformation, Keyframe
 
-__all__ = ["unfold", "coverage", "max_tilt", "Coverage", "format_lost"]
+__all__ = ["unfold", "coverage", "held_points", "max_tilt", "Coverage", "format_lost"]
 
 
 def unfold(d: Deformation, *, eps: float = 0.2, floor: np.ndarray | None = None, max_sweeps: int = 20,
@@ -129,6 +129,19 @@ class Coverage:
     folded: float
 
 
+def held_points(d: Deformation, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the physical ``points`` (N, 3) the deformation holds (inside the cage, where its Jacobian is
+    positive) and which lie inside it where it folds (J <= 0); two bool arrays (N,)."""
+    from ..warp import _fast_inverse
+
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    xys, inside = _fast_inverse(d, pts)
+    det = np.full(len(pts), -1.0)
+    ok = np.isfinite(xys[:, 2])
+    det[ok] = d.jacobian(xys[ok])
+    return inside & (det > 0), inside & (det <= 0)
+
+
 def coverage(d: Deformation, points: np.ndarray, *, weights: np.ndarray | None = None, bin_width: float | None = None
              ) -> Coverage:
     """The coverage of mask voxels at physical positions ``points`` (N, 3) by the deformation ``d``.
@@ -137,19 +150,12 @@ def coverage(d: Deformation, points: np.ndarray, *, weights: np.ndarray | None =
     binned by the arclength of their nearest curve point, ``bin_width`` wide (default 2 voxels), and
     consecutive bins are merged into intervals.
     """
-    from ..warp import _fast_inverse
-
     pts = np.asarray(points, dtype=float).reshape(-1, 3)
     w = np.ones(len(pts)) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
     total = float(w.sum())
     if total <= 0:
         return Coverage(1.0, (), 0.0)
-    xys, inside = _fast_inverse(d, pts)
-    det = np.full(len(pts), -1.0)
-    ok = np.isfinite(xys[:, 2])
-    det[ok] = d.jacobian(xys[ok])
-    folded = inside & (det <= 0)
-    held = inside & (det > 0)
+    held, folded = held_points(d, pts)
     lost = ~held
     intervals: list[tuple[float, float, float]] = []
     if lost.any():
