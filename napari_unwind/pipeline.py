@@ -769,8 +769,13 @@ def pick_mask_label(mask: Any, label: Any) -> Any:
     from .io._volume import Volume
 
     m = mask.data if isinstance(mask, Volume) else mask
-    check_mask_label(m, label)
-    return np.asarray(m) == int(label)
+    if (isinstance(label, bool) or not isinstance(label, (int, np.integer))
+            or not np.issubdtype(np.dtype(getattr(m, "dtype", float)), np.integer)):
+        check_mask_label(m, label)  # says what is wrong
+    picked = np.asarray(m) == int(label)
+    if not picked.any():
+        check_mask_label(m, label)  # names the labels the map holds (counted only on this path)
+    return picked
 
 
 def check_mask_label(mask: Any, label: Any) -> None:
