@@ -785,12 +785,15 @@ def check_mask_label(mask: Any, label: Any) -> None:
 
     if isinstance(label, bool) or not isinstance(label, (int, np.integer)):
         raise InvalidInputError(f"the mask's label must be an integer, got {label!r}")
+    dtype = np.dtype(getattr(mask, "dtype", float))
+    if not np.issubdtype(dtype, np.integer):
+        raise InvalidInputError(f"a label was given, but the mask is no label map of integers (dtype {dtype}): give "
+                                "it without a label")
     counts = mask_label_counts(mask)
     if int(label) not in counts:
         held = ", ".join(map(str, sorted(counts)[:12])) + (", ..." if len(counts) > 12 else "")
         raise InvalidInputError(f"no voxel of the mask holds label {int(label)}"
-                                + (f"; its labels are {held}: give one of them" if counts
-                                   else ": it is not a label map of integers (give it without a label)"))
+                                + (f"; its labels are {held}: give one of them" if counts else ": it is empty"))
 
 
 def _labels_note(mask: Any) -> str | None:

@@ -264,6 +264,11 @@ def test_label_counts_and_one_label_against_numpy():
         pick_mask_label(rng.integers(0, 4, size=(5, 5, 5)).astype(np.uint8), 7)
     with pytest.raises(InvalidInputError, match="must be an integer, got 1.5"):
         pick_mask_label(np.ones((2, 2, 2), np.uint8), 1.5)
+    for dtype in (np.float32, bool):  # a label of what is no label map, even where a voxel equals it
+        with pytest.raises(InvalidInputError, match=f"no label map of integers \\(dtype {np.dtype(dtype)}\\)"):
+            pick_mask_label(np.ones((2, 2, 2), dtype), 1)
+    with pytest.raises(InvalidInputError, match="holds label 2: it is empty"):
+        pick_mask_label(np.zeros((2, 2, 2), np.uint8), 2)
 
 
 def test_a_label_map_as_the_mask_is_named_and_one_label_is_straightened_as_its_own_mask(fish, tmp_path):
