@@ -7,7 +7,8 @@ follows it.
 
 A straightened specimen is matched to the fish whose true label holds most of 50 points along its centreline
 (the session's deformation); a fish is straightened when such a specimen is ``ok``. Prints one line per tank and
-the totals, and every "ok" specimen with more than 1.4x its fish's voxels (two fish reported as one).
+the totals, every "ok" specimen with more than 1.4x its fish's voxels (two fish reported as one) and every "ok"
+specimen whose deformation holds under 99 % of its fish's true voxels (a part of it reported whole).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 MERGED = 1.4  # an "ok" specimen with more voxels than this times its fish's: two fish reported as one
+SHORT = 0.99  # an "ok" specimen whose deformation holds less of its fish's true voxels: a part of it reported whole
 
 
 def fish_of(deformation: dict, labels: np.ndarray) -> tuple[int, float]:
@@ -35,6 +37,17 @@ def fish_of(deformation: dict, labels: np.ndarray) -> tuple[int, float]:
     lab = labels[tuple(np.clip(vox, 0, np.array(labels.shape) - 1).T)]
     vals, cnt = np.unique(lab[lab > 0], return_counts=True)
     return (int(vals[np.argmax(cnt)]), float(cnt.max() / len(lab))) if len(vals) else (0, 0.0)
+
+
+def fish_held(deformation: dict, fish: np.ndarray) -> float:
+    """The share of the fish's true voxels (bool array) that the deformation holds (inside its cage, unfolded)."""
+    from napari_unwind.deformation import Deformation
+    from napari_unwind.skeleton._foldfree import held_points
+
+    d = Deformation.from_dict(deformation)
+    pts = np.argwhere(fish) * np.asarray(d.spacing) + np.asarray(d.origin)
+    held, _ = held_points(d, pts)
+    return float(held.mean()) if len(pts) else 0.0
 
 
 def one(seed: int, touching: bool = False) -> dict:
@@ -54,16 +67,24 @@ def one(seed: int, touching: bool = False) -> dict:
         rows = list(csv.DictReader(open(Path(tmp) / "out" / "specimens.csv", encoding="utf-8")))
         straightened: dict[int, list[str]] = {}
         merged = []
+        short = []
+        held: list[float] = []
         true_size = np.bincount(tank.labels.ravel(), minlength=tank.n_fish + 1)
         for r in rows:
             if r["session"]:
                 deformation = json.loads((Path(tmp) / "out" / r["session"]).read_text())["deformation"]
                 fish, _ = fish_of(deformation, tank.labels)
                 straightened.setdefault(fish, []).append(r["status"])
+                if r["status"] == "ok" and fish:
+                    share = fish_held(deformation, tank.labels == fish)
+                    held.append(share)
+                    if share < SHORT:
+                        short.append((r["specimen"], fish, share))
                 if r["status"] == "ok" and int(r["voxels"]) > MERGED * true_size[fish]:
                     merged.append((r["specimen"], fish, int(r["voxels"]), int(true_size[fish])))
     ok = [f for f in range(1, tank.n_fish + 1) if "ok" in straightened.get(f, [])]
     return dict(seed=seed, tank=tank, ok=ok, statuses=[r["status"] for r in rows], seconds=seconds, merged=merged,
+                short=short, held=held,
                 missed=[f for f in range(1, tank.n_fish + 1) if f not in ok], by_fish=straightened)
 
 
@@ -73,7 +94,8 @@ def main() -> None:
     ap.add_argument("--touching", action="store_true", help="every tank packed to gap 0 (hard_tank_phantom(seed, "
                     "touching=True): fish against each other and against the wall's arcs)")
     args = ap.parse_args()
-    total = found = merges = 0
+    total = found = merges = shorts = 0
+    helds: list[float] = []
     for seed in args.seeds:
         r = one(seed, touching=args.touching)
         t = r["tank"]
@@ -82,12 +104,19 @@ def main() -> None:
               f"{t.wall_cut}): {len(r['ok'])}/{t.n_fish} straightened ok; rows {counts}; {r['seconds']:.0f} s"
               + (f"; missed fish {r['missed']} ({[r['by_fish'].get(f) for f in r['missed']]})" if r["missed"] else "")
               + "".join(f"; MERGED: specimen {n} ok with {v} voxels, its fish {f} has {tv}"
-                        for n, f, v, tv in r["merged"]))
+                        for n, f, v, tv in r["merged"])
+              + "".join(f"; SHORT: specimen {n} ok holds {100 * h:.1f} % of its fish {f}" for n, f, h in r["short"]))
         total += t.n_fish
         found += len(r["ok"])
         merges += len(r["merged"])
+        shorts += len(r["short"])
+        helds += r["held"]
     print(f"\n{found}/{total} fish straightened ok over {len(args.seeds)} tanks; {merges} ok specimens that hold "
-          f"more than {MERGED}x their fish's voxels (two fish as one)")
+          f"more than {MERGED}x their fish's voxels (two fish as one); {shorts} ok specimens that hold less than "
+          f"{100 * SHORT:.0f} % of their fish's true voxels (a part reported whole)")
+    if helds:
+        print("share of its fish's true voxels an ok specimen holds, min / p10 / median: "
+              + " / ".join(f"{v:.4f}" for v in np.percentile(helds, [0, 10, 50])))
 
 
 if __name__ == "__main__":
