@@ -125,6 +125,8 @@ def _box(mask: np.ndarray, pad: int) -> tuple[slice, ...]:
     return tuple(slice(max(int(ix[0]) - pad, 0), min(int(ix[-1]) + 1 + pad, n)) for ix, n in zip(idx, mask.shape))
 
 
+_OWNED = 0.8  # of a feature's labels in one part: the feature is that part's, its stray pieces follow it
+_S26 = np.ones((3, 3, 3), bool)
 _CURVED_MIN_VOXELS = 200  # working voxels: below, no hint is computed
 _CURVED_MAX_CHECKS = 3  # rows whose geodesic is computed, the largest first
 _CURVED_MIN_SHARE = 0.2  # of the largest row's voxels: smaller rows get no hint
@@ -645,6 +647,49 @@ def _split_by_features(parts: np.ndarray, n: int, labels: np.ndarray, stats: dic
     return out, m
 
 
+def _parts_follow_features(parts: np.ndarray, n: int, labels: np.ndarray) -> np.ndarray:
+    """Where the distance transform's split and the features disagree, the feature decides: a piece of a part
+    that is a feature's labels (a connected piece, 26-neighbours) while that feature lies mostly (at least
+    :data:`_OWNED` of its labels) in another part that the piece touches goes to that part. The distance
+    transform has no saddle where a thin tail lies along a thick neighbour (the two bodies' union is as deep there
+    as the neighbour), so its watershed gives the tail to the neighbour; the join tree's features follow each
+    body's own intensities and keep the tail with its fish. A feature split between parts (two fish in one
+    feature) moves nothing. What a move leaves apart from its part's main piece goes to the part it touches
+    most. Returns the new part labels (``n`` parts still)."""
+    if n < 2:
+        return parts
+    out = parts.copy()
+    ids = np.unique(labels[parts > 0])
+    moved = False
+    for f in ids[ids > 0]:
+        lab = (labels == f) & (parts > 0)
+        where = np.bincount(parts[lab], minlength=n + 1)
+        owner = int(np.argmax(where))
+        if where[owner] < _OWNED * where.sum() or where[owner] == where.sum():
+            continue
+        stray, m = ndimage.label(lab & (out != owner), structure=_S26)
+        if not m:
+            continue
+        near = ndimage.binary_dilation(out == owner, structure=_S26)
+        touching = np.unique(stray[near & (stray > 0)])
+        if len(touching):
+            out[np.isin(stray, touching)] = owner
+            moved = True
+    if not moved:
+        return out
+    for q in range(1, n + 1):  # what a move left apart from its part's main piece
+        pieces, m = ndimage.label(out == q, structure=_S26)
+        if m < 2:
+            continue
+        sizes = np.bincount(pieces.ravel())[1:]
+        for j in np.flatnonzero(sizes < sizes.max()) + 1:
+            piece = pieces == j
+            ring = ndimage.binary_dilation(piece, structure=_S26) & ~piece & (out > 0) & (out != q)
+            if ring.any():
+                out[piece] = int(np.bincount(out[ring]).argmax())
+    return out
+
+
 def _part_stats(features: Features, template: FeatureStats, mask: np.ndarray, iso: float | None,
                 spacing: np.ndarray) -> FeatureStats:
     """The figures of a body or a part (its own voxels, box, values, elongation, border)."""
@@ -866,6 +911,7 @@ def candidates(
             parts, n = _split(g, spacing, saddle=split_saddle, min_share=0.2)
             parts, n = _split_by_features(parts, n, labels[sl], stats, spacing, min_elongation,
                                           None if basin_id is None else basin_id[sl])
+            parts = _parts_follow_features(parts, n, labels[sl])
         else:
             parts, n = g.astype(np.int32), 1
         base = len(part_info)
