@@ -69,12 +69,14 @@ def one(seed: int, touching: bool = False) -> dict:
         merged = []
         short = []
         held: list[float] = []
+        deformations: dict[int, list[dict]] = {}
         true_size = np.bincount(tank.labels.ravel(), minlength=tank.n_fish + 1)
         for r in rows:
             if r["session"]:
                 deformation = json.loads((Path(tmp) / "out" / r["session"]).read_text())["deformation"]
                 fish, _ = fish_of(deformation, tank.labels)
                 straightened.setdefault(fish, []).append(r["status"])
+                deformations.setdefault(fish, []).append(deformation)
                 if r["status"] == "ok" and fish:
                     share = fish_held(deformation, tank.labels == fish)
                     held.append(share)
@@ -84,7 +86,7 @@ def one(seed: int, touching: bool = False) -> dict:
                     merged.append((r["specimen"], fish, int(r["voxels"]), int(true_size[fish])))
     ok = [f for f in range(1, tank.n_fish + 1) if "ok" in straightened.get(f, [])]
     return dict(seed=seed, tank=tank, ok=ok, statuses=[r["status"] for r in rows], seconds=seconds, merged=merged,
-                short=short, held=held,
+                short=short, held=held, deformations=deformations,
                 missed=[f for f in range(1, tank.n_fish + 1) if f not in ok], by_fish=straightened)
 
 

@@ -127,6 +127,8 @@ def _box(mask: np.ndarray, pad: int) -> tuple[slice, ...]:
 
 _OWNED = 0.8  # of a feature's labels in one part: the feature is that part's, its stray pieces follow it
 _S26 = np.ones((3, 3, 3), bool)
+_REGROW = 24  # working voxels around an unclaimed piece within which what the opening took is grown back (rule 7)
+_REGROW_SHARE = 0.1  # of the piece: growing back more than this is not its own tip, and nothing is grown back
 _CURVED_MIN_VOXELS = 200  # working voxels: below, no hint is computed
 _CURVED_MAX_CHECKS = 3  # rows whose geodesic is computed, the largest first
 _CURVED_MIN_SHARE = 0.2  # of the largest row's voxels: smaller rows get no hint
@@ -789,8 +791,9 @@ def candidates(
        lies two voxels clear of every candidate's mask and every feature's labels -- and of what is brighter than
        a body and connected to a rejected feature's labels, the rest of a dense wall -- is opened, and each piece
        of at least the size floor whose median level is that of a body (not more than 1.5 times the contrast
-       over the medium) is grown back over the two voxels and split as in rule 4. Each part is named after the
-       feature whose basin holds most of it (``"1.1"``) and goes through rules 5-6 --
+       over the medium) gets back what the opening took from it within that clear tissue (a thin tail's tip;
+       within ``_REGROW`` voxels of the piece), is grown back over the two voxels and split as in rule 4. Each
+       part is named after the feature whose basin holds most of it (``"1.1"``) and goes through rules 5-6 --
        ``"tissue outside every feature's labels, in feature 1's basin: ..."``.
 
     Parameters
@@ -1091,11 +1094,12 @@ def _unclaimed_rows(features: Features, out: list[Candidate], rows: list[tuple],
         claimed[box] |= m
     tissue = values >= iso
     # two voxels clear of everything claimed (the partial volume of a neighbour's edge), opened (its slivers)
-    left = tissue & ~ndimage.binary_dilation(claimed, iterations=2)
-    left = ndimage.binary_opening(left)
+    clear = tissue & ~ndimage.binary_dilation(claimed, iterations=2)
+    left = ndimage.binary_opening(clear)
     comp, n = ndimage.label(left)
     if n == 0:
         return [], levels
+    clear_lab, _ = ndimage.label(clear)
     sizes = np.bincount(comp.ravel(), minlength=n + 1)
     used: dict[int, int] = {}
     for r in rows:
@@ -1106,12 +1110,20 @@ def _unclaimed_rows(features: Features, out: list[Candidate], rows: list[tuple],
     for i, sl in enumerate(ndimage.find_objects(comp), start=1):
         if sl is None or sizes[i] < floor:
             continue
-        # in the piece's box, three voxels wider than the two it may grow by (a noisy scan has hundreds of
-        # pieces: the whole volume for each took 10 minutes on a 110^3 scan)
-        big = tuple(slice(max(a.start - 3, 0), min(a.stop + 3, n)) for a, n in zip(sl, comp.shape))
-        piece = comp[big] == i
-        if np.median(values[big][piece]) - m0 > 1.5 * (m1 - m0):
+        if np.median(values[sl][comp[sl] == i]) - m0 > 1.5 * (m1 - m0):
             continue  # the unlabelled rest of a brighter structure (a dense wall), not a body
+        # what the opening took from its own tissue (a thin tail's tip) back: the clear tissue it lies in, within
+        # _REGROW voxels of its box, when that is a small part of it
+        near = tuple(slice(max(a.start - _REGROW, 0), min(a.stop + _REGROW, n)) for a, n in zip(sl, comp.shape))
+        piece = comp[near] == i
+        own = np.unique(clear_lab[near][piece])
+        grown = np.isin(clear_lab[near], own[own > 0])
+        if np.count_nonzero(grown) > (1.0 + _REGROW_SHARE) * sizes[i]:
+            grown = piece  # more than a tip: the web of the medium's noise, or a wall's rim, which the opening cut
+        # then in its box, three voxels wider than the two it may grow by (a noisy scan has hundreds of pieces: the
+        # whole volume for each took 10 minutes on a 110^3 scan)
+        big = tuple(slice(b.start + t.start, b.start + t.stop) for b, t in zip(near, _box(grown, 3)))
+        piece = grown[tuple(slice(b.start - a.start, b.stop - a.start) for a, b in zip(near, big))]
         piece = ndimage.binary_dilation(piece, iterations=2, mask=core[big]) | piece
         parts, k = _split(piece, spacing, saddle=split_saddle, min_share=0.2) if split_saddle > 0 else (
             piece.astype(np.int32), 1)
