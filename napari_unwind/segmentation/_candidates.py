@@ -661,21 +661,26 @@ def _parts_follow_features(parts: np.ndarray, n: int, labels: np.ndarray) -> np.
     if n < 2:
         return parts
     out = parts.copy()
-    ids = np.unique(labels[parts > 0])
+    inside = np.where(parts > 0, labels, 0)
     moved = False
-    for f in ids[ids > 0]:
-        lab = (labels == f) & (parts > 0)
-        where = np.bincount(parts[lab], minlength=n + 1)
+    for f, box in enumerate(ndimage.find_objects(inside), start=1):
+        if box is None:
+            continue
+        # the feature's box and one voxel around it: its pieces and every voxel they touch
+        box = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in box)
+        lab = inside[box] == f
+        where = np.bincount(parts[box][lab], minlength=n + 1)
         owner = int(np.argmax(where))
         if where[owner] < _OWNED * where.sum() or where[owner] == where.sum():
             continue
-        stray, m = ndimage.label(lab & (out != owner), structure=_S26)
+        sub = out[box]  # a view: moves are written to ``out``
+        stray, m = ndimage.label(lab & (sub != owner), structure=_S26)
         if not m:
             continue
-        near = ndimage.binary_dilation(out == owner, structure=_S26)
+        near = ndimage.binary_dilation(sub == owner, structure=_S26)
         touching = np.unique(stray[near & (stray > 0)])
         if len(touching):
-            out[np.isin(stray, touching)] = owner
+            sub[np.isin(stray, touching)] = owner
             moved = True
     if not moved:
         return out
