@@ -470,7 +470,11 @@ def judge(skeleton: Any) -> tuple[str, str]:
         if apart >= 1.0 - MIN_COVERAGE:  # no cage holds a part the path does not run through
             reasons[-1] += (f"; {100 * apart:.2g} % of the mask lies in separate parts off the path (a mask of this "
                             "specimen alone, or --chain START END through each part)")
-        cage_helps = (1.0 - cov) - apart >= 1e-3
+        bend = _num(getattr(skeleton, "bend", None)) or 0.0
+        if bend >= 1e-3:  # the fold-free construction took the tissue on the inside of a tight bend
+            reasons[-1] += (f"; {100 * bend:.2g} % of the mask lies on the inside of bends tighter than the body is "
+                            "thick, which no cage holds without folding (a larger one neither)")
+        cage_helps = (1.0 - cov) - apart - bend >= 1e-3
     folded = _num(getattr(skeleton, "folded", None))
     if folded and skeleton.deformation.folds():
         reasons.append(f"the deformation folds over {100 * folded:.2g} % of the specimen's mask")

@@ -137,9 +137,9 @@ def test_export_step_applies_the_fold_rule(tmp_path):
     assert (tmp_path / "x.nrrd").exists()
 
 
-def _skel(coverage=1.0, lost=(), folded=0.0, folds=()):
+def _skel(coverage=1.0, lost=(), folded=0.0, folds=(), bend=0.0):
     d = SimpleNamespace(unit="micrometer", folds=lambda: list(folds))
-    return SimpleNamespace(coverage=coverage, lost=lost, folded=folded, deformation=d)
+    return SimpleNamespace(coverage=coverage, lost=lost, folded=folded, deformation=d, bend=bend)
 
 
 def test_status_rule():
@@ -155,6 +155,12 @@ def test_status_rule():
     status, reason = judge(_skel(folded=0.02, folds=[(1.0, 2.0)]))
     assert status == "partial" and "folds over 2 %" in reason
     assert judge(_skel(folded=0.0, folds=[(1.0, 2.0)])) == ("ok", "")  # only empty cage corners
+    # lost on the inside of bends tighter than the body: said as such, and a larger cage is not advised for it
+    status, reason = judge(_skel(coverage=0.97, lost=((10.0, 20.0, 0.03),), bend=0.03))
+    assert status == "partial" and "3 % of the mask lies on the inside of bends tighter" in reason, reason
+    assert "a larger or fitted cage" not in reason, reason
+    status, reason = judge(_skel(coverage=0.97, lost=((10.0, 20.0, 0.01), (30.0, 40.0, 0.02)), bend=0.01))
+    assert "1 % of the mask lies on the inside of bends" in reason and "a larger or fitted cage" in reason, reason
 
 
 def test_exit_status():

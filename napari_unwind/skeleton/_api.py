@@ -96,6 +96,10 @@ class SkeletonResult:
         Fraction of the mask (between the ends) in separate parts that the path does not run through and that the
         straight volume leaves out (another specimen in the mask, a piece cut off by the scan's face); part of the
         ``1 - coverage`` that no cage would hold.
+    bend : float
+        Fraction of the mask (between the ends) left out on the inside of bends tighter than the body is thick,
+        where the fold-free construction shrank the cage into the tissue: part of ``1 - coverage`` that a larger
+        cage does not give back (0 when the cage was given).
     """
 
     deformation: Deformation
@@ -121,6 +125,7 @@ class SkeletonResult:
     left_out: float = 0.0
     branches: tuple[str, ...] = ()
     apart: float = 0.0
+    bend: float = 0.0
 
     def twist_report(self) -> str:
         """One line: the twist's range, what set it and over how much of the length."""
@@ -872,12 +877,36 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray) -> _C
                 branches, skipped, *_along(kept, head_w, wsp))
 
 
+def _beyond_tissue(bounds: np.ndarray, tissue: np.ndarray) -> np.ndarray:
+    """Per keyframe and side (m, 4): how far the cage's side lies beyond the tissue's own (negative: inside it)."""
+    return np.stack([tissue[:, 0] - bounds[:, 0], bounds[:, 1] - tissue[:, 1],
+                     tissue[:, 2] - bounds[:, 2], bounds[:, 3] - tissue[:, 3]], axis=1)
+
+
+def _bend_lost(bounds: np.ndarray, tissue: np.ndarray | None, knots: np.ndarray,
+               lost: tuple[tuple[float, float, float], ...], vox: float
+               ) -> tuple[float, tuple[tuple[float, float, float], ...]]:
+    """The lost intervals on the inside of bends tighter than the body is thick: those that meet the two segments
+    of a keyframe whose cage the fold-free construction shrank into the tissue (a side more than half of ``vox``,
+    a working voxel, inside the tissue's own extent). No cage holds that tissue without folding, so a larger one
+    does not help there. Returns the share of the mask they lose and the intervals (none when the cage was given,
+    ``tissue`` None)."""
+    if tissue is None or not lost:
+        return 0.0, ()
+    taken = np.flatnonzero(_beyond_tissue(bounds, np.asarray(tissue, dtype=float)).min(axis=1) < -0.5 * vox)
+    if not len(taken):
+        return 0.0, ()
+    lo = knots[np.maximum(taken - 1, 0)]
+    hi = knots[np.minimum(taken + 1, len(knots) - 1)]
+    at = tuple(iv for iv in lost if np.any((lo <= iv[1]) & (hi >= iv[0])))
+    return float(sum(f for *_, f in at)), at
+
+
 def _context_given(bounds: np.ndarray, tissue: np.ndarray, knots: np.ndarray, asked: float, vox: float,
                    unit: str | None, note: Any) -> float:
     """The context the cages give: per keyframe and side, how far the side lies beyond the tissue's own (the
     least of them); a note says where it is less than ``asked`` (the fold-free construction gave it up)."""
-    beyond = np.stack([tissue[:, 0] - bounds[:, 0], bounds[:, 1] - tissue[:, 1],
-                       tissue[:, 2] - bounds[:, 2], bounds[:, 3] - tissue[:, 3]], axis=1)
+    beyond = _beyond_tissue(bounds, tissue)
     least = float(beyond.min())
     short = beyond.min(axis=1) < asked - 0.5 * vox
     if short.any():
@@ -1221,10 +1250,17 @@ def estimate_deformation_iter(
         note(f"{n_apart} separate part(s) of the mask, {100 * apart:.2g} % of it, lie off the path between the ends "
              "and outside the straight volume: give a mask of this specimen alone, or straighten the parts as one "
              "chain (--chain START END for each part, head to tail)")
-    if cov.lost and sum(f for *_, f in cov.lost) >= 1e-3 and (1 - cov.fraction) - apart >= 1e-3:
-        lost_at = format_lost(cov.lost, unit_label(unit))
-        note(f"the cage leaves {100 * (1 - cov.fraction):.2g} % of the mask out ({lost_at}): give a larger cage "
-             "(--cage RX,RY or --cage-margin), or edit the keyframes there in the session (Deformation.set_cage)")
+    bend, bend_at = _bend_lost(deformation.bounds, tissue, deformation.knots, cov.lost,
+                               float(max(wm.working_spacing)))
+    if bend >= 1e-3:
+        note(f"the cage leaves {100 * bend:.2g} % of the mask out on the inside of bends tighter than the body is "
+             f"thick ({format_lost(bend_at, unit_label(unit))}): no cage holds it there without folding, a larger "
+             "one neither")
+    other = tuple(iv for iv in cov.lost if iv not in bend_at)
+    if other and sum(f for *_, f in other) >= 1e-3 and (1 - cov.fraction) - bend - apart >= 1e-3:
+        lost_at = format_lost(other, unit_label(unit))
+        note(f"the cage leaves {100 * (1 - cov.fraction - bend):.2g} % of the mask out ({lost_at}): give a larger "
+             "cage (--cage RX,RY or --cage-margin), or edit the keyframes there in the session (Deformation.set_cage)")
     left_out_share = 0.0
     said: list[str] = []  # the branches cut off, as reported
     if cut_off:  # what each cut-off part leaves outside the straight volume, as a share of the whole mask
@@ -1257,7 +1293,7 @@ def estimate_deformation_iter(
         mesh={"parts": mesh_info}, timings=timings, warnings=tuple(notes), min_jacobian=jmin, max_tilt=tilt,
         coverage=cov.fraction, lost=cov.lost, folded=cov.folded, twist_confidence=theta_conf,
         twist_source=twist_source, context=context_given, touching=tuple(touching),
-        left_out=float(min(left_out_share, 1.0)), branches=tuple(said), apart=float(apart))
+        left_out=float(min(left_out_share, 1.0)), branches=tuple(said), apart=float(apart), bend=float(bend))
 
 
 def _apart_from_path(wm: Any, curve_w: np.ndarray, deformation: Deformation, sp: np.ndarray,
