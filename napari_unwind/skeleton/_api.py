@@ -887,13 +887,14 @@ def _bend_lost(bounds: np.ndarray, tissue: np.ndarray | None, knots: np.ndarray,
                lost: tuple[tuple[float, float, float], ...], vox: float
                ) -> tuple[float, tuple[tuple[float, float, float], ...]]:
     """The lost intervals on the inside of bends tighter than the body is thick: those that meet the two segments
-    of a keyframe whose cage the fold-free construction shrank into the tissue (a side more than half of ``vox``,
-    a working voxel, inside the tissue's own extent). No cage holds that tissue without folding, so a larger one
-    does not help there. Returns the share of the mask they lose and the intervals (none when the cage was given,
-    ``tissue`` None)."""
+    of a keyframe whose cage the fold-free construction shrank to the tissue or into it (a side less than half of
+    ``vox``, a working voxel, beyond the tissue's own extent, where the fitted cage lies two voxels beyond it at
+    least). There it gave the margins up, or the tissue too, so that the sections do not fold: a larger cage is
+    given up the same way and does not help. Returns the share of the mask they lose and the intervals (none when
+    the cage was given, ``tissue`` None)."""
     if tissue is None or not lost:
         return 0.0, ()
-    taken = np.flatnonzero(_beyond_tissue(bounds, np.asarray(tissue, dtype=float)).min(axis=1) < -0.5 * vox)
+    taken = np.flatnonzero(_beyond_tissue(bounds, np.asarray(tissue, dtype=float)).min(axis=1) < 0.5 * vox)
     if not len(taken):
         return 0.0, ()
     lo = knots[np.maximum(taken - 1, 0)]

@@ -161,19 +161,23 @@ def test_unfold_by_least_area_cuts_the_tall_side_of_a_tall_cage():
 
 def test_the_loss_on_the_inside_of_a_tight_bend_is_told_from_a_cage_too_small():
     """A lost interval is the bend's when it meets the two segments of a keyframe whose cage the fold-free
-    construction shrank into the tissue (more than half a voxel): figures by hand."""
+    construction shrank to within half a voxel of the tissue or into it (the fitted cage lies two voxels beyond
+    it at least): figures by hand."""
     knots = np.array([0.0, 10.0, 20.0, 30.0, 40.0])
     tissue = np.tile([-5.0, 5.0, -4.0, 4.0], (5, 1))
-    bounds = tissue * 1.1
+    fitted = tissue + np.array([-2.0, 2.0, -2.0, 2.0])  # two voxels of margin
     lost = ((12.0, 14.0, 0.01), (29.0, 31.0, 0.005), (35.0, 38.0, 0.02))
-    assert api._bend_lost(bounds, tissue, knots, lost, 1.0) == (0.0, ())  # margins everywhere: no bend took tissue
-    taken = bounds.copy()
-    taken[2, 3] = 3.4  # the third keyframe's upper v side 0.6 inside the tissue's 4
-    share, at = api._bend_lost(taken, tissue, knots, lost, 1.0)
+    assert api._bend_lost(fitted, tissue, knots, lost, 1.0) == (0.0, ())  # no bend shrank a cage
+    shrunk = fitted.copy()
+    shrunk[2, 3] = 4.3  # the third keyframe's upper v side: its margin given up
+    share, at = api._bend_lost(shrunk, tissue, knots, lost, 1.0)
     assert at == lost[:2] and share == pytest.approx(0.015)  # its two segments, s = 10..30, not s = 35..38
-    taken[2, 3] = 3.6  # 0.4 inside: within the half voxel of the fit's own precision
-    assert api._bend_lost(taken, tissue, knots, lost, 1.0) == (0.0, ())
-    taken[0, 0] = -4.0  # the first keyframe's lower u side: its one segment, s = 0..10
-    assert api._bend_lost(taken, tissue, knots, lost, 1.0) == (0.0, ())
-    assert api._bend_lost(taken, tissue, knots, ((9.0, 11.0, 0.01),), 1.0) == (0.01, ((9.0, 11.0, 0.01),))
-    assert api._bend_lost(taken, None, knots, lost, 1.0) == (0.0, ())  # a cage given: no tissue to compare
+    shrunk[2, 3] = 3.0  # into the tissue
+    assert api._bend_lost(shrunk, tissue, knots, lost, 1.0) == (pytest.approx(0.015), lost[:2])
+    shrunk[2, 3] = 4.6  # a margin of more than half a voxel kept
+    assert api._bend_lost(shrunk, tissue, knots, lost, 1.0) == (0.0, ())
+    shrunk[0, 0] = -5.2  # the first keyframe's lower u side: its one segment, s = 0..10
+    assert api._bend_lost(shrunk, tissue, knots, lost, 1.0) == (0.0, ())
+    assert api._bend_lost(shrunk, tissue, knots, ((9.0, 11.0, 0.01),), 1.0) == (0.01, ((9.0, 11.0, 0.01),))
+    assert api._bend_lost(shrunk, tissue, knots, lost, 2.0) == (pytest.approx(0.015), lost[:2])  # 0.6 < a voxel's half
+    assert api._bend_lost(shrunk, None, knots, lost, 1.0) == (0.0, ())  # a cage given: no tissue to compare
