@@ -49,3 +49,17 @@ def apply_thickness_switch(args: Namespace) -> None:
         import napari_unwind.skeleton._api as api
 
         api._THICK_PIECES = float("inf")
+
+
+def rise_switch(ap: ArgumentParser) -> None:
+    """Add ``--no-rise`` to ``ap``: a dead end off the path is cut as a branch however little it reaches past the
+    slack (a kink's outer corner too: the code before ``_rise``); :func:`apply_rise_switch` applies it."""
+    ap.add_argument("--no-rise", action="store_true", help="cut a kink's outer corner as a branch (before _rise)")
+
+
+def apply_rise_switch(args: Namespace) -> None:
+    """Switch the rise off in this process when ``args.no_rise`` (see :func:`rise_switch`)."""
+    if args.no_rise:
+        import napari_unwind.skeleton._api as api
+
+        api._BRANCH_RISE = 0.0

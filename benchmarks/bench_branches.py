@@ -1,13 +1,15 @@
 """Branched specimens (issue 23 item 2): what the cage holds of the chosen path and of the other leg.
 
-    .venv/bin/python -m benchmarks.bench_branches [--before] [--seeds FIRST N] [--hairpins FIRST N] [--suggested]
-        [--no-thickness]
+    .venv/bin/python -m benchmarks.bench_branches [--before] [--seeds FIRST N] [--hairpins FIRST N] [--kinks FIRST N]
+        [--suggested] [--no-thickness] [--no-rise]
 
 The Y phantoms (seeds 0-7) and graft-like ones (seeds 100-103) of tests/skeleton/test_branches.py, ends at the trunk
 and at leg A; held fractions by tests/cage_reference.py's inverse (the path; leg B from where the legs part); a Y
 taken for the body touching itself (partial) is counted. ``--hairpins``: instead, N of the tests' hairpins whose
 sides touch (``hairpin_phantom``), by its topology a Y: each is to be partial ("touches itself"), not a branch.
 ``--suggested``: no ends given (the suggested ones, as a run with no click), and only each result's status.
+``--kinks``: instead, N kinked tubes (``kink_phantom``: no branch, an arc tighter than the tube), each to be
+straightened whole; ``--no-rise`` cuts a kink's outer corner as a branch (the code before ``_rise``).
 ``--before``: the same solve with the branch cut switched off (the code before it). ``--no-thickness``: a part cut
 off is read as the body doubled by its two-cored sections only, not also by its sections' size (the code before
 ``_thick_pieces``).
@@ -26,10 +28,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "tests"), str(ROOT / "tests" / "skeleton")]
 
 from cage_reference import held  # noqa: E402
-from test_branches import _solve, hairpin_phantom, y_phantom  # noqa: E402
+from test_branches import _solve, hairpin_phantom, kink_phantom, y_phantom  # noqa: E402
 
 import napari_unwind.skeleton._api as api  # noqa: E402
-from benchmarks._util import apply_thickness_switch, thickness_switch  # noqa: E402
+from benchmarks._util import apply_rise_switch, apply_thickness_switch, rise_switch, thickness_switch  # noqa: E402
 
 
 def main() -> None:
@@ -39,10 +41,16 @@ def main() -> None:
                     help="N Y phantoms and N graft-like ones from seed FIRST on (default: the tests' seeds)")
     ap.add_argument("--hairpins", type=int, nargs=2, metavar=("FIRST", "N"), default=None,
                     help="N hairpins whose sides touch, from seed FIRST on, instead of the Y phantoms")
+    ap.add_argument("--kinks", type=int, nargs=2, metavar=("FIRST", "N"), default=None,
+                    help="N kinked tubes (no branch) from seed FIRST on, instead of the Y phantoms")
     ap.add_argument("--suggested", action="store_true", help="no ends given: each result's status only")
     thickness_switch(ap)
+    rise_switch(ap)
     args = ap.parse_args()
     apply_thickness_switch(args)
+    apply_rise_switch(args)
+    if args.kinks is not None:
+        return kinks(*args.kinks)
     if args.hairpins is not None:
         return hairpins(*args.hairpins, suggested=args.suggested)
     if args.before:
@@ -121,6 +129,27 @@ def hairpins(first: int, n: int, *, suggested: bool = False) -> None:
     q = [0, 10, 50, 90, 100]
     print(f"\npartial, touching itself: {partial} of {n}; left out, min / p10 / median / p90 / max: "
           f"{' / '.join(f'{v:.2f}' for v in np.percentile(left, q))}")
+
+
+def kinks(first: int, n: int) -> None:
+    """Kinked tubes (``kink_phantom``), true ends: each is one unbranched body, to be straightened whole."""
+    from napari_unwind.pipeline import judge
+
+    statuses: dict[str, int] = {}
+    whole, left = [], []
+    for seed in range(first, first + n):
+        mask, head, tail, r, rc, turn, _ = kink_phantom(seed)
+        res = _solve(mask, (head, tail))
+        status, reason = judge(res)
+        cut = "cut as a branch" if res.branches else "touches itself" if res.touching else "nothing cut"
+        statuses[f"{status}, {cut}"] = statuses.get(f"{status}, {cut}", 0) + 1
+        whole.append(held(res.deformation, np.argwhere(mask).astype(float)).mean())
+        left.append(res.left_out)
+        print(f"kink {seed}: r {r:.1f}, arc {rc:.2f} radii, turn {turn:.0f} deg: {status}, {cut}, "
+              f"{100 * res.left_out:.0f} % of the mask left out, held {whole[-1]:.3f}", flush=True)
+    q = [0, 10, 50, 90, 100]
+    print(f"\n{statuses}; the whole mask held (tests/cage_reference.py), min / p10 / median / p90 / max: "
+          f"{' / '.join(f'{v:.3f}' for v in np.percentile(whole, q))}; left out, max {max(left):.2f}")
 
 
 if __name__ == "__main__":

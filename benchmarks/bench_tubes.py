@@ -1,7 +1,7 @@
 """Round tubes along random 3D curves (issue 23 item 1, a vessel family drawn from a seed): is each taken as round,
 and how far do its frames roll against the rotation-minimising frames?
 
-    .venv/bin/python -m benchmarks.bench_tubes [--seed 22] [--n 40] [--no-thickness]
+    .venv/bin/python -m benchmarks.bench_tubes [--seed 22] [--n 40] [--no-thickness] [--no-rise]
 
 Tube i: a radius of 3-8 voxels around a cubic spline through 6 random-walk points scaled into a 110^3 scan (liquid
 100, tube 1000, Gaussian noise 40); ends at the curve's ends. Curves shorter than 8 radii are skipped; a curve that
@@ -14,7 +14,8 @@ solve refuses (a row "refused" with the reason's start) or, where the parts lie 
 volume; the roll is that of tests/test_real_scans_run.py (double reflection, independent of our frames); each tube's
 status is ``pipeline.judge``'s (a partial result's roll is printed too; the totals give the largest change within 10
 voxels over the ok ones apart). ``--no-thickness``: a part cut off is read as the body doubled by its two-cored
-sections only, not also by its sections' size (the code before ``_thick_pieces``).
+sections only, not also by its sections' size (the code before ``_thick_pieces``). ``--no-rise``: a kink's outer
+corner is cut as a branch (the code before ``_rise``).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
-from benchmarks._util import apply_thickness_switch, thickness_switch
+from benchmarks._util import apply_rise_switch, apply_thickness_switch, rise_switch, thickness_switch
 from napari_unwind.errors import InvalidInputError
 from napari_unwind.pipeline import judge
 from napari_unwind.progress import run
@@ -72,8 +73,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=22)
     ap.add_argument("--n", type=int, default=40, help="curves drawn (short ones are skipped)")
     thickness_switch(ap)
+    rise_switch(ap)
     args = ap.parse_args()
     apply_thickness_switch(args)
+    apply_rise_switch(args)
     rng = np.random.default_rng(args.seed)
     grid = grid_points()
     rows = {False: [], True: []}
