@@ -98,8 +98,8 @@ class SkeletonResult:
         ``1 - coverage`` that no cage would hold.
     bend : float
         Fraction of the mask (between the ends) left out on the inside of bends tighter than the body is thick,
-        where the fold-free construction shrank the cage into the tissue: part of ``1 - coverage`` that a larger
-        cage does not give back (0 when the cage was given).
+        where the fold-free construction shrank the cage to the tissue or into it: part of ``1 - coverage`` that a
+        larger cage does not give back (0 when the cage was given).
     """
 
     deformation: Deformation
@@ -871,15 +871,14 @@ def _cut_branches(wm: WorkingMask, head_w: np.ndarray, tail_w: np.ndarray) -> _C
         q = dq[box][part]
         dead_end = float(np.percentile(q, 95) - np.percentile(q, 5)) <= 2.0 * slack
         if length >= _BRANCH_MIN_LENGTH * total and share >= _BRANCH_MIN_SHARE:
-            at = np.argwhere(part)[np.argmin(det[box][part])] + np.array([b.start for b in box])
+            at = np.argwhere(part)[np.argmin(det[box][part])] + np.array([b.start for b in box])  # its junction
             if (dead_end and _rise(part, binary[box], float(det[box][part].max()), slack, wsp) < _BRANCH_RISE
                     and _turn_at(coords, d[0], detour <= _BRANCH_BACK * radius, dist[tuple(at)], radius, wsp)
                     >= _KINK_TURN):
                 pass  # the outer corner of a kink: the body's own, kept (the fold-free cage holds it)
             elif dead_end:
                 cut[lab == k] = True
-                where = np.argwhere(part)[np.argmin(det[box][part])] + np.array([b.start for b in box])
-                found.append((k, length, where.astype(float)))
+                found.append((k, length, at.astype(float)))
             else:  # the farthest point from the path: one to chain through
                 far_at = np.argwhere(part)[np.argmax(det[box][part])] + np.array([b.start for b in box])
                 skipped.append((k, share, far_at))
