@@ -140,7 +140,7 @@ def kinks(first: int, n: int) -> None:
     for seed in range(first, first + n):
         mask, head, tail, r, rc, turn, _ = kink_phantom(seed)
         res = _solve(mask, (head, tail))
-        status, reason = judge(res)
+        status, _ = judge(res)
         cut = "cut as a branch" if res.branches else "touches itself" if res.touching else "nothing cut"
         statuses[f"{status}, {cut}"] = statuses.get(f"{status}, {cut}", 0) + 1
         whole.append(held(res.deformation, np.argwhere(mask).astype(float)).mean())
