@@ -63,3 +63,17 @@ def apply_rise_switch(args: Namespace) -> None:
         import napari_unwind.skeleton._api as api
 
         api._BRANCH_RISE = 0.0
+
+
+def doubt_switch(ap: ArgumentParser) -> None:
+    """Add ``--no-doubt`` to ``ap``: a branch cut where the path turns sharply or next to an end is a branch like
+    any other, ok with a note (the code before ``_DOUBT_TURN`` and ``_END_NEAR``); :func:`apply_doubt_switch`."""
+    ap.add_argument("--no-doubt", action="store_true", help="no branch in doubt (before _DOUBT_TURN, _END_NEAR)")
+
+
+def apply_doubt_switch(args: Namespace) -> None:
+    """Switch the doubt off in this process when ``args.no_doubt`` (see :func:`doubt_switch`)."""
+    if args.no_doubt:
+        import napari_unwind.skeleton._api as api
+
+        api._DOUBT_TURN, api._END_NEAR = float("inf"), 0.0
