@@ -85,7 +85,8 @@ class SkeletonResult:
         Where the mask touches itself between the ends (a hairpin or coil whose sides touch): the path crosses
         there and the loop of body it skips is left out, or the stretch it skips between two such places stays
         beside the path, not straightened; or two sides of the body lie side by side along the path, one of them
-        not followed. A result with any is partial.
+        not followed; or a part cut off that may be either a branch or the body running into itself (where the
+        path turns sharply at its junction, or next to an end). A result with any is partial.
     left_out : float
         Fraction of the whole mask that the branches and loops cut off leave outside the straight volume (0 when
         nothing was cut); ``coverage`` is of the mask between the ends.
