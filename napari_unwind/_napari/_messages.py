@@ -48,6 +48,10 @@ _ADVICE: tuple[tuple[str, str], ...] = (
     (r", or straighten it as a chain of two parts through that point \(--chain HEAD P --chain P TAIL, P = [^)]*\)",
      ", or straighten it in two parts that meet at that point: the head, two points next to each other there and "
      "the tail in the \"ends\" layer, in that order (Ends)"),
+    # skeleton/_api.py: a part cut off that may be a branch or the body running into itself
+    (r", or straighten it as a chain of two parts that meet on the part \(--chain HEAD P --chain P TAIL, P a point "
+     r"on the part\)", ", or straighten it in two parts that meet on the part: the head, two points next to each "
+     "other on the part and the tail in the \"ends\" layer, in that order (Ends)"),
     # pipeline.judge: a branched mask straightened between suggested ends
     (r"; give the head and tail \(--head, --tail\) at the ends of the branch to straighten",
      "; drag the head and tail in the \"ends\" layer to the ends of the branch to straighten (Ends)"),

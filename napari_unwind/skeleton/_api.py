@@ -1335,9 +1335,10 @@ def estimate_deformation_iter(
                 touching.append(f"a part of the mask, {100 * out / uncut_count:.2g} % of it, is cut off at {where} "
                                 f"(voxels), {doubt}: a branch, or the body running into itself there (its two sides "
                                 "touching read as a fork), which the mask cannot tell")
-                note(touching[-1] + "; check the straight volume: a branch is left out as it should be; the body "
-                     "touching itself is not straightened there (separate the touching sides in the mask, or "
-                     "straighten it as a chain through a point on the part: --chain HEAD P --chain P TAIL)")
+                note(touching[-1] + "; check the straight volume: a branch is left out as it should be, the body "
+                     "touching itself is not straightened there: separate the touching sides in the mask, or "
+                     "straighten it as a chain of two parts that meet on the part (--chain HEAD P --chain P TAIL, "
+                     "P a point on the part)")
             elif loop:
                 touching.append(f"the mask touches itself at {where} (voxels): the path between the ends crosses "
                                 f"there and the loop or fold of the body it skips, {100 * out / uncut_count:.2g} % of "
