@@ -481,9 +481,7 @@ def judge(skeleton: Any) -> tuple[str, str]:
         cage_helps = True
     if reasons and cage_helps:
         reasons[-1] += " (a larger or fitted cage: --cage RX,RY, --cage-margin M)"
-    for where in tuple(getattr(skeleton, "touching", ()) or ()):  # a branch in doubt says its own
-        reasons.append(f"{where}: separate the touching sides in the mask" if where.startswith("the mask touches")
-                       else f"{where}: check the straight volume")
+    reasons.extend(tuple(getattr(skeleton, "touching", ()) or ()))  # each with what to do
     branches = tuple(getattr(skeleton, "branches", ()) or ())
     if branches and getattr(skeleton, "suggested", False):
         reasons.append(f"the mask branches and the ends were suggested: the path follows its longest way and "

@@ -82,11 +82,12 @@ class SkeletonResult:
         Fraction of the mask's voxels (working resolution) where the map folds: 0 when every fold lies in empty
         corners of the cage.
     touching : tuple of str
-        Where the mask touches itself between the ends (a hairpin or coil whose sides touch): the path crosses
-        there and the loop of body it skips is left out, or the stretch it skips between two such places stays
-        beside the path, not straightened; or two sides of the body lie side by side along the path, one of them
-        not followed; or a part cut off that may be either a branch or the body running into itself (where the
-        path turns sharply at its junction, or next to an end). A result with any is partial.
+        Each a reason the result is partial, with what to do, as the status gives it: where the mask touches
+        itself between the ends (a hairpin or coil whose sides touch): the path crosses there and the loop of body
+        it skips is left out, or the stretch it skips between two such places stays beside the path, not
+        straightened; or two sides of the body lie side by side along the path, one of them not followed; or a
+        part cut off that may be either a branch or the body running into itself (where the path turns sharply at
+        its junction, or next to an end).
     left_out : float
         Fraction of the whole mask that the branches and loops cut off leave outside the straight volume (0 when
         nothing was cut); ``coverage`` is of the mask between the ends.
@@ -581,6 +582,7 @@ _BRANCH_RISE = 1.2  # of its base's radius: a dead end reaching less far past th
 _KINK_TURN = 35.0  # degrees: ... where the path turns at least this much at its junction (a kink, not a fork)
 _DOUBT_TURN = 35.0  # degrees: a branch where the path turns this much at its junction is in doubt (a contact)
 _END_NEAR = 3.3  # inscribed radii along the path: a branch leaving it nearer one of its ends is in doubt
+_SEPARATE = ": separate the touching sides in the mask"  # what a reason in ``touching`` of two sides touching advises
 
 
 _RIDGE = 0.8  # of a section's deepest point: the depth above which a section's core lies
@@ -1149,10 +1151,11 @@ def estimate_deformation_iter(
         wm, cut_off, kept_dist, kept_edt = cut.wm, cut.branches, cut.dist, cut.edt
         for share, at in cut.skipped:  # a stretch of body skipped where two turns touch: not straightened
             where = np.round(wm.from_working(at), 1).tolist()
-            touching.append(f"the mask touches itself between the ends: the path crosses where two turns touch and "
-                            f"skips a stretch of the body through {where} (voxels), {100 * share:.2g} % of the mask, "
-                            "which lies in the straight volume beside the path, not straightened")
-            note(touching[-1] + "; separate the touching turns in the mask, or straighten it as a chain of two "
+            fact = (f"the mask touches itself between the ends: the path crosses where two turns touch and skips a "
+                    f"stretch of the body through {where} (voxels), {100 * share:.2g} % of the mask, which lies in the "
+                    "straight volume beside the path, not straightened")
+            touching.append(fact + _SEPARATE)
+            note(fact + "; separate the touching turns in the mask, or straighten it as a chain of two "
                  f"parts through that point (--chain HEAD P --chain P TAIL, P = {where})")
         if cut_off:
             left_out = uncut & ~wm.binary
@@ -1161,10 +1164,11 @@ def estimate_deformation_iter(
         doubled_share, doubled_at = _doubled_along(wm.binary, kept_dist, kept_edt, wm.working_spacing)
         if doubled_share > _TWO_SIDED:
             where = np.round(wm.from_working(doubled_at), 1).tolist()
-            touching.append(f"the mask touches itself along the path at {where} (voxels): "
-                            f"{100 * doubled_share:.2g} % of the mask straightened lies where two sides of "
-                            "the body run side by side, one of them not followed by the path")
-            note(touching[-1] + "; separate the touching sides in the mask")
+            fact = (f"the mask touches itself along the path at {where} (voxels): {100 * doubled_share:.2g} % of the "
+                    "mask straightened lies where two sides of the body run side by side, one of them not followed "
+                    "by the path")
+            touching.append(fact + _SEPARATE)
+            note(fact + "; separate the touching sides in the mask")
         t = _stage("branches", timings, t)
 
     # the ends of every part: a quadratic over about one body width instead of the kinks that the point-like
@@ -1332,18 +1336,20 @@ def estimate_deformation_iter(
             left_out_share += out / uncut_count
             where = np.round(wm.from_working(at), 1).tolist()
             if doubt and not loop:
-                touching.append(f"a part of the mask, {100 * out / uncut_count:.2g} % of it, is cut off at {where} "
-                                f"(voxels), {doubt}: a branch, or the body running into itself there (its two sides "
-                                "touching read as a fork), which the mask cannot tell")
-                note(touching[-1] + "; check the straight volume: a branch is left out as it should be, the body "
+                fact = (f"a part of the mask, {100 * out / uncut_count:.2g} % of it, is cut off at {where} (voxels), "
+                        f"{doubt}: a branch, or the body running into itself there (its two sides touching read as a "
+                        "fork), which the mask cannot tell")
+                touching.append(fact + ": check the straight volume")
+                note(fact + "; check the straight volume: a branch is left out as it should be, the body "
                      "touching itself is not straightened there: separate the touching sides in the mask, or "
                      "straighten it as a chain of two parts that meet on the part (--chain HEAD P --chain P TAIL, "
                      "P a point on the part)")
             elif loop:
-                touching.append(f"the mask touches itself at {where} (voxels): the path between the ends crosses "
-                                f"there and the loop or fold of the body it skips, {100 * out / uncut_count:.2g} % of "
-                                "the mask, is left out")
-                note(touching[-1] + "; separate the touching sides in the mask, or straighten it as a chain of two "
+                fact = (f"the mask touches itself at {where} (voxels): the path between the ends crosses there and "
+                        f"the loop or fold of the body it skips, {100 * out / uncut_count:.2g} % of the mask, is left "
+                        "out")
+                touching.append(fact + _SEPARATE)
+                note(fact + "; separate the touching sides in the mask, or straighten it as a chain of two "
                      "parts that meet on the loop (--chain HEAD P --chain P TAIL, P a point on the loop)")
             else:
                 said.append(f"{length:.3g} {u} long, {100 * out / uncut_count:.2g} % of the mask left out, joining at "
