@@ -37,43 +37,30 @@ def table(rows: list[list[str]]) -> str:
     return "\n".join([fmt(rows[0]), "| " + " | ".join("-" * w for w in widths) + " |", *map(fmt, rows[1:])])
 
 
-def thickness_switch(ap: ArgumentParser) -> None:
-    """Add ``--no-thickness`` to ``ap``: a part cut off is read as the body doubled by its two-cored sections only,
-    not also by its sections' size (the code before ``_thick_pieces``); :func:`apply_thickness_switch` applies it."""
-    ap.add_argument("--no-thickness", action="store_true", help="do not read the cut parts' sections' size")
+# the skeleton's rules a benchmark can switch off to measure what each changes: ``--no-NAME`` sets these constants of
+# ``napari_unwind.skeleton._api`` in the benchmark's own process (the code before the rule)
+SWITCHES: dict[str, tuple[str, dict[str, float]]] = {
+    "thickness": ("a part cut off is read as the body doubled by its two-cored sections only, not also by its "
+                  "sections' size (before _thick_pieces)", {"_THICK_PIECES": float("inf")}),
+    "rise": ("a dead end off the path is cut as a branch however little it reaches past the slack, a kink's outer "
+             "corner too (before _rise)", {"_BRANCH_RISE": 0.0}),
+    "doubt": ("a branch cut where the path turns sharply or next to an end is a branch like any other, ok with a "
+              "note (before _DOUBT_TURN and _END_NEAR)", {"_DOUBT_TURN": float("inf"), "_END_NEAR": 0.0}),
+}
 
 
-def apply_thickness_switch(args: Namespace) -> None:
-    """Switch the sections' size off in this process when ``args.no_thickness`` (see :func:`thickness_switch`)."""
-    if args.no_thickness:
-        import napari_unwind.skeleton._api as api
-
-        api._THICK_PIECES = float("inf")
+def add_switches(ap: ArgumentParser) -> None:
+    """Add ``--no-NAME`` to ``ap`` for each rule of :data:`SWITCHES`; :func:`apply_switches` applies them."""
+    for name, (what, _) in SWITCHES.items():
+        ap.add_argument(f"--no-{name}", action="store_true", help=what.replace("%", "%%"))
 
 
-def rise_switch(ap: ArgumentParser) -> None:
-    """Add ``--no-rise`` to ``ap``: a dead end off the path is cut as a branch however little it reaches past the
-    slack (a kink's outer corner too: the code before ``_rise``); :func:`apply_rise_switch` applies it."""
-    ap.add_argument("--no-rise", action="store_true", help="cut a kink's outer corner as a branch (before _rise)")
+def apply_switches(args: Namespace) -> None:
+    """Switch off in this process each rule of :data:`SWITCHES` whose ``--no-NAME`` is in ``args``."""
+    import napari_unwind.skeleton._api as api
 
-
-def apply_rise_switch(args: Namespace) -> None:
-    """Switch the rise off in this process when ``args.no_rise`` (see :func:`rise_switch`)."""
-    if args.no_rise:
-        import napari_unwind.skeleton._api as api
-
-        api._BRANCH_RISE = 0.0
-
-
-def doubt_switch(ap: ArgumentParser) -> None:
-    """Add ``--no-doubt`` to ``ap``: a branch cut where the path turns sharply or next to an end is a branch like
-    any other, ok with a note (the code before ``_DOUBT_TURN`` and ``_END_NEAR``); :func:`apply_doubt_switch`."""
-    ap.add_argument("--no-doubt", action="store_true", help="no branch in doubt (before _DOUBT_TURN, _END_NEAR)")
-
-
-def apply_doubt_switch(args: Namespace) -> None:
-    """Switch the doubt off in this process when ``args.no_doubt`` (see :func:`doubt_switch`)."""
-    if args.no_doubt:
-        import napari_unwind.skeleton._api as api
-
-        api._DOUBT_TURN, api._END_NEAR = float("inf"), 0.0
+    for name, (_, constants) in SWITCHES.items():
+        if getattr(args, f"no_{name}", False):
+            for constant, value in constants.items():
+                assert hasattr(api, constant), constant  # a renamed rule must not leave its switch a no-op
+                setattr(api, constant, value)

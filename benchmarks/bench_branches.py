@@ -1,7 +1,7 @@
 """Branched specimens (issue 23 item 2): what the cage holds of the chosen path and of the other leg.
 
     .venv/bin/python -m benchmarks.bench_branches [--before] [--seeds FIRST N] [--hairpins FIRST N] [--kinks FIRST N]
-        [--suggested] [--no-thickness] [--no-rise]
+        [--suggested] [--no-thickness] [--no-rise] [--no-doubt]
 
 The Y phantoms (seeds 0-7) and graft-like ones (seeds 100-103) of tests/skeleton/test_branches.py, ends at the trunk
 and at leg A; held fractions by tests/cage_reference.py's inverse (the path; leg B from where the legs part); a Y
@@ -12,7 +12,7 @@ sides touch (``hairpin_phantom``), by its topology a Y: each is to be partial ("
 straightened whole; ``--no-rise`` cuts a kink's outer corner as a branch (the code before ``_rise``).
 ``--before``: the same solve with the branch cut switched off (the code before it). ``--no-thickness``: a part cut
 off is read as the body doubled by its two-cored sections only, not also by its sections' size (the code before
-``_thick_pieces``).
+``_thick_pieces``). ``--no-doubt``: no branch is in doubt (the code before ``_DOUBT_TURN`` and ``_END_NEAR``).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from cage_reference import held  # noqa: E402
 from test_branches import _solve, hairpin_phantom, kink_phantom, y_phantom  # noqa: E402
 
 import napari_unwind.skeleton._api as api  # noqa: E402
-from benchmarks._util import apply_rise_switch, apply_thickness_switch, rise_switch, thickness_switch  # noqa: E402
+from benchmarks._util import add_switches, apply_switches  # noqa: E402
 
 
 def main() -> None:
@@ -44,11 +44,9 @@ def main() -> None:
     ap.add_argument("--kinks", type=int, nargs=2, metavar=("FIRST", "N"), default=None,
                     help="N kinked tubes (no branch) from seed FIRST on, instead of the Y phantoms")
     ap.add_argument("--suggested", action="store_true", help="no ends given: each result's status only")
-    thickness_switch(ap)
-    rise_switch(ap)
+    add_switches(ap)
     args = ap.parse_args()
-    apply_thickness_switch(args)
-    apply_rise_switch(args)
+    apply_switches(args)
     if args.kinks is not None:
         return kinks(*args.kinks)
     if args.hairpins is not None:

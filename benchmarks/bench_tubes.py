@@ -33,14 +33,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
-from benchmarks._util import (
-    apply_doubt_switch,
-    apply_rise_switch,
-    apply_thickness_switch,
-    doubt_switch,
-    rise_switch,
-    thickness_switch,
-)
+from benchmarks._util import add_switches, apply_switches
 from napari_unwind.errors import InvalidInputError
 from napari_unwind.pipeline import judge
 from napari_unwind.progress import run
@@ -85,13 +78,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=22)
     ap.add_argument("--n", type=int, default=40, help="curves drawn (short ones are skipped)")
-    thickness_switch(ap)
-    rise_switch(ap)
-    doubt_switch(ap)
+    add_switches(ap)
     args = ap.parse_args()
-    apply_thickness_switch(args)
-    apply_rise_switch(args)
-    apply_doubt_switch(args)
+    apply_switches(args)
     rng = np.random.default_rng(args.seed)
     grid = grid_points()
     rows = {False: [], True: []}
