@@ -678,23 +678,15 @@ def _fmt_point(p: Sequence[float]) -> str:
 
 
 
-def _mask_geometry(mask: Any, scan: Any, mask_path: Any) -> tuple[tuple, tuple, str | None, list[str]]:
-    """Spacing, origin and unit of the deformation: the scan's (same shape as the mask) or the mask's own."""
-    import numpy as np
-
+def _mask_geometry(mask: Any, scan: Any) -> tuple[Any, list[str]]:
+    """The mask on the deformation's grid: the scan's (a mask of its shape voxel for voxel, or a box of its grid
+    placed by its origin: :func:`~napari_unwind.io._grid.place_on_grid`), or the mask's own without a scan."""
     if scan is None:
-        return mask.spacing, mask.origin, mask.unit, []
-    if tuple(mask.shape) != tuple(scan.shape):
-        raise UnwindError(f"the mask {mask_path} has shape {_fmt_triple(mask.shape)} but the scan "
-                          f"{scan.source} has {_fmt_triple(scan.shape)}; the mask must be at the scan's full "
-                          "resolution (unwind select ... --full-resolution SCAN)")
-    notes = []
-    if not (np.allclose(mask.spacing, scan.spacing, rtol=1e-6) and np.allclose(mask.origin, scan.origin,
-                                                                                 atol=1e-6 * max(scan.spacing))):
-        notes.append(f"the mask's spacing {_fmt_triple(mask.spacing)} / origin {_fmt_triple(mask.origin)} differ "
-                     f"from the scan's {_fmt_triple(scan.spacing)} / {_fmt_triple(scan.origin)}: the scan's are used "
-                     "(same shape, voxel for voxel)")
-    return scan.spacing, scan.origin, scan.unit, notes
+        return mask, []
+    from .io._grid import place_on_grid
+
+    placed, note = place_on_grid(mask, scan)
+    return placed, [note] if note else []
 
 
 def _estimate(mask_data: Any, endpoints: Any, *, spacing: Sequence[float], origin: Sequence[float],
@@ -776,8 +768,8 @@ def cmd_skeleton(args: argparse.Namespace) -> int:
     endpoints = _endpoints_from_args(args)
     mask = open_volume(args.mask)
     scan = open_volume(args.volume, **_reader_options(args, args.volume)) if args.volume else None
-    spacing, origin, unit, notes = _mask_geometry(mask, scan, args.mask)
-    mask_data = mask.data
+    placed, notes = _mask_geometry(mask, scan)
+    spacing, origin, unit, mask_data = placed.spacing, placed.origin, placed.unit, placed.data
     if args.mask_label is not None:
         from .pipeline import pick_mask_label
 
@@ -904,8 +896,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     mask = None
     if args.mask:
         mask_vol = open_volume(args.mask)
-        _, _, _, notes = _mask_geometry(mask_vol, volume, args.mask)
-        mask = mask_vol.data
+        placed, notes = _mask_geometry(mask_vol, volume)
+        mask = placed.data
         if args.mask_label is not None:
             from .pipeline import check_mask_label
 

@@ -904,7 +904,8 @@ def run_iter(
     volume : Volume
         The scan.
     mask : array or Volume, optional
-        The specimen's full-resolution mask (same shape as ``volume``); exclusive with ``seeds`` and ``ids``.
+        The specimen's full-resolution mask (same shape as ``volume``, or a Volume that is a box of its grid, placed
+        by its origin: :func:`~napari_unwind.io._grid.place_on_grid`); exclusive with ``seeds`` and ``ids``.
     seeds : array_like (N, 3), optional
         Points inside the specimen's features, full-resolution voxels (the scan is segmented unless ``features``).
     ids : sequence of int, optional
@@ -968,10 +969,15 @@ def run_iter(
     if mask is not None:
         from .io._volume import Volume
 
+        if isinstance(mask, Volume):  # a box of the scan's grid is placed by its origin
+            from .io._grid import place_on_grid
+
+            mask = place_on_grid(mask, volume)[0]
         m = mask.data if isinstance(mask, Volume) else mask
         if tuple(m.shape) != tuple(volume.shape):
             raise InvalidInputError(f"the mask has shape {tuple(m.shape)} but the scan has {tuple(volume.shape)}; "
-                                    "the mask must be at the scan's full resolution")
+                                    "the mask must lie on the scan's voxel grid (give it as a Volume with its "
+                                    "origin to place a box of that grid)")
         mask = m if mask_label is None else pick_mask_label(m, mask_label)
         if mask_source is not None:
             from .session import Segmentation

@@ -802,18 +802,26 @@ class Session:
         }
 
     def on_scan_grid(self, volume: Any, what: str = "mask") -> tuple[Any, str | None]:
-        """A mask (or label image) of the source scan's shape, on the deformation's grid voxel for voxel, as the
-        pipeline takes a mask (the scan's geometry is used, whatever the mask's header says).
+        """A mask (or label image) on the deformation's grid, as the pipeline takes a mask: one of the source scan's
+        shape voxel for voxel (the scan's geometry is used, whatever the mask's header says), or a box of that grid
+        placed by its origin (:func:`~napari_unwind.io._grid.place_on_grid`, the scan taken as axis-aligned).
 
         Returns the Volume (with the deformation's spacing, origin and unit where its own differ) and a note saying
-        so (None when they agree). A Volume of another shape is returned as it is (its geometry is then checked
-        where it is used)."""
+        so (None when they agree)."""
         from .io._volume import Volume
         from .warp import _check_geometry
 
         d = self.deformation
-        if d is None or not isinstance(volume, Volume) or tuple(volume.shape) != tuple(self.source.shape):
+        if d is None or not isinstance(volume, Volume):
             return volume, None
+        if tuple(volume.shape) != tuple(self.source.shape):
+            import dask.array as da
+
+            from .io._grid import place_on_grid
+
+            scan = Volume(da.zeros(self.source.shape, dtype=np.uint8, chunks=self.source.shape), spacing=d.spacing,
+                          origin=d.origin, unit=d.unit)
+            return place_on_grid(volume, scan, what=what)
         try:
             _check_geometry(volume, d)
             return volume, None

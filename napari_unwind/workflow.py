@@ -63,11 +63,13 @@ def mask_labels(mask: Any) -> np.ndarray:
     return data.astype(np.uint8) if data.dtype == np.bool_ else data
 
 
-def read_mask(path: Any, shape: Any, *, session: str | None = None) -> np.ndarray:
-    """The voxels of the mask file at ``path`` as labels (:func:`mask_labels`), checked to lie on a scan of
-    ``shape``. ``session`` names the session that recorded the file (its errors then say how to mend the session;
-    the mask is then expected to be the one the session was made with)."""
+def read_mask(path: Any, scan: Any, *, session: str | None = None) -> np.ndarray:
+    """The voxels of the mask file at ``path`` as labels (:func:`mask_labels`) on the grid of the ``scan`` (a
+    Volume): a mask of its shape voxel for voxel, or a box of its grid placed by the file's origin
+    (:func:`~napari_unwind.io._grid.place_on_grid`). ``session`` names the session that recorded the file (its errors
+    then say how to mend the session; the mask is then expected to be the one the session was made with)."""
     from .io import open_volume
+    from .io._grid import place_on_grid
     from .session import SourceChangedError, SourceMissingError
 
     path = Path(path)
@@ -76,12 +78,14 @@ def read_mask(path: Any, shape: Any, *, session: str | None = None) -> np.ndarra
         raise SourceMissingError(f"the mask {f'of {session}' if session else 'file'} is missing: expected at {path}; "
                                  f"put it back there, or {mend}")
     mask = open_volume(path)
-    if tuple(mask.shape) != tuple(shape):
-        head = f"the mask {path.name} has {tuple(mask.shape)} voxels, the scan{f' of {session}' if session else ''} "
+    try:
+        placed, _ = place_on_grid(mask, scan)
+    except InvalidInputError as exc:
         if session:
-            raise SourceChangedError(f"{head}{tuple(shape)}: it is not the mask the session was made with")
-        raise InvalidInputError(f"{head}{tuple(shape)}: a mask must lie on the scan's voxel grid")
-    return mask_labels(mask)
+            raise SourceChangedError(f"{exc} (the scan of {session}): it is not the mask the session was made "
+                                     "with") from None
+        raise
+    return mask_labels(placed.data)
 
 
 @dataclass(frozen=True)
@@ -499,7 +503,7 @@ class Workflow:
 
         def make() -> Generator[Progress, None, Any]:
             yield Progress("open", 0, 1, str(path))
-            data = read_mask(path, volume.shape)
+            data = read_mask(path, volume)
             yield Progress("open", 1, 1)
             return data
 

@@ -85,3 +85,26 @@ def test_a_mask_of_the_scans_shape_whose_header_differs_is_read_voxel_for_voxel_
     assert code == 0 and (tmp / "one.csv").read_bytes() == (tmp / "right.csv").read_bytes(), err
     code, _, err = _run("measure", "--session", session, "--mask", labels, "-o", tmp / "all.csv", "-q")
     assert code == 0 and "the mask holds 2 labels" in err, err
+
+
+def test_a_mask_cropped_to_its_box_measures_as_the_whole_mask(case):
+    """A mask saved cropped to the fish's box with its origin (as 3D Slicer saves a segment): placed on the session's
+    scan grid, the same profile bytes as the whole mask's, and said; a box off the grid is refused in one line."""
+    tmp, fish, scan, session, d, mask = case
+    code, _, err = _run("measure", "--session", session, "--mask", mask, "-o", tmp / "whole.csv", "-q")
+    assert code == 0, err
+    idx = np.argwhere(fish.mask)
+    lo, hi = idx.min(axis=0), idx.max(axis=0) + 1
+    sp = np.asarray(fish.spacing, dtype=float)
+    crop = fish.mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.uint8)
+    box = write_volume(crop, tmp / "box.nrrd", spacing=fish.spacing, origin=tuple(np.add(d.origin, lo * sp)),
+                       unit=fish.unit)
+    code, _, err = _run("measure", "--session", session, "--mask", box, "-o", tmp / "box.csv", "-q")
+    assert code == 0, err
+    assert f"is a box of the scan's grid: placed at voxel {' x '.join(map(str, lo))} by its origin" in err, err
+    assert (tmp / "box.csv").read_bytes() == (tmp / "whole.csv").read_bytes()
+    off = write_volume(crop, tmp / "off.nrrd", spacing=fish.spacing, origin=tuple(np.add(d.origin, (lo + 0.5) * sp)),
+                       unit=fish.unit)
+    code, _, err = _run("measure", "--session", session, "--mask", off, "-o", tmp / "off.csv", "-q")
+    assert code == 1 and "voxels off the scan's grid" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp / "off.csv").exists()

@@ -313,7 +313,7 @@ def _mask_layer(volume: Any, seg: Any, named: str, spacing: np.ndarray, origin: 
     from ..workflow import read_mask
 
     path = Path(seg.mask)
-    data = read_mask(path, volume.shape, session=named)
+    data = read_mask(path, volume, session=named)
     meta = {"name": path.name, "scale": tuple(spacing), "translate": tuple(origin), "opacity": 0.5,
             "metadata": {"napari_unwind": {**common, "source": str(path), "mask_label": seg.mask_label,
                                            "selection_mask": True}}, **units}

@@ -170,9 +170,12 @@ def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:
 
     mrow, mask = ctx.catalog.volume(ctx.owner, req.mask_volume_id)
     srow, scan = ctx.catalog.volume(ctx.owner, req.volume_id) if req.volume_id else (mrow, mask)
-    if tuple(mask.shape) != tuple(scan.shape):
-        raise InvalidInputError(f"the mask has shape {mask.shape} but the scan has {scan.shape}; the mask must be at "
-                                "the scan's full resolution")
+    notes = []
+    if scan is not mask:  # the scan's shape, or a box of its grid placed by its origin (named as the user named it)
+        from napari_unwind.io._grid import place_on_grid
+
+        mask, note = place_on_grid(_named(mask, mrow), scan)
+        notes = [note] if note else []
     endpoints = convert.endpoints(req.ends, req.HasField("ends"))
     options = convert.skeleton_options(req.options)
     t0 = time.perf_counter()
@@ -187,7 +190,7 @@ def estimate_deformation(ctx: TaskContext, req: Any) -> TaskGen:
     sid, text = _save_session(ctx, session, "session.unwind.json")
     yield Progress("checksum", 1, 1)
     r = SpecimenResult.of(result)
-    return pb.JobResult(session_id=sid, session_json=text, warnings=list(result.warnings), figures=_figures(
+    return pb.JobResult(session_id=sid, session_json=text, warnings=notes + list(result.warnings), figures=_figures(
         **convert.result_figures(r), seconds=dt, suggested=bool(result.suggested)), verdict=convert.verdict_msg(r))
 
 
@@ -329,8 +332,10 @@ def pipeline(ctx: TaskContext, req: Any) -> TaskGen:
     t_all = time.perf_counter()
     chosen: dict[str, Any] = {}
     if req.mask_volume_id:
-        _, mask_vol = ctx.catalog.volume(ctx.owner, req.mask_volume_id)
-        chosen["mask"] = mask_vol.data
+        from napari_unwind.io._grid import place_on_grid
+
+        mrow, mask_vol = ctx.catalog.volume(ctx.owner, req.mask_volume_id)
+        chosen["mask"] = place_on_grid(_named(mask_vol, mrow), volume)[0].data
     elif req.ids:
         seg = ctx.catalog.segmentation(ctx.owner, req.segmentation_id)
         if seg.meta["volume_id"] != vrow.id:

@@ -82,7 +82,21 @@ def test_a_labels_layer_whole_one_label_or_the_label_clicked(make_napari_viewer,
     outside = np.argwhere(truth == 0)[0] * np.asarray(labels.scale) + np.asarray(labels.translate)
     assert w.use_labels(labels, at=outside) == 0
     assert "no label there" in w.status.text()
-    small = viewer.add_labels(truth[:, :10].copy(), name="cut")
+    # a box of the scan's grid where the viewer shows it (a mask cropped to its fish): placed there
+    box = np.argwhere(truth == 2)
+    lo, hi = box.min(axis=0), box.max(axis=0) + 1
+    crop = (truth[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] == 2).astype(np.uint8)
+    cropped = viewer.add_labels(crop, name="cropped", scale=labels.scale,
+                                translate=np.asarray(labels.translate) + lo * np.asarray(labels.scale))
+    assert w.use_labels(cropped) == int((truth == 2).sum())
+    np.testing.assert_array_equal(np.asarray(w.mask()), truth == 2)
+    w.use_labels(labels, label=2)
+    # off the grid by half a voxel, or of another voxel size: refused, saying why
+    off = viewer.add_labels(crop, name="off", scale=labels.scale,
+                            translate=np.asarray(labels.translate) + (lo + 0.5) * np.asarray(labels.scale))
+    assert w.use_labels(off) == 0
+    assert "voxels off the scan's grid" in w.status.text()
+    small = viewer.add_labels(truth[:, :10].copy(), name="cut", scale=2 * np.asarray(labels.scale))
     assert w.use_labels(small) == 0
     assert "must lie on the scan's voxel grid" in w.status.text()
     assert w.use_labels(image) == 0

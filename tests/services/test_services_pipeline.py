@@ -157,6 +157,18 @@ def test_each_step_on_the_server_matches_the_core(setup, tmp_path):
         assert bj_.result.table_csv == expected_csv
         assert [w.split(":")[0] for w in bj_.result.warnings] == [
             "the mask's spacing 2 x 2 x 2 / origin 5 x 6 x 7 differ from the session's scan's 1 x 1 x 1 / 0 x 0 x 0"]
+        # a mask cropped to its box with its origin (as 3D Slicer saves a segment): placed on the scan, the same
+        # skeleton as the full mask's, and said (by the name the user gave it)
+        idx = np.argwhere(mask)
+        lo, hi = idx.min(axis=0), idx.max(axis=0) + 1
+        box = Volume(mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]],
+                     spacing=volume.spacing, origin=tuple(np.add(volume.origin, lo * np.asarray(volume.spacing))),
+                     unit=volume.unit)
+        crop_id = c.upload(box, name="fish1_segment").volume_id
+        ck = c.skeleton(crop_id, volume_id=vid, head=fish.head, tail=fish.tail)
+        assert json.dumps(Client.session(ck).deformation.to_dict(), sort_keys=True) == json.dumps(
+            d.to_dict(), sort_keys=True)
+        assert list(ck.result.warnings)[0].startswith("the mask fish1_segment (shape ")
         from napari_unwind.client import RemoteError
 
         for bad, code in (({"": vid}, "INVALID_ARGUMENT"), ({"a,b": vid}, "INVALID_ARGUMENT"),

@@ -462,8 +462,9 @@ class SegmentStep(Step):
         """Make a Labels layer the selection (an expert's mask, a mask file): every labelled voxel (``label``
         None), one ``label``, or the label under the world position ``at``. Returns the selected voxel count.
 
-        The layer must lie on the scan's voxel grid (same shape). The features' selection is cleared; a click on
-        the layer afterwards (while it is the active layer) picks the label under it.
+        The layer must lie on the scan's voxel grid: the same shape, or a box of it where the viewer shows it (the
+        scan's voxel size, a translate a whole number of voxels from the scan's). The features' selection is
+        cleared; a click on the layer afterwards (while it is the active layer) picks the label under it.
         """
         from napari.layers import Labels
 
@@ -474,10 +475,6 @@ class SegmentStep(Step):
             if not isinstance(layer, Labels) or layer.ndim != 3:
                 raise InvalidInputError(f"the layer {getattr(layer, 'name', layer)!r} is not a 3D Labels layer; "
                                         "pick a mask (Labels) layer")
-            if tuple(layer.data.shape) != tuple(volume.shape):
-                raise InvalidInputError(
-                    f"the mask {layer.name!r} has {fmt(layer.data.shape, 6)} voxels, the scan "
-                    f"{fmt(volume.shape, 6)}: a mask must lie on the scan's voxel grid")
             if at is not None:  # the voxel under the world position (napari's get_value needs the slice shown)
                 idx = np.round(np.asarray(layer.world_to_data(np.asarray(at, dtype=float)[-3:]))).astype(int)
                 inside = bool(np.all((idx >= 0) & (idx < np.asarray(layer.data.shape))))
@@ -487,6 +484,11 @@ class SegmentStep(Step):
             if label is not None:
                 label = int(label)
             data = np.asarray(layer.data)
+            if data.shape != tuple(volume.shape):  # a box of the scan's grid where the viewer shows it (a cropped mask)
+                from ...io._grid import place_array
+
+                data = np.asarray(place_array(data, volume, spacing=layer.scale[-3:], origin=layer.translate[-3:],
+                                              name=f"the mask {layer.name!r}")[0])
             if not np.count_nonzero(data == label if label else data):
                 what = f"label {label}" if label else "any label"
                 raise InvalidInputError(f"the mask {layer.name!r} holds no voxel of {what}: pick another label")
