@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import warnings
 from collections.abc import Generator, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -549,9 +550,14 @@ def measure_iter(
     chunks = (chunk, ny, nx)
     inputs: dict[str, Any] = {}
     if mask is not None:
+        from .pipeline import specimen_mask
+
+        mask, soft = specimen_mask(mask)  # a float map of fractional values: thresholded as every step takes it
+        if soft:
+            warnings.warn(soft, UserWarning, stacklevel=2)
         m = _as_array(mask)
-        if m.dtype != bool and not np.issubdtype(m.dtype, np.integer):
-            raise InvalidInputError(f"the mask must be boolean or integer (non-zero = specimen), got {m.dtype}")
+        if m.dtype != bool and not np.issubdtype(m.dtype, np.integer) and not np.issubdtype(m.dtype, np.floating):
+            raise InvalidInputError(f"the mask must be boolean, integer or float (non-zero = specimen), got {m.dtype}")
         inputs["mask"] = straighten(_on_grid(mask, m != 0, np.float32), d, order=1, spacing=ds, chunks=chunks,
                                     max_output=None).data
     if labels is not None:

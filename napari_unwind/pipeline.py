@@ -824,16 +824,60 @@ def _labels_note(mask: Any) -> str | None:
             "straighten one, give its label (--mask-label N, in Python mask_label=N)")
 
 
+def specimen_mask(mask: Any) -> tuple[Any, str | None]:
+    """The specimen's voxels of a mask: the mask itself when it is boolean, integer (non-zero: the specimen) or a
+    float mask of whole values (0.0 / 1.0, as NIfTI masks often are); a float mask holding fractional values (a
+    probability or partial-volume map: non-zero would be nearly the whole scan) is thresholded at 0.5, or at half its
+    maximum when that exceeds 1, and the note says so. NaN is never the specimen.
+
+    Returns ``(mask, note)``: the mask (where it was thresholded: a bool array of the same kind, numpy or dask, or a
+    uint8 Volume of the same geometry) and a one-line note (None when the mask is taken as it is)."""
+    import numpy as np
+
+    from .io._volume import Volume
+
+    m = mask.data if isinstance(mask, Volume) else mask
+    dtype = np.dtype(getattr(m, "dtype", float))
+    if not np.issubdtype(dtype, np.floating):
+        return mask, None
+    import dask.array as da
+
+    xp = da if isinstance(m, da.Array) else np
+    arr = m if xp is da else np.asarray(m)
+    finite = xp.isfinite(arr)
+    vals = xp.where(finite, arr, 0)
+    stats = (vals.min(), vals.max(), (vals != xp.round(vals)).any(), (~finite).any())
+    lo, hi, fractional, nan = da.compute(*stats) if xp is da else stats
+    note = None
+    if fractional:
+        level = 0.5 if float(hi) <= 1.0 else 0.5 * float(hi)
+        kept = vals >= level
+        counts = (kept.sum(), (vals != 0).sum())
+        n_kept, n_any = da.compute(*counts) if xp is da else counts
+        note = (f"the mask holds fractional values ({float(lo):.3g} to {float(hi):.3g}, {dtype}): a probability or "
+                f"partial-volume map; its voxels >= {level:.3g} are the specimen ({100 * n_kept / max(n_any, 1):.3g} % "
+                "of its non-zero voxels); threshold it yourself to choose another level")
+    elif nan:
+        kept = vals != 0
+    else:
+        return mask, None
+    if isinstance(mask, Volume):
+        kept = Volume(kept.astype(np.uint8), spacing=mask.spacing, origin=mask.origin, unit=mask.unit,
+                      source=mask.source)
+    return kept, note
+
+
 def skeleton_step(mask: Any, endpoints: Any = None, *, spacing: Any, origin: Any = None, unit: str | None = None,
                   volume: Any = None, options: SkeletonOptions = SkeletonOptions()
                   ) -> Generator[Progress, None, Any]:
     """The skeleton solve with ``options``; returns the :class:`~napari_unwind.skeleton.SkeletonResult`, whose
     ``warnings`` hold every UserWarning of the solve (one line each; they are not issued again), and a note when
     ``mask`` is a label map of several labels (every non-zero voxel is the specimen: :func:`pick_mask_label`
-    takes one)."""
+    takes one) or a map of fractional values (thresholded: :func:`specimen_mask`)."""
     from . import skeleton as _skeleton
 
-    labels = _labels_note(mask)
+    mask, soft = specimen_mask(mask)
+    labels = soft or _labels_note(mask)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         result = yield from _skeleton.estimate_deformation_iter(mask, endpoints, spacing=spacing, origin=origin,

@@ -33,7 +33,7 @@ from psygnal import Signal
 
 from .editing import EditModel
 from .errors import InvalidInputError
-from .pipeline import ExportOptions, PipelineOptions, SkeletonOptions
+from .pipeline import ExportOptions, PipelineOptions, SkeletonOptions, specimen_mask
 from .progress import Progress
 
 __all__ = ["Backend", "LocalBackend", "ServerBackend", "Selection", "Task", "Workflow", "mask_labels", "read_mask"]
@@ -56,10 +56,11 @@ class Task:
 
 def mask_labels(mask: Any) -> np.ndarray:
     """The voxels of a mask (a Volume or an array) as labels for a Labels layer: integers as they are, anything
-    else non-zero as 1 (uint8)."""
+    else as 1 where it is the specimen (:func:`~napari_unwind.pipeline.specimen_mask`: non-zero, or a map of
+    fractional values thresholded), as uint8."""
     data = np.asarray(getattr(mask, "data", mask))
     if not (np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_):
-        data = data != 0
+        data = np.asarray(specimen_mask(data)[0]) != 0  # a map of fractional values thresholded as every step does
     return data.astype(np.uint8) if data.dtype == np.bool_ else data
 
 

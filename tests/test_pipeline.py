@@ -317,6 +317,65 @@ def test_a_label_map_as_the_mask_is_named_and_one_label_is_straightened_as_its_o
     assert code == 1 and "--mask-label picks a label of --mask MASK" in err, err
 
 
+def test_the_specimen_of_a_float_mask_against_numpy():
+    """Whole-valued float masks (0.0 / 1.0, as NIfTI masks often are) are taken as they are; a map of fractional values
+    (a probability or partial-volume map) at 0.5, or half its maximum beyond 1; NaN never; numpy and dask alike."""
+    import dask.array as da
+
+    from napari_unwind.io import Volume
+    from napari_unwind.pipeline import specimen_mask
+
+    rng = np.random.default_rng(11)
+    body = rng.random((9, 10, 11)) < 0.3
+    for whole in (body, body.astype(np.uint8) * 7, body.astype(np.float32)):
+        got, note = specimen_mask(whole)
+        assert got is whole and note is None
+    prob = np.where(body, rng.uniform(0.55, 1.0, body.shape), rng.uniform(0.0, 0.45, body.shape)).astype(np.float32)
+    scaled = (prob * 255).astype(np.float64)  # a 0/255 mask resampled linearly
+    nan = body.astype(np.float32)
+    nan[0, 0, :4] = np.nan
+    for soft, level in ((prob, 0.5), (scaled, 0.5 * scaled.max())):
+        for arr in (soft, da.from_array(soft, chunks=4)):
+            got, note = specimen_mask(arr)
+            np.testing.assert_array_equal(np.asarray(got), soft >= level)
+            share = 100 * (soft >= level).sum() / (soft != 0).sum()
+            assert note == (f"the mask holds fractional values ({soft.min():.3g} to {soft.max():.3g}, {soft.dtype}): "
+                            f"a probability or partial-volume map; its voxels >= {level:.3g} are the specimen "
+                            f"({share:.3g} % of its non-zero voxels); threshold it yourself to choose another level")
+    got, note = specimen_mask(nan)
+    np.testing.assert_array_equal(np.asarray(got), np.nan_to_num(nan) != 0)
+    assert note is None
+    vol, _ = specimen_mask(Volume(prob, spacing=(2.0, 1.0, 1.0), origin=(1.0, 2.0, 3.0)))
+    assert vol.spacing == (2.0, 1.0, 1.0) and vol.origin == (1.0, 2.0, 3.0)
+    np.testing.assert_array_equal(np.asarray(vol.data), prob >= 0.5)
+
+
+def test_a_probability_map_as_the_mask_straightens_as_its_binary_mask(fish, tmp_path):
+    """The fish's mask as a map of fractional values (each voxel of the fish 0.6-1, the rest 0.001-0.4): the same
+    straight volume as the binary mask, and said; the same profile from `unwind measure` as a 0.0 / 1.0 float mask."""
+    from napari_unwind.io import open_volume
+
+    tmp, f, mask, scan = fish
+    ends = ["--head", _arg(f.head), "--tail", _arg(f.tail)]
+    rng = np.random.default_rng(2)
+    prob = np.where(f.mask, rng.uniform(0.6, 1.0, f.mask.shape), rng.uniform(0.001, 0.4, f.mask.shape))
+    soft = write_volume(prob.astype(np.float32), tmp_path / "prob.nrrd", spacing=f.spacing, unit=f.unit)
+    code, _, err = run_unwind("run", scan, "--mask", soft, *ends, "-o", tmp_path / "p.nrrd", "-q")
+    assert code == 0, err
+    assert "the mask holds fractional values" in err and "its voxels >= 0.5 are the specimen" in err, err
+    code, _, err = run_unwind("run", scan, "--mask", mask, *ends, "-o", tmp_path / "m.nrrd", "-q")
+    assert code == 0, err
+    np.testing.assert_array_equal(open_volume(tmp_path / "p.nrrd").data, open_volume(tmp_path / "m.nrrd").data)
+    flt = write_volume(f.mask.astype(np.float32), tmp_path / "float.nrrd", spacing=f.spacing, unit=f.unit)
+    profiles = {}
+    for name, m in (("uint8", mask), ("float", flt), ("prob", soft)):
+        code, _, err = run_unwind("measure", "--session", tmp_path / "m.unwind.json", "--mask", m, "-o",
+                                  tmp_path / f"{name}.csv", "-q")
+        assert code == 0, (name, err)
+        profiles[name] = (tmp_path / f"{name}.csv").read_bytes()
+    assert profiles["float"] == profiles["uint8"] and profiles["prob"] == profiles["uint8"]
+
+
 def test_a_separate_part_off_the_path_is_named_as_such_not_as_a_cage_too_small(fish):
     """A second body in the mask (another specimen, or a piece cut off by the scan's face): the result is partial and
     its reason names the share in separate parts (scipy's labelling of the mask is the reference), not a larger

@@ -272,11 +272,16 @@ def measure(ctx: TaskContext, req: Any) -> TaskGen:
     channels = {n: volume(c.volume_id) for n, c in zip(_channel_names(req), req.channels, strict=True)}
     # a mask and a label image of the scan's shape are on its grid voxel for voxel, as the pipeline takes a mask
     mask, mask_note = session.on_scan_grid(volume(req.mask_volume_id), "mask")
+    soft = None
+    if mask is not None:  # a float map of fractional values, thresholded as measure_iter would (said in the result)
+        from napari_unwind.pipeline import specimen_mask
+
+        mask, soft = specimen_mask(mask)
     labels, labels_note = session.on_scan_grid(volume(req.labels_volume_id), "label image")
     t0 = time.perf_counter()
     profile = yield from measure_iter(session.deformation, mask=mask, labels=labels, channels=channels or None,
                                       spacing=req.spacing or None)
-    return pb.JobResult(table_csv=profile.csv_text(), warnings=[n for n in (mask_note, labels_note) if n],
+    return pb.JobResult(table_csv=profile.csv_text(), warnings=[n for n in (mask_note, soft, labels_note) if n],
                         figures=_figures(stations=len(profile), seconds=time.perf_counter() - t0))
 
 
