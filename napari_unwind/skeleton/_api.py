@@ -33,6 +33,7 @@ __all__ = ["estimate_deformation", "estimate_deformation_iter", "SkeletonResult"
 
 _STRUCT26 = np.ones((3, 3, 3), dtype=bool)
 _APART_SAID = 0.01  # separate parts off the path holding this share of the mask are said (the coverage goal's rest)
+_MAX_FILL = 0.9  # of the scan: a mask filling more is refused (a body fills at most pi / 4 of its own box; inverted?)
 
 
 @dataclass(frozen=True)
@@ -268,12 +269,19 @@ def working_mask(
         raise InvalidInputError(f"max_side must be at least 8 voxels, got {max_side}")
     nz = m != 0
     if isinstance(nz, da.Array):
-        axes = da.compute(*(nz.any(axis=tuple(j for j in range(3) if j != i)) for i in range(3)))
+        *axes, count = da.compute(*(nz.any(axis=tuple(j for j in range(3) if j != i)) for i in range(3)), nz.sum())
     else:
         axes = [nz.any(axis=tuple(j for j in range(3) if j != i)) for i in range(3)]
+        count = np.count_nonzero(nz)
     if not all(a.any() for a in axes):
         raise InvalidInputError("the mask is empty (no nonzero voxel); select the specimen first "
                                 "(unwind select, or the plugin's pick) and pass its mask")
+    fill = int(count) / math.prod(m.shape)
+    if fill > _MAX_FILL:
+        raise InvalidInputError(
+            f"the mask's non-zero voxels fill {100 * fill:.3g} % of the scan: that is no specimen's mask (a body fills "
+            "at most about 79 % of its own box); is it inverted (the background non-zero)? give a mask whose "
+            "non-zero voxels are the specimen alone")
     lo = tuple(int(np.argmax(a)) for a in axes)
     hi = tuple(int(len(a) - np.argmax(a[::-1])) for a in axes)
     if factor is None:

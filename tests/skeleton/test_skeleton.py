@@ -246,6 +246,23 @@ def test_bad_input_is_refused_clearly():
         estimate_deformation(ph.mask, 5, spacing=1.0)
 
 
+def test_a_mask_filling_the_scan_is_refused_as_no_specimens_and_a_tight_crop_is_not():
+    """An inverted mask (the background non-zero) fills nearly the whole scan: refused in one line saying so. A
+    straight body cropped to its own box fills pi / 4 of it (a cylinder in its box), and is solved."""
+    ph = fish_phantom(seed=6, curve="c-bend", noise=0, tube=False)
+    with pytest.raises(InvalidInputError) as err:
+        estimate_deformation(~ph.mask, (ph.head, ph.tail), spacing=ph.spacing)
+    fill = 100 * (~ph.mask).mean()
+    assert str(err.value) == (f"the mask's non-zero voxels fill {fill:.3g} % of the scan: that is no specimen's mask "
+                              "(a body fills at most about 79 % of its own box); is it inverted (the background "
+                              "non-zero)? give a mask whose non-zero voxels are the specimen alone")
+    z, y, x = np.mgrid[:60, :16, :16]
+    rod = (y - 7.5) ** 2 + (x - 7.5) ** 2 <= 8.0**2  # touches its box's four long faces
+    assert 0.75 < rod.mean() < 0.9
+    res, _ = _solve(rod, ((2, 7.5, 7.5), (57, 7.5, 7.5)), spacing=1.0, estimate_twist=False)
+    assert res.deformation.length == pytest.approx(55, abs=3)
+
+
 def test_mask_touching_the_border_is_handled_with_a_warning():
     ph = fish_phantom(seed=8, curve="c-bend", noise=0, tube=False)
     cut = int(ph.centerline[int(0.9 * len(ph.centerline)), 0])
