@@ -743,14 +743,35 @@ def select_step(volume: Any, features: Any, *, seeds: Any = None, ids: Any = Non
     return Selection(mask=mask, ids=tuple(int(i) for i in chosen), isovalue=float(iso), segmentation=record)
 
 
+def as_label_map(mask: Any) -> Any:
+    """The mask as an integer label map (a numpy array), or None: integer masks as they are, float masks whose
+    values are all whole and finite (a label map saved as float, as NIfTI tools often do) as int64; bool and other
+    float masks are no label map."""
+    import numpy as np
+
+    dtype = getattr(mask, "dtype", None)
+    if dtype is None:
+        return None
+    dtype = np.dtype(dtype)
+    if np.issubdtype(dtype, np.integer):
+        return mask
+    if not np.issubdtype(dtype, np.floating):
+        return None
+    arr = np.asarray(mask)
+    if not (np.isfinite(arr).all() and (arr == np.round(arr)).all() and np.abs(arr).max(initial=0) < 2**53):
+        return None
+    return arr.astype(np.int64)
+
+
 def mask_label_counts(mask: Any) -> dict[int, int]:
-    """The voxel count of each non-zero value of an integer mask (a label map); {} for a bool or float mask.
+    """The voxel count of each non-zero value of a label map (an integer mask, or a float one of whole values); {}
+    for a bool mask or a float one of fractional values.
 
     Reads the whole mask once (the skeleton solve reads it whole too)."""
     import numpy as np
 
-    dtype = getattr(mask, "dtype", None)
-    if dtype is None or not np.issubdtype(np.dtype(dtype), np.integer):
+    mask = as_label_map(mask)
+    if mask is None:
         return {}
     arr = np.asarray(mask).reshape(-1)
     if arr.dtype.kind == "u" and arr.dtype.itemsize <= 2:
@@ -772,8 +793,7 @@ def pick_mask_label(mask: Any, label: Any) -> Any:
     from .io._volume import Volume
 
     m = mask.data if isinstance(mask, Volume) else mask
-    if (isinstance(label, bool) or not isinstance(label, (int, np.integer))
-            or not np.issubdtype(np.dtype(getattr(m, "dtype", float)), np.integer)):
+    if isinstance(label, bool) or not isinstance(label, (int, np.integer)) or as_label_map(m) is None:
         check_mask_label(m, label)  # says what is wrong
     picked = np.asarray(m) == int(label)
     if not picked.any():
@@ -789,9 +809,9 @@ def check_mask_label(mask: Any, label: Any) -> None:
     if isinstance(label, bool) or not isinstance(label, (int, np.integer)):
         raise InvalidInputError(f"the mask's label must be an integer, got {label!r}")
     dtype = np.dtype(getattr(mask, "dtype", float))
-    if not np.issubdtype(dtype, np.integer):
-        raise InvalidInputError(f"a label was given, but the mask is no label map of integers (dtype {dtype}): give "
-                                "it without a label")
+    if as_label_map(mask) is None:
+        raise InvalidInputError(f"a label was given, but the mask is no label map of integers (dtype {dtype}"
+                                f"{'' if dtype == np.bool_ else ' with fractional values'}): give it without a label")
     counts = mask_label_counts(mask)
     if int(label) not in counts:
         held = ", ".join(map(str, sorted(counts)[:12])) + (", ..." if len(counts) > 12 else "")
@@ -803,10 +823,10 @@ def _labels_note(mask: Any) -> str | None:
     """A warning when the mask is a label map of several labels: all of them are taken as the one specimen."""
     import numpy as np
 
-    dtype = getattr(mask, "dtype", None)
-    if dtype is None or not np.issubdtype(np.dtype(dtype), np.integer):
+    arr = as_label_map(mask)
+    if arr is None:
         return None
-    arr = np.asarray(mask)
+    arr = np.asarray(arr)
     if arr.size == 0 or (arr.min() >= 0 and arr.max() <= 1):  # a 0/1 mask: one label (the common case, read fast)
         return None
     counts = mask_label_counts(arr)

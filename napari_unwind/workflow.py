@@ -33,7 +33,7 @@ from psygnal import Signal
 
 from .editing import EditModel
 from .errors import InvalidInputError
-from .pipeline import ExportOptions, PipelineOptions, SkeletonOptions, specimen_mask
+from .pipeline import ExportOptions, PipelineOptions, SkeletonOptions, as_label_map, specimen_mask
 from .progress import Progress
 
 __all__ = ["Backend", "LocalBackend", "ServerBackend", "Selection", "Task", "Workflow", "mask_labels", "read_mask"]
@@ -55,12 +55,13 @@ class Task:
 
 
 def mask_labels(mask: Any) -> np.ndarray:
-    """The voxels of a mask (a Volume or an array) as labels for a Labels layer: integers as they are, anything
-    else as 1 where it is the specimen (:func:`~napari_unwind.pipeline.specimen_mask`: non-zero, or a map of
-    fractional values thresholded), as uint8."""
+    """The voxels of a mask (a Volume or an array) as labels for a Labels layer: integers as they are (a float map
+    of whole values too, as int64), anything else as 1 where it is the specimen
+    (:func:`~napari_unwind.pipeline.specimen_mask`: non-zero, or a map of fractional values thresholded), as uint8."""
     data = np.asarray(getattr(mask, "data", mask))
     if not (np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_):
-        data = np.asarray(specimen_mask(data)[0]) != 0  # a map of fractional values thresholded as every step does
+        labels = as_label_map(data)  # a label map saved as float: its labels; a map of fractional values thresholded
+        data = np.asarray(labels) if labels is not None else np.asarray(specimen_mask(data)[0]) != 0
     return data.astype(np.uint8) if data.dtype == np.bool_ else data
 
 

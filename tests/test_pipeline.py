@@ -265,14 +265,25 @@ def test_label_counts_and_one_label_against_numpy():
         values, counts = np.unique(lab, return_counts=True)
         assert mask_label_counts(lab) == {int(v): int(c) for v, c in zip(values, counts) if v != 0}, dtype
         np.testing.assert_array_equal(pick_mask_label(lab, 3), lab == 3)
-    assert mask_label_counts(np.ones((3, 3, 3), bool)) == {} and mask_label_counts(np.ones((2, 2, 2))) == {}
+    assert mask_label_counts(np.ones((3, 3, 3), bool)) == {} and mask_label_counts(np.full((2, 2, 2), 0.5)) == {}
+    assert mask_label_counts(np.ones((2, 2, 2))) == {1: 8}  # a float map of whole values is a label map
     with pytest.raises(InvalidInputError, match="no voxel of the mask holds label 7; its labels are 1, 2, 3"):
         pick_mask_label(rng.integers(0, 4, size=(5, 5, 5)).astype(np.uint8), 7)
     with pytest.raises(InvalidInputError, match="must be an integer, got 1.5"):
         pick_mask_label(np.ones((2, 2, 2), np.uint8), 1.5)
-    for dtype in (np.float32, bool):  # a label of what is no label map, even where a voxel equals it
-        with pytest.raises(InvalidInputError, match=f"no label map of integers \\(dtype {np.dtype(dtype)}\\)"):
-            pick_mask_label(np.ones((2, 2, 2), dtype), 1)
+    # a label of what is no label map, even where a voxel equals it: a bool mask, a float map of fractional values
+    with pytest.raises(InvalidInputError, match=r"no label map of integers \(dtype bool\): give it without a label"):
+        pick_mask_label(np.ones((2, 2, 2), bool), 1)
+    frac = np.ones((2, 2, 2), np.float32)
+    frac[0, 0, 0] = 0.5
+    with pytest.raises(InvalidInputError, match=r"\(dtype float32 with fractional values\)"):
+        pick_mask_label(frac, 1)
+    # a label map saved as float (whole values, as NIfTI tools often save one): its labels, as the integers'
+    lab = rng.integers(0, 4, size=(7, 8, 9))
+    for dtype in (np.float32, np.float64):
+        values, counts = np.unique(lab, return_counts=True)
+        assert mask_label_counts(lab.astype(dtype)) == {int(v): int(c) for v, c in zip(values, counts) if v != 0}
+        np.testing.assert_array_equal(pick_mask_label(lab.astype(dtype), 2), lab == 2)
     with pytest.raises(InvalidInputError, match="holds label 2: it is empty"):
         pick_mask_label(np.zeros((2, 2, 2), np.uint8), 2)
 
@@ -297,6 +308,12 @@ def test_a_label_map_as_the_mask_is_named_and_one_label_is_straightened_as_its_o
     assert code == 0, err
     np.testing.assert_array_equal(open_volume(tmp_path / "l.nrrd").data, open_volume(tmp_path / "m.nrrd").data)
     assert load_session(tmp_path / "l.unwind.json").segmentation.mask_label == 1
+    # the same label map saved as float32 (as NIfTI tools often save one): the same
+    flt = write_volume(lab.astype(np.float32), tmp_path / "labels_float.nrrd", spacing=f.spacing, unit=f.unit)
+    code, out, err = run_unwind("run", scan, "--mask", flt, "--mask-label", "1", *ends, "-o", tmp_path / "lf.nrrd",
+                                "-q")
+    assert code == 0, err
+    np.testing.assert_array_equal(open_volume(tmp_path / "lf.nrrd").data, open_volume(tmp_path / "m.nrrd").data)
     code, out, err = run_unwind("skeleton", labels, "--mask-label", "1", "--volume", scan, *ends, "-o",
                                 tmp_path / "s.unwind.json", "-q")
     assert code == 0 and load_session(tmp_path / "s.unwind.json").segmentation.mask_label == 1, err
