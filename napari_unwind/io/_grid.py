@@ -100,9 +100,12 @@ def _grid(name: str, shape: Any, spacing: Any, scan: Volume) -> str:
 
 def _same_voxel_size(name: str, shape: Any, spacing: Any, scan: Volume) -> None:
     if not np.allclose(spacing, scan.spacing, rtol=1e-4):
+        ratio = np.asarray(spacing, dtype=float) / np.asarray(scan.spacing, dtype=float)
+        coarser = bool(np.all(ratio > 1.5) and np.allclose(ratio, np.round(ratio), rtol=1e-3))
+        todo = ("refine it at the scan's resolution (unwind select ... --full-resolution SCAN)" if coarser
+                else "resample the mask onto the scan")
         raise InvalidInputError(f"{_grid(name, shape, spacing, scan)}: a mask must lie on the scan's voxel grid (its "
-                                "shape, or a box of it with the same voxel size, placed by its origin); resample the "
-                                "mask onto the scan")
+                                f"shape, or a box of it with the same voxel size, placed by its origin); {todo}")
 
 
 def _embed(data: Any, off: np.ndarray, scan: Volume, name: str) -> tuple[Any, str]:

@@ -111,7 +111,10 @@ def test_masks_off_the_scans_grid_are_refused_saying_why(full, tmp_path):
     refused(open_volume(_nrrd(tmp_path / "half.nrrd", crop, d, np.array([5.25, 3, 2]) @ d)),
             r"origin lies 0 x 0 x 0\.25 voxels off the scan's grid: resample")
     # another voxel size
-    refused(open_volume(_nrrd(tmp_path / "coarse.nrrd", crop, 2 * d, (0, 0, 0))), "voxel size .* resample the mask")
+    refused(open_volume(_nrrd(tmp_path / "other.nrrd", crop, 1.5 * d, (0, 0, 0))), "voxel size .* resample the mask")
+    # a mask at a coarser level of the scan (unwind select without --full-resolution): how to refine it
+    refused(open_volume(_nrrd(tmp_path / "coarse.nrrd", crop, 2 * d, (0, 0, 0))),
+            r"voxel size .* refine it at the scan's resolution \(unwind select ... --full-resolution SCAN\)")
     # another orientation (the scan plain, the crop flipped), both NRRD
     refused(open_volume(_nrrd(tmp_path / "flip.nrrd", crop, DIRECTIONS["flipped"], (0, 0, 0))),
             "another orientation than the scan")
