@@ -199,6 +199,10 @@ def place_on_grid(mask: Volume, scan: Volume, *, what: str = "mask") -> tuple[Vo
             f"{name}'s spacing {_triple(msp)} / origin {_triple(mask.origin)} differ from the scan's "
             f"{_triple(ssp)} / {_triple(scan.origin)}: the scan's are used (same shape, voxel for voxel)")
         return placed, note
+    if tuple(shape[::-1]) == tuple(target):
+        raise InvalidInputError(f"{name} has shape {_triple(shape)}, the scan's {_triple(target)} reversed: its axes "
+                                "were written in the other order (x, y, z against z, y, x; pynrrd's default "
+                                "index_order 'F' for an array read with 'C'); write it in the scan's axis order")
     if not _states_origin(mask):
         raise InvalidInputError(f"{_grid(name, shape, msp, scan)}, and its file does not say where it lies in the scan "
                                 "(no origin): give a mask of the scan's shape, or save it with its origin (NRRD, "

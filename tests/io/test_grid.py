@@ -122,6 +122,9 @@ def test_masks_off_the_scans_grid_are_refused_saying_why(full, tmp_path):
     refused(open_volume(_nrrd(tmp_path / "out.nrrd", crop, d, np.array([12, 3, 2]) @ d)),
             r"voxels of the mask out\.nrrd lie beyond the scan")
     refused(open_volume(_nrrd(tmp_path / "far.nrrd", crop, d, np.array([100, 3, 2]) @ d)), "lies outside the scan")
+    # the scan's shape reversed: written in the other axis order (pynrrd's default index_order 'F')
+    refused(open_volume(_nrrd(tmp_path / "flipped_axes.nrrd", mask.transpose(2, 1, 0), d[::-1, ::-1], (0, 0, 0))),
+            r"has shape 19 x 17 x 14, the scan's 14 x 17 x 19 reversed: its axes were written in the other order")
     # a TIFF states no origin: a crop of it cannot be placed
     tifffile.imwrite(tmp_path / "crop.tif", crop)
     refused(open_volume(tmp_path / "crop.tif"), "does not say where it lies in the scan")
