@@ -44,6 +44,23 @@ def fish_case(folder: Path):
     return fish, scan, session, d
 
 
+def write_segment_crop(mask, spacing, path: Path):
+    """``mask`` (array order, origin 0) cropped to its non-zero box and written with pynrrd as 3D Slicer saves a
+    segment (``.seg.nrrd``): the box's voxels, the scan's directions and the ``space origin`` that places it.
+    Returns (path, the box's first voxel in the scan, the crop)."""
+    import nrrd
+    import numpy as np
+
+    sp = np.asarray(spacing, dtype=float)
+    idx = np.argwhere(mask)
+    lo, hi = idx.min(axis=0), idx.max(axis=0) + 1
+    crop = np.asarray(mask)[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.uint8)
+    nrrd.write(str(path), np.ascontiguousarray(crop.transpose(2, 1, 0)),
+               {"space": "left-posterior-superior", "space directions": np.diag(sp[::-1]),
+                "space origin": (lo * sp)[::-1], "kinds": ["domain"] * 3, "space units": ["mm"] * 3})
+    return path, lo, crop
+
+
 def run_unwind(*args) -> tuple[int, str, str]:
     """Run ``unwind ARGS...`` as a user would; returns (exit status, stdout, stderr)."""
     r = subprocess.run([str(UNWIND), *map(str, args)], capture_output=True, text=True)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from conftest import no_leftovers
+from conftest import no_leftovers, write_segment_crop
 from conftest import run_unwind as _run
 from napari_unwind.cli import main
 from napari_unwind.datasets import fish_phantom, tank_phantom
@@ -122,17 +122,8 @@ def test_suggested_ends_are_printed_and_the_mask_is_the_source(fish, tmp_path):
 def test_a_mask_cropped_to_its_box_gives_the_same_skeleton(fish, given_ends, tmp_path):
     """A mask saved cropped to the specimen's box with its origin (as 3D Slicer saves a segment; header written here
     with pynrrd) is placed on the scan: the same deformation as the full mask's, and the placement is said."""
-    import nrrd
-
     tmp, f, _, scan = fish
-    sp = np.asarray(f.spacing, dtype=float)
-    idx = np.argwhere(f.mask)
-    lo, hi = idx.min(axis=0), idx.max(axis=0) + 1
-    crop = f.mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.uint8)
-    path = tmp_path / "fish.seg.nrrd"
-    nrrd.write(str(path), np.ascontiguousarray(crop.transpose(2, 1, 0)),
-               {"space": "left-posterior-superior", "space directions": np.diag(sp[::-1]),
-                "space origin": (lo * sp)[::-1], "kinds": ["domain"] * 3, "space units": ["mm"] * 3})
+    path, lo, crop = write_segment_crop(f.mask, f.spacing, tmp_path / "fish.seg.nrrd")
     session = tmp_path / "crop.unwind.json"
     code, out, err = _run("skeleton", path, "--head", _arg(f.head), "--tail", _arg(f.tail), "--volume", scan,
                           "-o", session)

@@ -229,16 +229,9 @@ def test_a_mask_file_is_recorded_in_the_session_and_reopens_it(fish, tmp_path):
 def test_a_mask_file_cropped_to_its_box_is_placed_on_the_scan(fish, tmp_path):
     """A mask saved cropped to its segment's box (3D Slicer's .seg.nrrd) with its origin: the dock's selection is
     the full mask (reference: the phantom's mask; the crop's header written with pynrrd)."""
-    import nrrd
+    from conftest import write_segment_crop
 
-    sp = np.asarray(fish.spacing, dtype=float)
-    idx = np.argwhere(fish.mask)
-    lo, hi = idx.min(axis=0), idx.max(axis=0) + 1
-    crop = fish.mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.uint8)
-    path = tmp_path / "segment.seg.nrrd"
-    nrrd.write(str(path), np.ascontiguousarray(crop.transpose(2, 1, 0)),
-               {"space": "left-posterior-superior", "space directions": np.diag(sp[::-1]),
-                "space origin": (lo * sp)[::-1], "kinds": ["domain"] * 3})
+    path, _, _ = write_segment_crop(fish.mask, fish.spacing, tmp_path / "segment.seg.nrrd")
     wf = Workflow()
     wf.set_scan(as_volume(fish.volume, spacing=fish.spacing, unit=fish.unit), name="fish")
     task = wf.mask_file_task(path)
