@@ -54,22 +54,30 @@ class Task:
     apply: Callable[[Any], Any]
 
 
-def mask_labels(mask: Any) -> np.ndarray:
+def mask_labels(mask: Any) -> tuple[np.ndarray, str | None]:
     """The voxels of a mask (a Volume or an array) as labels for a Labels layer: integers as they are (a float map
     of whole values too, as int64), anything else as 1 where it is the specimen
-    (:func:`~napari_unwind.pipeline.specimen_mask`: non-zero, or a map of fractional values thresholded), as uint8."""
-    data = np.asarray(getattr(mask, "data", mask))
+    (:func:`~napari_unwind.pipeline.specimen_mask`: non-zero, or a map of fractional values thresholded), as uint8.
+    Returns ``(labels, note)``: the note says how a map of fractional values was thresholded (None otherwise)."""
+    data, note = np.asarray(getattr(mask, "data", mask)), None
     if not (np.issubdtype(data.dtype, np.integer) or data.dtype == np.bool_):
         labels = as_label_map(data)  # a label map saved as float: its labels; a map of fractional values thresholded
-        data = np.asarray(labels) if labels is not None else np.asarray(specimen_mask(data)[0]) != 0
-    return data.astype(np.uint8) if data.dtype == np.bool_ else data
+        if labels is not None:
+            data = np.asarray(labels)
+        else:
+            kept, note = specimen_mask(data)
+            data = np.asarray(kept) != 0
+    return (data.astype(np.uint8) if data.dtype == np.bool_ else data), note
 
 
-def read_mask(path: Any, scan: Any, *, session: str | None = None) -> np.ndarray:
+def read_mask(path: Any, scan: Any, *, session: str | None = None) -> tuple[np.ndarray, tuple[str, ...]]:
     """The voxels of the mask file at ``path`` as labels (:func:`mask_labels`) on the grid of the ``scan`` (a
     Volume): a mask of its shape voxel for voxel, or a box of its grid placed by the file's origin
     (:func:`~napari_unwind.io._grid.place_on_grid`). ``session`` names the session that recorded the file (its errors
-    then say how to mend the session; the mask is then expected to be the one the session was made with)."""
+    then say how to mend the session; the mask is then expected to be the one the session was made with).
+
+    Returns ``(labels, notes)``: the notes (one line each) say what was done to read it as the scan's mask: a box
+    placed by its origin, a map of fractional values thresholded. Empty when it was taken as it is."""
     from .io import open_volume
     from .io._grid import place_on_grid
     from .session import SourceChangedError, SourceMissingError
@@ -81,13 +89,14 @@ def read_mask(path: Any, scan: Any, *, session: str | None = None) -> np.ndarray
                                  f"put it back there, or {mend}")
     mask = open_volume(path)
     try:
-        placed, _ = place_on_grid(mask, scan)
+        placed, placed_note = place_on_grid(mask, scan)
     except InvalidInputError as exc:
         if session:
             raise SourceChangedError(f"{exc} (the scan of {session}): it is not the mask the session was made "
                                      "with") from None
         raise
-    return mask_labels(placed.data)
+    labels, threshold_note = mask_labels(placed.data)
+    return labels, tuple(n for n in (placed_note, threshold_note) if n)
 
 
 @dataclass(frozen=True)
@@ -499,18 +508,19 @@ class Workflow:
 
     def mask_file_task(self, path: Any, *, label: int | None = None) -> Task:
         """Open a mask file (any scan format on the scan's voxel grid; non-zero voxels are the mask) and make it,
-        or its ``label``, the selection. The Task's value is the mask's voxels (for a Labels layer)."""
+        or its ``label``, the selection. The Task's value is ``(labels, notes)`` (:func:`read_mask`: the mask's voxels
+        for a Labels layer, and what was done to read them)."""
         volume = self._need_scan()
         path = Path(path)
 
         def make() -> Generator[Progress, None, Any]:
             yield Progress("open", 0, 1, str(path))
-            data = read_mask(path, volume)
+            labels, notes = read_mask(path, volume)
             yield Progress("open", 1, 1)
-            return data
+            return labels, notes
 
-        def apply(data: Any) -> None:
-            self.use_mask(data, label=label, key=("file", str(path.absolute()), label), source=path)
+        def apply(value: Any) -> None:
+            self.use_mask(value[0], label=label, key=("file", str(path.absolute()), label), source=path)
 
         return Task("opening the mask", make, apply)
 

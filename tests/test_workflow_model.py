@@ -235,5 +235,32 @@ def test_a_mask_file_cropped_to_its_box_is_placed_on_the_scan(fish, tmp_path):
     wf = Workflow()
     wf.set_scan(as_volume(fish.volume, spacing=fish.spacing, unit=fish.unit), name="fish")
     task = wf.mask_file_task(path)
-    task.apply(run(task.make()))
+    value = run(task.make())
+    task.apply(value)
     assert np.array_equal(np.asarray(wf.mask()), fish.mask)
+    (note,) = value[1]  # said, as the command line says it (the dock shows it)
+    assert "is a box of the scan's grid: placed at voxel" in note
+
+
+def test_a_probability_map_as_the_mask_file_is_thresholded_and_says_so(fish, tmp_path):
+    """A probability map saved as the mask (float, fractional values): the selection is its voxels >= 0.5
+    (reference: numpy on the map), and the task's notes say so; a 0.0/1.0 float mask is taken as it is, unsaid."""
+    import nrrd
+
+    rng = np.random.default_rng(23)
+    prob = np.where(fish.mask, rng.uniform(0.5, 1.0, fish.mask.shape), rng.uniform(0.0, 0.5, fish.mask.shape))
+    prob = prob.astype(np.float32)
+    nrrd.write(str(tmp_path / "prob.nrrd"), prob, index_order="C")
+    nrrd.write(str(tmp_path / "binary.nrrd"), fish.mask.astype(np.float32), index_order="C")
+    wf = Workflow()
+    wf.set_scan(as_volume(fish.volume, spacing=fish.spacing, unit=fish.unit), name="fish")
+    task = wf.mask_file_task(tmp_path / "prob.nrrd")
+    value = run(task.make())
+    task.apply(value)
+    assert np.array_equal(np.asarray(wf.mask()), prob >= 0.5)
+    (note,) = value[1]
+    assert "fractional values" in note and ">= 0.5 are the specimen" in note
+    task = wf.mask_file_task(tmp_path / "binary.nrrd")
+    value = run(task.make())
+    task.apply(value)
+    assert np.array_equal(np.asarray(wf.mask()), fish.mask) and value[1] == ()

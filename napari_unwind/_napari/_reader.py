@@ -313,10 +313,10 @@ def _mask_layer(volume: Any, seg: Any, named: str, spacing: np.ndarray, origin: 
     from ..workflow import read_mask
 
     path = Path(seg.mask)
-    data = read_mask(path, volume, session=named)
+    data, notes = read_mask(path, volume, session=named)
     meta = {"name": path.name, "scale": tuple(spacing), "translate": tuple(origin), "opacity": 0.5,
             "metadata": {"napari_unwind": {**common, "source": str(path), "mask_label": seg.mask_label,
-                                           "selection_mask": True}}, **units}
+                                           "selection_mask": True, "notes": list(notes)}}, **units}
     return data, meta, "labels"
 
 

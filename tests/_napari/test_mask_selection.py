@@ -90,6 +90,8 @@ def test_a_labels_layer_whole_one_label_or_the_label_clicked(make_napari_viewer,
                                 translate=np.asarray(labels.translate) + lo * np.asarray(labels.scale))
     assert w.use_labels(cropped) == int((truth == 2).sum())
     np.testing.assert_array_equal(np.asarray(w.mask()), truth == 2)
+    assert f"Note: the mask 'cropped' (shape {crop.shape[0]} x" in w.status.text()  # said, as the CLI says it
+    assert f"placed at voxel {lo[0]} x {lo[1]} x {lo[2]}" in w.status.text()
     w.use_labels(labels, label=2)
     # off the grid by half a voxel, or of another voxel size: refused, saying why
     off = viewer.add_labels(crop, name="off", scale=labels.scale,
@@ -163,6 +165,24 @@ def test_the_threshold_slider_grows_and_shrinks_the_selection(make_napari_viewer
                     timeout=60_000)  # a mask is taken as it is: no threshold
     assert count() == int((np.asarray(truth.data) > 0).sum())
     qtbot.waitUntil(lambda: w.idle, timeout=60_000)
+
+
+def test_a_probability_map_opened_as_the_mask_file_is_thresholded_and_the_dock_says_so(make_napari_viewer, qtbot,
+                                                                                        tmp_path):
+    """A mask file holding a probability map (float, fractional values) opened in step 2: the selection is its
+    voxels >= 0.5 (reference: numpy on the map written with pynrrd) and the status line says it was thresholded."""
+    viewer = make_napari_viewer()
+    w = UnwindWidget(viewer)
+    layers = viewer.open_sample("napari-unwind", "tank")
+    w.use_layer(next(lyr for lyr in layers if lyr.name == "tank"))
+    truth = np.asarray(next(lyr for lyr in layers if lyr.name == "tank true fish").data) == 2
+    rng = np.random.default_rng(5)
+    prob = np.where(truth, rng.uniform(0.5, 1.0, truth.shape), rng.uniform(0.0, 0.5, truth.shape)).astype(np.float32)
+    nrrd.write(str(tmp_path / "prob.nrrd"), prob, index_order="C")
+    wait(qtbot, w, w.open_mask(tmp_path / "prob.nrrd"))
+    np.testing.assert_array_equal(np.asarray(w.mask()), prob >= 0.5)
+    assert "Note: the mask holds fractional values" in w.status.text()
+    assert ">= 0.5 are the specimen" in w.status.text()
 
 
 def test_a_mask_selection_is_saved_and_reopens_from_the_dock_and_file_open(make_napari_viewer, qtbot, tmp_path):

@@ -483,12 +483,13 @@ class SegmentStep(Step):
                     raise InvalidInputError(f"no label there in {layer.name!r} (background): click inside the mask")
             if label is not None:
                 label = int(label)
-            data = np.asarray(layer.data)
+            data, placed = np.asarray(layer.data), None
             if data.shape != tuple(volume.shape):  # a box of the scan's grid where the viewer shows it (a cropped mask)
                 from ...io._grid import place_array
 
-                data = np.asarray(place_array(data, volume, spacing=layer.scale[-3:], origin=layer.translate[-3:],
-                                              name=f"the mask {layer.name!r}")[0])
+                data, placed = place_array(data, volume, spacing=layer.scale[-3:], origin=layer.translate[-3:],
+                                           name=f"the mask {layer.name!r}")
+                data = np.asarray(data)
             if not np.count_nonzero(data == label if label else data):
                 what = f"label {label}" if label else "any label"
                 raise InvalidInputError(f"the mask {layer.name!r} holds no voxel of {what}: pick another label")
@@ -520,7 +521,10 @@ class SegmentStep(Step):
         what = f"label {label}" if label else "every label"
         self.selection_label.setText(f"selected: {what} of the mask {layer.name!r}, {count:,} voxels "
                                      f"({share:.3g} % of the scan)")
-        self._say(f"the selection is {what} of {layer.name!r}: suggest the ends next (step 3)")
+        # what reading the file did (read_mask) and placing the layer's box on the scan's grid
+        notes = " ".join(f"Note: {n.rstrip('.')}." for n in (*meta.get("notes", ()), placed) if n)
+        self._say(f"the selection is {what} of {layer.name!r}: suggest the ends next (step 3)"
+                  + (f". {notes}" if notes else ""))
         prewarm(SKELETON)
         dock._update_needs()
         return count
@@ -545,10 +549,10 @@ class SegmentStep(Step):
 
             from .._layers import labels_layer
 
-            data = yield from task.make()
+            data, notes = yield from task.make()
             return Layer.create(*labels_layer(  # made here, not on the UI thread
                 data, spacing=volume.spacing, unit=volume.unit, name=Path(path).name, translate=tuple(volume.origin),
-                metadata={"napari_unwind": {"source": str(Path(path).absolute())}}))
+                metadata={"napari_unwind": {"source": str(Path(path).absolute()), "notes": list(notes)}}))
 
         def done(layer: Any) -> None:
             from .._layers import in_3d
