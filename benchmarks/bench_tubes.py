@@ -44,15 +44,16 @@ from tests.test_real_scans_run import _roll_against_rotation_minimising
 SHAPE = (110, 110, 110)
 
 
-def tube(rng: np.random.Generator, grid: np.ndarray) -> tuple | None:
-    """(mask, volume, curve, radius, closest self-approach in radii), or None for a curve under 8 radii long."""
+def tube(rng: np.random.Generator, grid: np.ndarray, *, build: bool = True) -> tuple | None:
+    """(mask, volume, curve, radius, closest self-approach in radii), or None for a curve under 8 radii long.
+    ``build=False``: draws what a tube draws from ``rng`` (the next tube is the same) and returns None."""
     r = rng.uniform(3, 8)
     ctrl = np.cumsum(rng.normal(0, 1, (6, 3)), axis=0)
     ctrl = (ctrl - ctrl.min(0)) / np.ptp(ctrl, axis=0).max() * (SHAPE[0] - 2 * r - 16) + r + 8
     c = CubicSpline(np.linspace(0, 1, 6), ctrl)(np.linspace(0, 1, 2000))
     s = np.r_[0, np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))]
     noise = rng.normal(0, 40, SHAPE)
-    if s[-1] < 8 * r:
+    if s[-1] < 8 * r or not build:
         return None
     approach = min((np.linalg.norm(c[np.abs(s - s[j]) > 4 * r] - c[j], axis=1).min()
                     if (np.abs(s - s[j]) > 4 * r).any() else np.inf) for j in range(0, len(c), 20))
@@ -71,7 +72,8 @@ def tubes(seed: int, indices: Sequence[int]) -> dict[int, tuple | None]:
     """The tubes ``indices`` as this benchmark draws them with ``--seed seed`` (``tube``'s tuple, or None)."""
     rng = np.random.default_rng(seed)
     grid = grid_points()
-    return {i: t for i, t in ((i, tube(rng, grid)) for i in range(max(indices) + 1)) if i in indices}
+    return {i: t for i, t in ((i, tube(rng, grid, build=i in indices)) for i in range(max(indices) + 1))
+            if i in indices}
 
 
 def main() -> None:
