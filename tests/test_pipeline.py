@@ -44,6 +44,17 @@ def fish(tmp_path_factory):
     return tmp, f, mask, scan
 
 
+@pytest.fixture(scope="module")
+def mask_run(fish):
+    """``unwind run`` on the fish with its own binary mask, once for the tests that compare other masks with it:
+    (its straight volume's path, its session's path, its stderr)."""
+    tmp, f, mask, scan = fish
+    code, _, err = run_unwind("run", scan, "--mask", mask, "--head", _arg(f.head), "--tail", _arg(f.tail), "-o",
+                              tmp / "m.nrrd", "-q")
+    assert code == 0, err
+    return tmp / "m.nrrd", tmp / "m.unwind.json", err
+
+
 def _folding():
     from napari_unwind.deformation import Deformation
 
@@ -288,11 +299,12 @@ def test_label_counts_and_one_label_against_numpy():
         pick_mask_label(np.zeros((2, 2, 2), np.uint8), 2)
 
 
-def test_a_label_map_as_the_mask_is_named_and_one_label_is_straightened_as_its_own_mask(fish, tmp_path):
+def test_a_label_map_as_the_mask_is_named_and_one_label_is_straightened_as_its_own_mask(fish, mask_run, tmp_path):
     from napari_unwind.io import open_volume
     from napari_unwind.session import load_session
 
     tmp, f, mask, scan = fish
+    straight, _, one_label_err = mask_run
     ends = ["--head", _arg(f.head), "--tail", _arg(f.tail)]
     lab = f.mask.astype(np.uint8)
     far = np.zeros(f.mask.shape, bool)
@@ -304,16 +316,14 @@ def test_a_label_map_as_the_mask_is_named_and_one_label_is_straightened_as_its_o
     code, out, err = run_unwind("run", scan, "--mask", labels, "--mask-label", "1", *ends, "-o", tmp_path / "l.nrrd",
                                 "-q")
     assert code == 0, err
-    code, out, err = run_unwind("run", scan, "--mask", mask, *ends, "-o", tmp_path / "m.nrrd", "-q")
-    assert code == 0, err
-    np.testing.assert_array_equal(open_volume(tmp_path / "l.nrrd").data, open_volume(tmp_path / "m.nrrd").data)
+    np.testing.assert_array_equal(open_volume(tmp_path / "l.nrrd").data, open_volume(straight).data)
     assert load_session(tmp_path / "l.unwind.json").segmentation.mask_label == 1
     # the same label map saved as float32 (as NIfTI tools often save one): the same
     flt = write_volume(lab.astype(np.float32), tmp_path / "labels_float.nrrd", spacing=f.spacing, unit=f.unit)
     code, out, err = run_unwind("run", scan, "--mask", flt, "--mask-label", "1", *ends, "-o", tmp_path / "lf.nrrd",
                                 "-q")
     assert code == 0, err
-    np.testing.assert_array_equal(open_volume(tmp_path / "lf.nrrd").data, open_volume(tmp_path / "m.nrrd").data)
+    np.testing.assert_array_equal(open_volume(tmp_path / "lf.nrrd").data, open_volume(straight).data)
     code, out, err = run_unwind("skeleton", labels, "--mask-label", "1", "--volume", scan, *ends, "-o",
                                 tmp_path / "s.unwind.json", "-q")
     assert code == 0 and load_session(tmp_path / "s.unwind.json").segmentation.mask_label == 1, err
@@ -323,8 +333,7 @@ def test_a_label_map_as_the_mask_is_named_and_one_label_is_straightened_as_its_o
     assert (f"the mask holds 2 labels (label 1: {share:.3g} %, label 2: {100 - share:.3g} % of its voxels): all are "
             "taken as one specimen") in err, err
     assert "--mask-label N" in err
-    code, out, err = run_unwind("run", scan, "--mask", mask, *ends, "-o", tmp_path / "one.nrrd", "-q")
-    assert "labels" not in err, err  # a mask of one label says nothing
+    assert "labels" not in one_label_err, one_label_err  # a mask of one label says nothing
     # a label the map does not hold, or a label without a mask: one line, exit 1
     code, out, err = run_unwind("run", scan, "--mask", labels, "--mask-label", "3", *ends, "-o", tmp_path / "x.nrrd")
     assert code == 1 and err.strip() == "unwind: error: no voxel of the mask holds label 3; its labels are 1, 2: " \
@@ -367,7 +376,7 @@ def test_the_specimen_of_a_float_mask_against_numpy():
     np.testing.assert_array_equal(np.asarray(vol.data), prob >= 0.5)
 
 
-def test_a_probability_map_as_the_mask_straightens_as_its_binary_mask(fish, tmp_path):
+def test_a_probability_map_as_the_mask_straightens_as_its_binary_mask(fish, mask_run, tmp_path):
     """The fish's mask as a map of fractional values (each voxel of the fish 0.6-1, the rest 0.001-0.4): the same
     straight volume as the binary mask, and said; the same profile from `unwind measure` as a 0.0 / 1.0 float mask."""
     from napari_unwind.io import open_volume
@@ -380,13 +389,12 @@ def test_a_probability_map_as_the_mask_straightens_as_its_binary_mask(fish, tmp_
     code, _, err = run_unwind("run", scan, "--mask", soft, *ends, "-o", tmp_path / "p.nrrd", "-q")
     assert code == 0, err
     assert "the mask holds fractional values" in err and "its voxels >= 0.5 are the specimen" in err, err
-    code, _, err = run_unwind("run", scan, "--mask", mask, *ends, "-o", tmp_path / "m.nrrd", "-q")
-    assert code == 0, err
-    np.testing.assert_array_equal(open_volume(tmp_path / "p.nrrd").data, open_volume(tmp_path / "m.nrrd").data)
+    straight, session, _ = mask_run
+    np.testing.assert_array_equal(open_volume(tmp_path / "p.nrrd").data, open_volume(straight).data)
     flt = write_volume(f.mask.astype(np.float32), tmp_path / "float.nrrd", spacing=f.spacing, unit=f.unit)
     profiles = {}
     for name, m in (("uint8", mask), ("float", flt), ("prob", soft)):
-        code, _, err = run_unwind("measure", "--session", tmp_path / "m.unwind.json", "--mask", m, "-o",
+        code, _, err = run_unwind("measure", "--session", session, "--mask", m, "-o",
                                   tmp_path / f"{name}.csv", "-q")
         assert code == 0, (name, err)
         profiles[name] = (tmp_path / f"{name}.csv").read_bytes()
