@@ -1,7 +1,8 @@
 """One user cannot stop everyone: per-user counts of calls and uploads in progress, and idle timeouts of transfers.
 
 - :class:`UserSlots` counts what each user has in progress (calls, uploads) against a limit; past it the call is
-  refused at once with RESOURCE_EXHAUSTED (:class:`~unwind_services.errors.LimitError`), it never waits.
+  refused at once with RESOURCE_EXHAUSTED (:class:`~unwind_services.errors.LimitError`), it never waits. An
+  upload counts while its call is alive (not while its handler ends a call gRPC has already ended).
 - :class:`UserRate` is a token bucket per user: the calls a user may start per second (bursts of two seconds'
   worth); a call over it waits for its turn (up to a second), past that it is refused with RESOURCE_EXHAUSTED.
 - :class:`CallLimiter` is the server interceptor that holds one of the caller's call slots while a call runs (a
@@ -38,34 +39,54 @@ _ALIVE_POLL = 0.25
 
 
 class UserSlots:
-    """How many of something each user has in progress, at most ``limit`` (0: no limit)."""
+    """How many of something each user has in progress, at most ``limit`` (0: no limit).
+
+    A holder may say how to tell whether its call is still alive (``alive``, e.g. the gRPC context's ``is_active``):
+    one whose call is over no longer counts, though its handler may still be ending (e.g. an upload that gRPC cut
+    for a message over its size limit, whose handler notices within a quarter second and then cleans up). The
+    client has its answer by then and may well start again at once; it must not be refused for the call it has
+    just seen end.
+    """
 
     def __init__(self, limit: int, what: str, advice: str):
         self.limit, self.what, self.advice = int(limit), what, advice
-        self._count: dict[str, int] = {}
+        self._held: dict[str, list[list]] = {}  # user -> tokens: [alive or None]
         self._lock = threading.Lock()
 
+    @staticmethod
+    def _counts(alive: Callable[[], bool] | None) -> bool:
+        if alive is None:
+            return True
+        try:
+            return bool(alive())
+        except Exception:  # noqa: BLE001 - a context that cannot say: count it, as before it could
+            return True
+
     def in_use(self, user: str) -> int:
+        """The user's holders whose calls are alive."""
         with self._lock:
-            return self._count.get(user, 0)
+            return sum(self._counts(t[0]) for t in self._held.get(user, ()))
 
     @contextlib.contextmanager
-    def hold(self, user: str) -> Iterator[None]:
+    def hold(self, user: str, alive: Callable[[], bool] | None = None) -> Iterator[None]:
+        token = [alive]  # a list of its own: removed by identity, not by equality of the callables
         with self._lock:
-            n = self._count.get(user, 0)
+            held = self._held.setdefault(user, [])
+            n = sum(self._counts(t[0]) for t in held)
             if self.limit and n >= self.limit:
+                if not held:
+                    del self._held[user]
                 raise LimitError(f"you already have {n} {self.what} in progress, this server's limit per user; "
                                  f"{self.advice}")
-            self._count[user] = n + 1
+            held.append(token)
         try:
             yield
         finally:
             with self._lock:
-                left = self._count[user] - 1
-                if left:
-                    self._count[user] = left
-                else:
-                    del self._count[user]
+                held = self._held[user]
+                held[:] = [t for t in held if t is not token]
+                if not held:
+                    del self._held[user]
 
 
 class UserRate:
@@ -130,7 +151,7 @@ class CallLimiter(grpc.ServerInterceptor):
         @contextlib.contextmanager
         def admitted():
             user = current_user()
-            with slots.hold(user):
+            with slots.hold(user):  # until the handler ends: one that never looks at its call must not pile up
                 rate.take(user)
                 yield
 

@@ -183,8 +183,9 @@ class JobManager:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
         if self._import_pool is not None:  # the gRPC server has stopped: open uploads were cancelled, their imports end
+            procs = _workers(self._import_pool)  # before shutdown(), which forgets them
             self._import_pool.shutdown(wait=False, cancel_futures=True)
-            _kill_workers(self._import_pool, after=stop_seconds)
+            _kill(procs, after=stop_seconds)
 
     def _wait_idle(self, deadline: float) -> bool:
         """Wait until no job is handed to a worker, or the deadline; whether none is."""
@@ -314,12 +315,19 @@ def _die_with_server() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+def _workers(pool: ProcessPoolExecutor | None) -> list:
+    """The processes of ``pool`` (none after its ``shutdown()``, which forgets them)."""
+    return list((getattr(pool, "_processes", None) or {}).values()) if pool is not None else []
+
+
 def _kill_workers(pool: ProcessPoolExecutor | None, after: float = 0.0) -> None:
     """Kill the processes of ``pool`` still alive ``after`` seconds from now (a job step or an import that does not
     end). ``ProcessPoolExecutor`` has no public way before Python 3.14 (``terminate_workers``)."""
-    if pool is None:
-        return
-    procs = list((getattr(pool, "_processes", None) or {}).values())
+    _kill(_workers(pool), after)
+
+
+def _kill(procs: list, after: float = 0.0) -> None:
+    """Kill the processes ``procs`` still alive ``after`` seconds from now."""
     end = time.monotonic() + after
     for p in procs:
         p.join(timeout=max(0.0, end - time.monotonic()))

@@ -89,7 +89,9 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
         owner, idle = current_user(), self.catalog.limits.upload_idle_seconds
         abandoned: list[UploadPipe] = []
         try:
-            with self.uploads.hold(owner):  # the transfer holds the user's slot, not the clean-up after a failure
+            # the transfer holds the user's slot while its call is alive: not the clean-up after a failure, nor a
+            # call gRPC ended itself (e.g. a message over its limit) that this thread has yet to notice
+            with self.uploads.hold(owner, context.is_active):
                 return self._upload(owner, idle_limited(
                     request_iterator, idle, f"the upload sent nothing for {idle:g} s and was aborted (this "
                     "server's idle limit); upload again", context.is_active), context, abandoned)

@@ -224,12 +224,17 @@ def test_shutdown_kills_a_worker_whose_job_does_not_stop(tmp_path):
     stuck.add_done_callback(lambda f: jm._done(job.id, f))  # noqa: SLF001
     jm.start_import(time.sleep, 600)  # an import whose upload never ends
     time.sleep(3)  # the workers are up and sleeping
+    sleepers = [p for pool in (jm._pool, jm._import_pool) for p in pool._processes.values()]  # noqa: SLF001
+    assert len(sleepers) == 2 and all(p.is_alive() for p in sleepers)
     t0 = time.monotonic()
     done = threading.Thread(target=jm.shutdown, kwargs=dict(drain_seconds=1, stop_seconds=1), daemon=True)
     done.start()
     done.join(timeout=30)
     assert not done.is_alive(), "shutdown did not return"
     assert time.monotonic() - t0 < 1 + 1 + 8
+    for p in sleepers:  # both killed, the stalled import too (a pool's shutdown() forgets its processes)
+        p.join(timeout=5)
+        assert not p.is_alive(), f"a worker ({p.name}) still runs after the shutdown"
     row = catalog.store.job_row(job.id)
     assert row["state"] == pb.JOB_STATE_FAILED and row["interrupted"] == 1
     catalog.store.close()
@@ -310,3 +315,33 @@ def test_a_users_flood_of_calls_is_slowed_to_the_rate_and_another_user_is_served
         assert max(t for _, t in codes[12:]) >= 0.1
     finally:
         srv.stop()
+
+
+def test_a_holder_whose_call_is_over_no_longer_counts_against_the_users_slots():
+    from unwind_services.errors import LimitError
+    from unwind_services.fairness import UserSlots
+
+    slots = UserSlots(1, "uploads", "wait")
+    alive = [True]
+
+    def broken():
+        raise RuntimeError("a context that cannot say")
+
+    with slots.hold("alice", lambda: alive[0]):
+        with pytest.raises(LimitError, match="you already have 1 uploads in progress"):
+            with slots.hold("alice"):
+                pass
+        with slots.hold("bob"):  # a count per user
+            assert slots.in_use("bob") == 1
+        alive[0] = False  # gRPC ended the call; its handler has yet to notice
+        assert slots.in_use("alice") == 0
+        with slots.hold("alice", broken):  # the client's next upload is let in at once; one that cannot say counts
+            assert slots.in_use("alice") == 1
+            with pytest.raises(LimitError):
+                with slots.hold("alice"):
+                    pass
+        assert slots.in_use("alice") == 0
+    assert slots.in_use("alice") == 0 and slots._held == {}  # nothing left behind for users gone
+    unlimited = UserSlots(0, "calls", "")
+    with unlimited.hold("alice"), unlimited.hold("alice"):
+        assert unlimited.in_use("alice") == 2

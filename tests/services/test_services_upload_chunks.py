@@ -4,13 +4,15 @@ numcodecs' Blosc and google_crc32c directly (not with the code under test)."""
 
 from __future__ import annotations
 
+import contextlib
 import itertools
+import time
 
 import google_crc32c
 import grpc
 import numpy as np
 import pytest
-from _servers import ServerProcess, assert_same_store, leftovers, store_files, stored_volume
+from _servers import ServerProcess, assert_same_store, leftovers, store_files, stored_volume, wait_for
 from numcodecs import Blosc
 
 from napari_unwind.client import Client, RemoteError
@@ -213,3 +215,56 @@ def test_a_server_whose_message_limit_is_below_a_chunk_gets_the_upload_raw(tmp_p
             np.testing.assert_array_equal(c.open(info.volume_id).data.compute(), a)
     finally:
         srv.stop()
+
+
+def test_an_upload_gRPC_cut_does_not_hold_the_users_slot_while_its_handler_ends(tmp_path, monkeypatch):
+    """gRPC ends an upload itself on a message over the server's limit, while the handler may still be busy (here:
+    5 s late to read the header, as on a loaded machine); the client, told at once, uploads again and must not be
+    refused for the upload it has just seen end. And a client falling back to raw after a refused chunked upload
+    waits for a server that holds the slot until the handler ends (an earlier version's)."""
+    from unwind_services import fairness, servicers
+    from unwind_services.catalog import Limits
+    from unwind_services.server import ServerConfig, UnwindServer
+
+    real = servicers.upload_framing
+
+    def late(header, *args, **kwargs):
+        time.sleep({"cut": 5.0, "late": 1.5}.get(header.name, 0.0))
+        return real(header, *args, **kwargs)
+
+    monkeypatch.setattr(servicers, "upload_framing", late)
+    holding, real_hold = [], fairness.UserSlots.hold
+
+    @contextlib.contextmanager
+    def counted(self, user, alive=None):
+        with real_hold(self, user, alive):
+            holding.append(self.what)
+            try:
+                yield
+            finally:
+                holding.remove(self.what)
+
+    monkeypatch.setattr(fairness.UserSlots, "hold", counted)
+    srv = UnwindServer(ServerConfig(data_root=tmp_path / "data", port=0, workers=1, scheduler="threads",
+                                    limits=Limits(max_message_bytes=3 * 2**20)))
+    srv.start()
+    try:
+        a = np.random.default_rng(5).integers(0, 4000, (130, 130, 130), dtype=np.uint16)  # chunks of 128^3: 4 MiB
+        head = volume_pb2.UploadHeader(name="cut", shape=list(a.shape), dtype=pb.DTYPE_UINT16)
+        big = volume_pb2.UploadRequest(chunk=b"\0" * (3 * 2**20 + 1))
+        with grpc.insecure_channel(srv.address, [("grpc.max_send_message_length", 64 * 2**20)]) as ch:
+            with pytest.raises(grpc.RpcError) as info:
+                volume_pb2_grpc.VolumeServiceStub(ch).Upload(iter([volume_pb2.UploadRequest(header=head), big]),
+                                                             timeout=30)
+            assert info.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED  # gRPC's own limit, told at once
+        with Client(srv.address, progress=False) as c:
+            got = c.upload(a, name="again", format="raw")  # at once: the cut upload's handler is still busy
+            np.testing.assert_array_equal(c.open(got.volume_id).data.compute(), a)
+        wait_for(lambda: "uploads" not in holding, 30)  # the cut upload's handler has ended
+        # a server that counts the cut upload until its handler ends: the client's raw fallback waits for it
+        monkeypatch.setattr(fairness.UserSlots, "_counts", staticmethod(lambda alive: True))
+        with Client(srv.address, progress=False) as c:
+            got = c.upload(a, name="late")  # chunks, cut by gRPC (4 MiB messages), then raw
+            np.testing.assert_array_equal(c.open(got.volume_id).data.compute(), a)
+    finally:
+        srv.stop(0)
