@@ -106,11 +106,11 @@ def _slabs(source: Any, dtype: np.dtype, step: int) -> Iterator[np.ndarray]:
     yield from read_ahead(read, starts, name="unwind-upload-read")
 
 
-#: What a server that takes raw uploads only answers to an upload of format "chunks" (it ignores the format and
-#: counts the chunks' bytes as voxels), or one whose message limit is below a chunk's: the client then uploads raw.
 #: Seconds the raw upload that follows a refused chunked one waits for the refused one's slot (see Client.upload).
 _SLOT_GRACE = 3.0
 
+#: What a server that takes raw uploads only answers to an upload of format "chunks" (it ignores the format and
+#: counts the chunks' bytes as voxels), or one whose message limit is below a chunk's: the client then uploads raw.
 _RAW_ONLY_SERVER = ("but the chunks held", "the chunks hold more bytes than the header's shape",
                     "; upload it raw")  # (the last: a server whose message limit is below a chunk's size)
 
@@ -491,8 +491,8 @@ class Client:
                 # a server of an earlier version took the chunks for raw voxels and refused their count, or a
                 # chunk is over the server's message limit: send raw. The refused upload may still hold this
                 # user's upload slot for a moment on a server that counts it until its handler ends (gRPC itself
-                # cut the call: the handler notices within a quarter second): a refusal for that is retried for
-                # a few seconds, every other error is raised as it is.
+                # cut the call, and the handler, late on a busy server, has yet to notice): a refusal for that is
+                # retried for a few seconds, every other error is raised as it is.
                 end = time.monotonic() + _SLOT_GRACE
                 while True:
                     try:
