@@ -480,6 +480,7 @@ class Client:
         upload = self._channel.stream_unary("/unwind.v1.VolumeService/Upload",
                                             request_serializer=encoder(volume_pb2.UploadRequest),
                                             response_deserializer=volume_pb2.VolumeInfo.FromString)
+        slot_grace = 0.0
         if codec is not None:
             try:
                 return self._retrying(lambda: upload(chunk_messages(), timeout=timeout, metadata=self._metadata),
@@ -493,17 +494,17 @@ class Client:
                 # user's upload slot for a moment on a server that counts it until its handler ends (gRPC itself
                 # cut the call, and the handler, late on a busy server, has yet to notice): a refusal for that is
                 # retried for a few seconds, every other error is raised as it is.
-                end = time.monotonic() + _SLOT_GRACE
-                while True:
-                    try:
-                        return self._retrying(lambda: upload(raw_messages(), timeout=timeout,
-                                                             metadata=self._metadata), "upload: ")
-                    except RemoteError as exc:
-                        if not (exc.code == "RESOURCE_EXHAUSTED" and "uploads in progress" in str(exc)
-                                and time.monotonic() < end):
-                            raise
-                    time.sleep(0.2)
-        return self._retrying(lambda: upload(raw_messages(), timeout=timeout, metadata=self._metadata), "upload: ")
+                slot_grace = _SLOT_GRACE
+        end = time.monotonic() + slot_grace
+        while True:
+            try:
+                return self._retrying(lambda: upload(raw_messages(), timeout=timeout, metadata=self._metadata),
+                                      "upload: ")
+            except RemoteError as exc:
+                if not (exc.code == "RESOURCE_EXHAUSTED" and "uploads in progress" in str(exc)
+                        and time.monotonic() < end):
+                    raise
+            time.sleep(0.2)
 
     def register(self, path: str, *, name: str = ""):
         """Register a scan already under the server's data root (``path`` relative to it)."""

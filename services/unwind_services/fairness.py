@@ -43,14 +43,13 @@ class UserSlots:
 
     A holder may say how to tell whether its call is still alive (``alive``, e.g. the gRPC context's ``is_active``):
     one whose call is over no longer counts, though its handler may still be ending (e.g. an upload that gRPC cut
-    for a message over its size limit, whose handler notices within a quarter second and then cleans up). The
-    client has its answer by then and may well start again at once; it must not be refused for the call it has
-    just seen end.
+    for a message over its size limit, whose handler, late on a busy server, has yet to notice). The client has its
+    answer by then and may well start again at once; it must not be refused for the call it has just seen end.
     """
 
     def __init__(self, limit: int, what: str, advice: str):
         self.limit, self.what, self.advice = int(limit), what, advice
-        self._held: dict[str, list[list]] = {}  # user -> tokens: [alive or None]
+        self._held: dict[str, list[Callable[[], bool] | None]] = {}  # user -> each holder's ``alive``
         self._lock = threading.Lock()
 
     @staticmethod
@@ -65,26 +64,22 @@ class UserSlots:
     def in_use(self, user: str) -> int:
         """The user's holders whose calls are alive."""
         with self._lock:
-            return sum(self._counts(t[0]) for t in self._held.get(user, ()))
+            return sum(map(self._counts, self._held.get(user, ())))
 
     @contextlib.contextmanager
     def hold(self, user: str, alive: Callable[[], bool] | None = None) -> Iterator[None]:
-        token = [alive]  # a list of its own: removed by identity, not by equality of the callables
         with self._lock:
-            held = self._held.setdefault(user, [])
-            n = sum(self._counts(t[0]) for t in held)
+            n = sum(map(self._counts, self._held.get(user, ())))
             if self.limit and n >= self.limit:
-                if not held:
-                    del self._held[user]
                 raise LimitError(f"you already have {n} {self.what} in progress, this server's limit per user; "
                                  f"{self.advice}")
-            held.append(token)
+            self._held.setdefault(user, []).append(alive)
         try:
             yield
         finally:
             with self._lock:
                 held = self._held[user]
-                held[:] = [t for t in held if t is not token]
+                held.remove(alive)  # an equal one is as good: the same call, or None
                 if not held:
                     del self._held[user]
 
