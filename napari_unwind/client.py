@@ -23,6 +23,7 @@ import itertools
 import math
 import os
 import random
+import re
 import shutil
 import tarfile
 import threading
@@ -45,6 +46,7 @@ DEFAULT_ADDRESS = "127.0.0.1:50051"
 #: Bytes of voxels per upload message: within the 4 MiB default message limit of servers; larger messages are not
 #: faster (benchmarks/bench_services.py).
 _CHUNK = 2 * 1024 * 1024
+_RAW_PIECE_MIN = 64 * 1024  # the smallest raw message the client sends to a server whose message limit is low
 _SLAB_BYTES = 32 * 1024 * 1024  # voxels read from the source per step (ahead of the messages being sent)
 
 
@@ -82,6 +84,15 @@ class _Held:
 
     def __getitem__(self, key: Any) -> np.ndarray:
         return self.a[key]
+
+
+def _message_limit(exc: Exception) -> int | None:
+    """The server's message limit in gRPC's refusal of a message over it ("Received message larger than max
+    (2097171 vs. 1048576)"), or None for any other error."""
+    m = re.search(r"larger than max \((\d+) vs\. (\d+)\)", str(exc))
+    if m is None or getattr(exc, "code", None) != "RESOURCE_EXHAUSTED":
+        return None
+    return int(m.group(2))
 
 
 def _lazy(a: np.ndarray) -> Any:
@@ -463,12 +474,14 @@ class Client:
             if codec.max_bytes + 16 > self._max_message:
                 codec = None
 
+        piece = _CHUNK  # bytes of voxels a raw message: less for a server whose message limit is below it
+
         def raw_messages() -> Iterator[Any]:
             yield volume_pb2.UploadRequest(header=header)
             for block in _slabs(source, le, step):
                 mv = memoryview(block).cast("B")
-                for a in range(0, len(mv), _CHUNK):
-                    yield encode_chunk(mv[a:a + _CHUNK])  # encoded here: one copy, not protobuf's three
+                for a in range(0, len(mv), piece):
+                    yield encode_chunk(mv[a:a + piece])  # encoded here: one copy, not protobuf's three
 
         def chunk_messages() -> Iterator[Any]:
             chunked = volume_pb2.UploadHeader()
@@ -501,6 +514,12 @@ class Client:
                 return self._retrying(lambda: upload(raw_messages(), timeout=timeout, metadata=self._metadata),
                                       "upload: ")
             except RemoteError as exc:
+                limit = _message_limit(exc)
+                if limit is not None and _RAW_PIECE_MIN <= limit - 64 < piece:
+                    # gRPC refused a raw message over the server's limit, and said the limit: send smaller
+                    # messages (raw voxels may be cut anywhere); the refused call may hold the slot a moment
+                    piece, end = (limit - 64) // 4096 * 4096, time.monotonic() + _SLOT_GRACE
+                    continue
                 if not (exc.code == "RESOURCE_EXHAUSTED" and "uploads in progress" in str(exc)
                         and time.monotonic() < end):
                     raise
@@ -920,7 +939,7 @@ class Client:
 
         Up to :data:`MAP_BATCH` points go in one MapPoints call; more stream through MapPointsStream in batches of
         that many, so neither side holds more than a batch of messages (``timeout``: for the whole call, default
-        the client's timeout per batch).
+        the client's timeout per batch). A server whose message limit is below a batch gets batches within it.
         """
         from unwind_services._proto.unwind.v1 import warp_pb2
 
@@ -929,7 +948,22 @@ class Client:
         direction = warp_pb2.MAP_DIRECTION_TO_SCAN if to == "scan" else warp_pb2.MAP_DIRECTION_TO_STRAIGHT
         arr = np.asarray(points, dtype=float).reshape(-1, 3)
         options = dict(session_id=session_id, direction=direction, spacing=spacing or 0.0, pad=pad)
-        batches = max(1, -(-len(arr) // MAP_BATCH))
+        batch = MAP_BATCH
+        while True:
+            try:
+                return self._map_batches(arr, options, batch, timeout)
+            except RemoteError as exc:
+                # gRPC refused a message over the server's limit, and said the limit: batches that fit it
+                limit = _message_limit(exc)
+                smaller = None if limit is None else (limit - 1024) // 24  # 3 doubles a point
+                if smaller is None or not 1000 <= smaller < batch:
+                    raise
+                batch = smaller
+
+    def _map_batches(self, arr: np.ndarray, options: dict, batch: int, timeout: float | None) -> np.ndarray:
+        from unwind_services._proto.unwind.v1 import warp_pb2
+
+        batches = max(1, -(-len(arr) // batch))
         timeout = timeout or self.timeout * batches
         if batches == 1:
             r = self._unary(self.warp_stub.MapPoints, warp_pb2.MapPointsRequest(
@@ -937,8 +971,8 @@ class Client:
             return np.asarray(r.coords, dtype=float).reshape(-1, 3)
 
         def requests() -> Iterator[Any]:
-            for a in range(0, len(arr), MAP_BATCH):
-                yield warp_pb2.MapPointsRequest(coords=arr[a:a + MAP_BATCH].ravel().tolist(),
+            for a in range(0, len(arr), batch):
+                yield warp_pb2.MapPointsRequest(coords=arr[a:a + batch].ravel().tolist(),
                                                 **(options if a == 0 else {}))
 
         def stream() -> np.ndarray:

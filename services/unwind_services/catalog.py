@@ -26,6 +26,11 @@ __all__ = ["Catalog", "Limits"]
 STORED_BYTES_TTL = 10.0
 
 
+#: The smallest message limit a server may have: clients send smaller messages to a server whose limit is below
+#: theirs (raw voxels in pieces of 64 KiB or more, MapPoints in batches of 1000 points or more).
+MIN_MESSAGE_BYTES = 256 * 1024
+
+
 @dataclass(frozen=True)
 class Limits:
     """What one server accepts, in total and per user (0: no limit, unless said otherwise)."""
@@ -49,6 +54,9 @@ class Limits:
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or value < 0:
                 raise InvalidInputError(f"{name} must be a number >= 0 (0: no limit), got {value!r}")
+        if 0 < self.max_message_bytes < MIN_MESSAGE_BYTES:  # a job's result, a session, must fit in one message
+            raise InvalidInputError(f"max_message_bytes must be at least {MIN_MESSAGE_BYTES} (256 KiB), or 0 for "
+                                    f"the default, got {self.max_message_bytes!r}")
 
     def running_per_user(self, workers: int) -> int:
         """Jobs of one user running at once: the limit given, else half of the ``workers`` (at least 1), so that

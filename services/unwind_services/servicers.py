@@ -197,6 +197,7 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
         header = volume_pb2.DownloadHeader(name=row.name, shape=list(level.shape), dtype=convert.dtype_enum(vol.dtype),
                                            spacing=list(spacing), unit=vol.unit or "", origin=list(vol.origin))
         max_message = self.catalog.limits.max_message_bytes or 64 * 1024**2
+        piece = max(4096, min(DOWNLOAD_CHUNK, (max_message - 64) // 4096 * 4096))  # within this server's limit
         as_stored = stored_chunks(vol, request.level, max_message - 64) if fmt == "chunks" else None
         if as_stored is not None:
             # the chunks as they are on disk: no decoding here, the client decodes and checks them
@@ -216,8 +217,8 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             yield volume_pb2.DownloadResponse(header=header)
             for block in level_slabs(vol, request.level, dtype):  # the next slab is read while this one is sent
                 mv = memoryview(block).cast("B")
-                for a in range(0, len(mv), DOWNLOAD_CHUNK):
-                    yield encode_chunk(mv[a:a + DOWNLOAD_CHUNK])  # one copy; sent as is (ingest.encoder)
+                for a in range(0, len(mv), piece):
+                    yield encode_chunk(mv[a:a + piece])  # one copy; sent as is (ingest.encoder)
             return
         suffix = fmt if fmt.startswith(".") else "." + fmt
         stem = row.name.split(".")[0] or "volume"
@@ -248,7 +249,7 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             header.total_bytes = send.stat().st_size
             yield volume_pb2.DownloadResponse(header=header)
             with open(send, "rb") as f:
-                while block := f.read(DOWNLOAD_CHUNK):
+                while block := f.read(piece):
                     yield encode_chunk(block)
         finally:
             remove_path(work)

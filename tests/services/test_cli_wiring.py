@@ -51,6 +51,14 @@ def test_unwind_lists_the_remote_commands():
     assert "--data-root" in out.stdout
 
 
+def test_a_message_limit_too_small_for_a_result_is_refused_before_serving(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "napari_unwind.cli", "serve", "--data-root", str(tmp_path / "d"),
+                          "--port", "0", "--max-message-bytes", "100000"], capture_output=True, text=True, timeout=120)
+    assert out.returncode != 0
+    assert "max_message_bytes must be at least 262144" in out.stderr and out.stderr.count("\n") == 1, out.stderr
+    assert not (tmp_path / "d").exists()
+
+
 def test_run_with_server_goes_to_the_client(monkeypatch, tmp_path):
     seen = {}
 

@@ -140,3 +140,30 @@ def test_the_server_stops_a_stream_when_its_deadline_passes(env):
     assert info.value.code == "DEADLINE_EXCEEDED"
     spent = _cpu_in(srv, t0 + 0.5, 2.0)
     assert spent < 0.2, f"the server spent {spent:.2f} s of CPU in the 2 s after the deadline"
+
+
+def test_a_server_whose_message_limit_is_below_a_batch_gets_smaller_batches(tmp_path):
+    """A batch of MAP_BATCH points is 1.2 MB; a server whose message limit is 512 KiB refuses it through gRPC,
+    which names the limit: the client maps the points in batches within it, and they match the core's."""
+    from unwind_services.catalog import Limits
+    from unwind_services.server import ServerConfig, UnwindServer
+
+    srv = UnwindServer(ServerConfig(data_root=tmp_path / "data", port=0, workers=1, scheduler="threads",
+                                    limits=Limits(max_message_bytes=512 * 2**10)))
+    srv.start()
+    try:
+        t = tank_phantom(n_fish=2, seed=1, length=90)
+        fish = t.fish[0]
+        with Client(srv.address, progress=False) as low:
+            mid = low.upload(fish.mask.astype(np.uint8), spacing=t.spacing, unit=t.unit, name="mask").volume_id
+            job = low.skeleton(mid, head=fish.head, tail=fish.tail)
+            here = Session.from_dict(json.loads(job.result.session_json)).deformation
+            for n in (30_000, MAP_BATCH + 7):  # over the limit in one call; and in a stream
+                pts = _points(t.volume.shape, n, seed=n)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    want = map_points(pts, here)
+                got = low.map_points(job.result.session_id, pts)
+                assert np.array_equal(got, want, equal_nan=True)
+    finally:
+        srv.stop(0)

@@ -268,3 +268,22 @@ def test_an_upload_gRPC_cut_does_not_hold_the_users_slot_while_its_handler_ends(
             np.testing.assert_array_equal(c.open(got.volume_id).data.compute(), a)
     finally:
         srv.stop(0)
+
+
+def test_a_server_whose_message_limit_is_below_a_raw_message_gets_smaller_ones(tmp_path):
+    """The client's raw messages carry 2 MiB; a server whose limit is below that (here 512 KiB) refuses them
+    through gRPC, which names its limit: the client uploads again in messages under it, and the voxels arrive."""
+    from unwind_services.catalog import Limits
+    from unwind_services.server import ServerConfig, UnwindServer
+
+    srv = UnwindServer(ServerConfig(data_root=tmp_path / "data", port=0, workers=1, scheduler="threads",
+                                    limits=Limits(max_message_bytes=512 * 2**10)))
+    srv.start()
+    try:
+        a = np.random.default_rng(6).integers(0, 4000, (70, 90, 110), dtype=np.uint16)  # 1.3 MiB
+        with Client(srv.address, progress=False) as c:
+            for fmt in ("chunks", "raw"):
+                got = c.upload(a, name=f"low-{fmt}", format=fmt)
+                np.testing.assert_array_equal(c.open(got.volume_id).data.compute(), a)
+    finally:
+        srv.stop(0)
