@@ -95,6 +95,15 @@ def _message_limit(exc: Exception) -> int | None:
     return int(m.group(2))
 
 
+def _piece_within(exc: Exception, piece: int) -> int | None:
+    """Bytes of raw voxels a message, under the server's message limit named in ``exc``, when that is below
+    ``piece`` (and at least ``_RAW_PIECE_MIN``); None otherwise."""
+    limit = _message_limit(exc)
+    if limit is None or not _RAW_PIECE_MIN <= limit - 64 < piece:
+        return None
+    return (limit - 64) // 4096 * 4096
+
+
 def _lazy(a: np.ndarray) -> Any:
     import dask.array as da
 
@@ -508,17 +517,17 @@ class Client:
                 # cut the call, and the handler, late on a busy server, has yet to notice): a refusal for that is
                 # retried for a few seconds, every other error is raised as it is.
                 slot_grace = _SLOT_GRACE
+                piece = _piece_within(exc, piece) or piece  # raw messages within the limit gRPC named, if it did
         end = time.monotonic() + slot_grace
         while True:
             try:
                 return self._retrying(lambda: upload(raw_messages(), timeout=timeout, metadata=self._metadata),
                                       "upload: ")
             except RemoteError as exc:
-                limit = _message_limit(exc)
-                if limit is not None and _RAW_PIECE_MIN <= limit - 64 < piece:
+                if smaller := _piece_within(exc, piece):
                     # gRPC refused a raw message over the server's limit, and said the limit: send smaller
                     # messages (raw voxels may be cut anywhere); the refused call may hold the slot a moment
-                    piece, end = (limit - 64) // 4096 * 4096, time.monotonic() + _SLOT_GRACE
+                    piece, end = smaller, time.monotonic() + _SLOT_GRACE
                     continue
                 if not (exc.code == "RESOURCE_EXHAUSTED" and "uploads in progress" in str(exc)
                         and time.monotonic() < end):
