@@ -29,6 +29,7 @@ STORED_BYTES_TTL = 10.0
 #: The smallest message limit a server may have: clients send smaller messages to a server whose limit is below
 #: theirs (raw voxels in pieces of 64 KiB or more, MapPoints in batches of 1000 points or more).
 MIN_MESSAGE_BYTES = 256 * 1024
+DEFAULT_MESSAGE_BYTES = 64 * 1024**2
 
 
 @dataclass(frozen=True)
@@ -37,7 +38,7 @@ class Limits:
 
     max_upload_bytes: int = 8 * 1024**3
     max_voxels: int = 4 * 1024**3
-    max_message_bytes: int = 64 * 1024**2
+    max_message_bytes: int = DEFAULT_MESSAGE_BYTES
     max_jobs_per_user: int = 4  # queued or running
     max_running_per_user: int = 0  # 0: half of the job workers, at least 1 (see running_per_user)
     max_uploads_per_user: int = 1  # uploads in progress at once
@@ -57,6 +58,11 @@ class Limits:
         if 0 < self.max_message_bytes < MIN_MESSAGE_BYTES:  # a job's result, a session, must fit in one message
             raise InvalidInputError(f"max_message_bytes must be at least {MIN_MESSAGE_BYTES} (256 KiB), or 0 for "
                                     f"the default, got {self.max_message_bytes!r}")
+
+    @property
+    def message_bytes(self) -> int:
+        """Bytes a gRPC message may hold on this server (``max_message_bytes``, 0 for the default 64 MiB)."""
+        return int(self.max_message_bytes) or DEFAULT_MESSAGE_BYTES
 
     def running_per_user(self, workers: int) -> int:
         """Jobs of one user running at once: the limit given, else half of the ``workers`` (at least 1), so that

@@ -200,7 +200,7 @@ class UnwindServer:
             self.auth = TokenAuth(config.tokens)
             self.jobs = JobManager(self.catalog, workers=config.workers, scheduler=config.scheduler,
                                    imports=config.imports or None)
-            size = config.limits.max_message_bytes or 64 * 1024**2
+            size = config.limits.message_bytes
             self.server = grpc.server(
                 ThreadPoolExecutor(max_workers=config.grpc_threads, thread_name_prefix="unwind-rpc"),
                 # the user's calls in progress are counted inside the first, which knows the user

@@ -120,7 +120,7 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
             raise LimitError(f"the upload would be {expected} bytes, more than this server's limit of "
                              f"{limits.max_upload_bytes}")
         self.catalog.check_quota(owner, expected, "this upload")
-        framing = upload_framing(h, dtype, limits.max_message_bytes or 64 * 1024**2)  # "raw" or "chunks"
+        framing = upload_framing(h, dtype, limits.message_bytes)  # "raw" or "chunks"
         vid = f"vol-{uuid.uuid4().hex[:12]}"
         dst = root.user_dir(owner) / "volumes" / f"{vid}.zarr"
         dst.parent.mkdir(parents=True, exist_ok=True)
@@ -196,8 +196,8 @@ class VolumeServicer(volume_pb2_grpc.VolumeServiceServicer):
         fmt = (request.format or "raw").lower()
         header = volume_pb2.DownloadHeader(name=row.name, shape=list(level.shape), dtype=convert.dtype_enum(vol.dtype),
                                            spacing=list(spacing), unit=vol.unit or "", origin=list(vol.origin))
-        max_message = self.catalog.limits.max_message_bytes or 64 * 1024**2
-        piece = max(4096, min(DOWNLOAD_CHUNK, (max_message - 64) // 4096 * 4096))  # within this server's limit
+        max_message = self.catalog.limits.message_bytes
+        piece = min(DOWNLOAD_CHUNK, (max_message - 64) // 4096 * 4096)  # within this server's limit (>= 256 KiB)
         as_stored = stored_chunks(vol, request.level, max_message - 64) if fmt == "chunks" else None
         if as_stored is not None:
             # the chunks as they are on disk: no decoding here, the client decodes and checks them
